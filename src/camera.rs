@@ -1,0 +1,165 @@
+//! Perspective pinhole camera: primary rays, and for light tracing the importance We, its
+//! directional pdf and the raster position a direction lands on.
+
+use crate::geometry::{Ray, Vec2, Vec3};
+
+#[derive(Clone, Debug)]
+pub struct Camera {
+    pub position: Vec3,
+    pub look_at: Vec3,
+    pub up_hint: Vec3,
+    /// Vertical field of view in degrees.
+    pub vfov_deg: f32,
+    pub width: u32,
+    pub height: u32,
+    forward: Vec3,
+    right: Vec3,
+    up: Vec3,
+    tan_x: f32,
+    tan_y: f32,
+    /// Area of the image rectangle on the plane at distance 1.
+    plane_area: f32,
+}
+
+impl Camera {
+    pub fn new(
+        position: Vec3,
+        look_at: Vec3,
+        up: Vec3,
+        vfov_deg: f32,
+        width: u32,
+        height: u32,
+    ) -> Result<Camera, String> {
+        if !(position.is_finite() && look_at.is_finite() && up.is_finite()) {
+            return Err("camera position, look_at and up must be finite".into());
+        }
+        let forward = (look_at - position).normalize_or_zero();
+        if forward == Vec3::ZERO {
+            return Err("camera look_at equals its position".into());
+        }
+        let right = forward.cross(up).normalize_or_zero();
+        if right == Vec3::ZERO {
+            return Err("camera up is parallel to the viewing direction".into());
+        }
+        if !(vfov_deg > 0.0 && vfov_deg < 179.0) {
+            return Err(format!("camera fov must be in (0, 179) degrees, got {vfov_deg}"));
+        }
+        if width == 0 || height == 0 {
+            return Err(format!("resolution must be positive, got {width}x{height}"));
+        }
+        let up = right.cross(forward);
+        let tan_y = (vfov_deg.to_radians() * 0.5).tan();
+        let tan_x = tan_y * width as f32 / height as f32;
+        Ok(Camera {
+            position,
+            look_at,
+            up_hint: up,
+            vfov_deg,
+            width,
+            height,
+            forward,
+            right,
+            up,
+            tan_x,
+            tan_y,
+            plane_area: 4.0 * tan_x * tan_y,
+        })
+    }
+
+    /// The same camera at another resolution, keeping the vertical field of view.
+    pub fn with_resolution(&self, width: u32, height: u32) -> Result<Camera, String> {
+        Camera::new(
+            self.position,
+            self.look_at,
+            self.up_hint,
+            self.vfov_deg,
+            width,
+            height,
+        )
+    }
+
+    pub fn forward(&self) -> Vec3 {
+        self.forward
+    }
+
+    /// Primary ray through raster position (x right, y down, in pixels).
+    #[inline]
+    pub fn ray(&self, raster: Vec2) -> Ray {
+        let sx = (2.0 * raster.x / self.width as f32 - 1.0) * self.tan_x;
+        let sy = (1.0 - 2.0 * raster.y / self.height as f32) * self.tan_y;
+        let d = (self.forward + sx * self.right + sy * self.up).normalize();
+        Ray::new(self.position, d)
+    }
+
+    /// Raster position of world direction `d` (unit) leaving the camera, if it is on the film.
+    pub fn raster_of(&self, d: Vec3) -> Option<Vec2> {
+        let c = d.dot(self.forward);
+        if c <= 0.0 {
+            return None;
+        }
+        let sx = d.dot(self.right) / c / self.tan_x;
+        let sy = d.dot(self.up) / c / self.tan_y;
+        let x = (sx + 1.0) * 0.5 * self.width as f32;
+        let y = (1.0 - sy) * 0.5 * self.height as f32;
+        if x >= 0.0 && x < self.width as f32 && y >= 0.0 && y < self.height as f32 {
+            Some(Vec2::new(x, y))
+        } else {
+            None
+        }
+    }
+
+    /// Importance We(d) of the whole film, normalised so that its integral over the film's solid
+    /// angle, weighted by cos, is 1: We = 1 / (A cos^4) (Veach 1997 §10.8; PBR 3rd ed. §16.1.1).
+    pub fn we(&self, d: Vec3) -> f32 {
+        let c = d.dot(self.forward);
+        if c <= 0.0 || self.raster_of(d).is_none() {
+            return 0.0;
+        }
+        1.0 / (self.plane_area * c * c * c * c)
+    }
+
+    /// Solid-angle density of primary ray directions when the film is sampled uniformly:
+    /// 1 / (A cos^3).
+    pub fn pdf_dir(&self, d: Vec3) -> f32 {
+        let c = d.dot(self.forward);
+        if c <= 0.0 || self.raster_of(d).is_none() {
+            return 0.0;
+        }
+        1.0 / (self.plane_area * c * c * c)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ray_and_raster_are_inverse() {
+        let cam = Camera::new(
+            Vec3::new(0.0, 1.0, 6.8),
+            Vec3::new(0.0, 1.0, 0.0),
+            Vec3::Y,
+            19.5,
+            64,
+            48,
+        )
+        .unwrap();
+        for (x, y) in [(0.5, 0.5), (32.0, 24.0), (63.2, 47.9), (10.0, 40.0)] {
+            let r = cam.ray(Vec2::new(x, y));
+            let back = cam.raster_of(r.d).unwrap();
+            assert!((back.x - x).abs() < 1e-3 && (back.y - y).abs() < 1e-3);
+        }
+        // Center looks forward; x grows to the right, y grows downward.
+        assert!((cam.ray(Vec2::new(32.0, 24.0)).d - Vec3::NEG_Z).length() < 1e-5);
+        assert!(cam.ray(Vec2::new(60.0, 24.0)).d.x > 0.0);
+        assert!(cam.ray(Vec2::new(32.0, 2.0)).d.y > 0.0);
+    }
+
+    #[test]
+    fn bad_cameras_are_refused() {
+        assert!(Camera::new(Vec3::ZERO, Vec3::ZERO, Vec3::Y, 40.0, 8, 8).is_err());
+        assert!(Camera::new(Vec3::ZERO, Vec3::Y, Vec3::Y, 40.0, 8, 8).is_err());
+        assert!(Camera::new(Vec3::ZERO, Vec3::Z, Vec3::Y, 0.0, 8, 8).is_err());
+        assert!(Camera::new(Vec3::ZERO, Vec3::Z, Vec3::Y, 40.0, 0, 8).is_err());
+    }
+}

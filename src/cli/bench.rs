@@ -1,0 +1,223 @@
+//! `omis bench`: BVH build time, closest-hit and occlusion ray rates with random rays, and the
+//! path tracer's throughput compared with the bare BVH rate for the same mix of queries.
+
+use crate::accel::{Accel, SphereGeom};
+use crate::geometry::warp::uniform_sphere;
+use crate::geometry::{Ray, Vec2, Vec3};
+use crate::integrator::{self, IntegratorKind, RenderSettings};
+use crate::sampler::{Pcg32, SamplerKind};
+use crate::scene::{Scene, mesh};
+use anyhow::{Context, Result};
+use clap::Args;
+use rayon::prelude::*;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// Scene files to measure (BVH and path tracer).
+    #[arg(long = "scene")]
+    pub scenes: Vec<PathBuf>,
+    /// A folder of OBJ files loaded in place as one mesh (BVH only), e.g.
+    /// ../shared/scenes/staircase/mitsuba/models.
+    #[arg(long)]
+    pub obj_dir: Vec<PathBuf>,
+    /// Random rays per measurement.
+    #[arg(long, default_value_t = 2_000_000)]
+    pub rays: usize,
+    /// Threads (0 = all cores); ray rates are measured on 1 thread and on this many.
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Path tracer spp and resolution for the throughput run.
+    #[arg(long, default_value_t = 16)]
+    pub spp: u32,
+    #[arg(long, default_value = "256x256")]
+    pub resolution: String,
+    #[arg(long, default_value_t = 5)]
+    pub max_depth: u32,
+    /// Print one JSON object per target.
+    #[arg(long)]
+    pub json: bool,
+}
+
+struct RayRates {
+    closest_1t: f64,
+    occlusion_1t: f64,
+    closest_nt: f64,
+    occlusion_nt: f64,
+}
+
+/// Random rays inside the bounds: closest-hit rays from a random interior point in a uniform
+/// direction; occlusion rays as segments between two random interior points.
+fn measure_rays(accel: &Accel, lo: Vec3, hi: Vec3, n: usize, pool: &rayon::ThreadPool) -> RayRates {
+    let ext = hi - lo;
+    let point = |r: &mut Pcg32| lo + ext * Vec3::new(r.next_f32(), r.next_f32(), r.next_f32());
+    let closest = |chunk: usize, count: usize| -> usize {
+        let mut rng = Pcg32::new(chunk as u64, 1);
+        let mut hits = 0;
+        for _ in 0..count {
+            let o = point(&mut rng);
+            let d = uniform_sphere(Vec2::new(rng.next_f32(), rng.next_f32()));
+            hits += accel.intersect(&Ray::new(o, d)).is_some() as usize;
+        }
+        hits
+    };
+    let occl = |chunk: usize, count: usize| -> usize {
+        let mut rng = Pcg32::new(chunk as u64, 2);
+        let mut blocked = 0;
+        for _ in 0..count {
+            let a = point(&mut rng);
+            let b = point(&mut rng);
+            let d = b - a;
+            let len = d.length();
+            if len > 0.0 {
+                blocked += accel.occluded(&Ray::segment(a, d / len, len)) as usize;
+            }
+        }
+        blocked
+    };
+    let time = |f: &(dyn Fn(usize, usize) -> usize + Sync), parallel: bool| -> f64 {
+        let start = Instant::now();
+        if parallel {
+            let chunks = 256;
+            let per = n.div_ceil(chunks);
+            let _: usize = pool.install(|| (0..chunks).into_par_iter().map(|c| f(c, per)).sum());
+            (per * chunks) as f64 / start.elapsed().as_secs_f64()
+        } else {
+            let _ = f(0, n / 4);
+            (n / 4) as f64 / start.elapsed().as_secs_f64()
+        }
+    };
+    RayRates {
+        closest_1t: time(&closest, false),
+        occlusion_1t: time(&occl, false),
+        closest_nt: time(&closest, true),
+        occlusion_nt: time(&occl, true),
+    }
+}
+
+pub fn run(a: BenchArgs) -> Result<()> {
+    let pool = super::thread_pool(a.threads)?;
+    let threads = pool.current_num_threads();
+    let (w, h) = super::parse_resolution(&a.resolution).map_err(anyhow::Error::msg)?;
+    let mut scenes = a.scenes.clone();
+    if scenes.is_empty() && a.obj_dir.is_empty() {
+        scenes.push(PathBuf::from("scenes/cornell-box.json"));
+    }
+    for path in &scenes {
+        let t0 = Instant::now();
+        let mut scene = Scene::load(path).map_err(anyhow::Error::msg)?;
+        let load = t0.elapsed().as_secs_f64();
+        scene.camera = scene.camera.with_resolution(w, h).map_err(anyhow::Error::msg)?;
+        let (lo, hi) = scene.bounds();
+        let rates = measure_rays(scene.accel(), lo, hi, a.rays, &pool);
+        let settings = RenderSettings {
+            integrator: IntegratorKind::Pt,
+            spp: a.spp,
+            max_depth: a.max_depth,
+            seed: 1,
+            sampler: SamplerKind::Sobol,
+        };
+        let out = pool.install(|| integrator::render(&scene, &settings, 16, &|_| {}));
+        let st = out.stats;
+        let secs = out.seconds;
+        // Time the bare BVH would need for the same numbers of closest and occlusion queries.
+        let bare = st.closest as f64 / rates.closest_nt + st.shadow as f64 / rates.occlusion_nt;
+        report(
+            &a,
+            &path.display().to_string(),
+            scene.stats.triangles,
+            load,
+            scene.stats.bvh_build_seconds,
+            &rates,
+            threads,
+            Some((st.samples as f64 / secs, st.rays() as f64 / secs, bare / secs)),
+        );
+    }
+    for dir in &a.obj_dir {
+        let t0 = Instant::now();
+        let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+            .with_context(|| format!("reading {}", dir.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|e| e.eq_ignore_ascii_case("obj")))
+            .collect();
+        files.sort();
+        let mut tris: Vec<[Vec3; 3]> = Vec::new();
+        for f in &files {
+            let m = mesh::load_obj(f).map_err(|e| anyhow::anyhow!("{}: {e}", f.display()))?;
+            tris.extend(m.indices.iter().map(|t| t.map(|k| m.positions[k as usize])));
+        }
+        let load = t0.elapsed().as_secs_f64();
+        let ids: Vec<u32> = (0..tris.len() as u32).collect();
+        let accel = Accel::build(&tris, &ids, &[] as &[SphereGeom], &[]);
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        for t in &tris {
+            for v in t {
+                lo = lo.min(*v);
+                hi = hi.max(*v);
+            }
+        }
+        let rates = measure_rays(&accel, lo, hi, a.rays, &pool);
+        report(
+            &a,
+            &format!("{} ({} OBJ files)", dir.display(), files.len()),
+            tris.len(),
+            load,
+            accel.stats.seconds,
+            &rates,
+            threads,
+            None,
+        );
+    }
+    Ok(())
+}
+
+#[allow(clippy::too_many_arguments)]
+fn report(
+    a: &BenchArgs,
+    name: &str,
+    triangles: usize,
+    load: f64,
+    build: f64,
+    r: &RayRates,
+    threads: usize,
+    pt: Option<(f64, f64, f64)>,
+) {
+    if a.json {
+        let mut j = serde_json::json!({
+            "target": name, "triangles": triangles, "load_seconds": load,
+            "bvh_build_seconds": build, "threads": threads,
+            "closest_mrays_1t": r.closest_1t / 1e6, "occlusion_mrays_1t": r.occlusion_1t / 1e6,
+            "closest_mrays": r.closest_nt / 1e6, "occlusion_mrays": r.occlusion_nt / 1e6,
+        });
+        if let Some((sps, rps, frac)) = pt {
+            j["pt_pixel_samples_per_second"] = serde_json::json!(sps);
+            j["pt_mrays"] = serde_json::json!(rps / 1e6);
+            j["pt_fraction_of_bare_bvh"] = serde_json::json!(frac);
+        }
+        println!("{j}");
+        return;
+    }
+    println!("{name}: {triangles} triangles, load {load:.3} s, BVH build {build:.3} s");
+    println!(
+        "  random rays, 1 thread : closest {:.2} Mrays/s, occlusion {:.2} Mrays/s",
+        r.closest_1t / 1e6,
+        r.occlusion_1t / 1e6
+    );
+    println!(
+        "  random rays, {threads} threads: closest {:.2} Mrays/s, occlusion {:.2} Mrays/s",
+        r.closest_nt / 1e6,
+        r.occlusion_nt / 1e6
+    );
+    if let Some((sps, rps, frac)) = pt {
+        println!(
+            "  path tracer ({} spp, {}, depth {}): {:.0} pixel samples/s, {:.2} Mrays/s = {:.0}% of the bare BVH rate for the same query mix",
+            a.spp,
+            a.resolution,
+            a.max_depth,
+            sps,
+            rps / 1e6,
+            frac * 100.0
+        );
+    }
+}

@@ -1,0 +1,70 @@
+//! The `omis` command line: one binary, clap subcommands.
+
+mod bench;
+mod diff;
+mod render;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "omis", version, about = "Bidirectional path tracer with optimal MIS")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a scene to an EXR (and optionally a PNG preview).
+    Render(render::RenderArgs),
+    /// Compare an image with a reference: relMSE, MSE, optional error map.
+    Diff(diff::DiffArgs),
+    /// Measure BVH build time, ray rates and integrator throughput.
+    Bench(bench::BenchArgs),
+}
+
+/// Runs the command line; returns the process exit code. Errors are printed as one line.
+pub fn main() -> i32 {
+    let cli = match Cli::try_parse() {
+        Ok(c) => c,
+        Err(e) => {
+            let code = if e.use_stderr() { 2 } else { 0 };
+            let _ = e.print();
+            return code;
+        }
+    };
+    let result = match cli.command {
+        Command::Render(a) => render::run(a),
+        Command::Diff(a) => diff::run(a),
+        Command::Bench(a) => bench::run(a),
+    };
+    match result {
+        Ok(()) => 0,
+        Err(e) => {
+            let msg = format!("{e:#}").replace('\n', " ");
+            eprintln!("omis: error: {msg}");
+            1
+        }
+    }
+}
+
+/// Parses "WxH".
+pub(crate) fn parse_resolution(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("resolution '{s}' is not WxH"))?;
+    let w: u32 = w.trim().parse().map_err(|_| format!("bad width in '{s}'"))?;
+    let h: u32 = h.trim().parse().map_err(|_| format!("bad height in '{s}'"))?;
+    if w == 0 || h == 0 || w > 16384 || h > 16384 {
+        return Err(format!("resolution '{s}' must be within 1x1 .. 16384x16384"));
+    }
+    Ok((w, h))
+}
+
+/// A rayon pool with `threads` threads (0 = all cores).
+pub(crate) fn thread_pool(threads: usize) -> anyhow::Result<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| anyhow::anyhow!("cannot start {threads} threads: {e}"))
+}

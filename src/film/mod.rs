@@ -1,0 +1,112 @@
+//! Images and pixel accumulators, EXR / PNG output and error metrics.
+
+pub mod exr_io;
+pub mod metrics;
+pub mod png;
+
+use crate::geometry::Rgb;
+
+/// An RGB f32 image, rows top to bottom.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub width: usize,
+    pub height: usize,
+    pub pixels: Vec<Rgb>,
+}
+
+impl Image {
+    pub fn new(width: usize, height: usize) -> Self {
+        Image {
+            width,
+            height,
+            pixels: vec![Rgb::ZERO; width * height],
+        }
+    }
+
+    #[inline]
+    pub fn get(&self, x: usize, y: usize) -> Rgb {
+        self.pixels[y * self.width + x]
+    }
+
+    #[inline]
+    pub fn set(&mut self, x: usize, y: usize, v: Rgb) {
+        self.pixels[y * self.width + x] = v;
+    }
+
+    /// Mean over all pixels, in f64.
+    pub fn mean(&self) -> [f64; 3] {
+        let mut s = [0.0f64; 3];
+        for p in &self.pixels {
+            s[0] += p.x as f64;
+            s[1] += p.y as f64;
+            s[2] += p.z as f64;
+        }
+        let n = self.pixels.len().max(1) as f64;
+        [s[0] / n, s[1] / n, s[2] / n]
+    }
+}
+
+/// Per-pixel f64 accumulators of a box-filtered estimate: sum, sum of squares, sample count.
+/// Sums merge by addition, so tiles and sample ranges can be rendered apart and combined.
+#[derive(Clone, Debug)]
+pub struct PixelSums {
+    pub width: usize,
+    pub height: usize,
+    pub sum: Vec<[f64; 3]>,
+    pub sum_sq: Vec<[f64; 3]>,
+    pub count: Vec<u32>,
+}
+
+impl PixelSums {
+    pub fn new(width: usize, height: usize) -> Self {
+        PixelSums {
+            width,
+            height,
+            sum: vec![[0.0; 3]; width * height],
+            sum_sq: vec![[0.0; 3]; width * height],
+            count: vec![0; width * height],
+        }
+    }
+
+    #[inline]
+    pub fn add(&mut self, idx: usize, v: Rgb) {
+        let s = &mut self.sum[idx];
+        let q = &mut self.sum_sq[idx];
+        let v = [v.x as f64, v.y as f64, v.z as f64];
+        for c in 0..3 {
+            s[c] += v[c];
+            q[c] += v[c] * v[c];
+        }
+        self.count[idx] += 1;
+    }
+
+    /// The mean image.
+    pub fn mean(&self) -> Image {
+        let mut img = Image::new(self.width, self.height);
+        for (i, p) in img.pixels.iter_mut().enumerate() {
+            let n = self.count[i].max(1) as f64;
+            let s = self.sum[i];
+            *p = Rgb::new((s[0] / n) as f32, (s[1] / n) as f32, (s[2] / n) as f32);
+        }
+        img
+    }
+
+    /// Per-pixel variance of the mean estimate (sample variance / n), per channel.
+    pub fn variance_of_mean(&self) -> Image {
+        let mut img = Image::new(self.width, self.height);
+        for (i, p) in img.pixels.iter_mut().enumerate() {
+            let n = self.count[i] as f64;
+            if n < 2.0 {
+                continue;
+            }
+            let mut v = [0.0f32; 3];
+            for c in 0..3 {
+                let m = self.sum[i][c] / n;
+                let var = ((self.sum_sq[i][c] / n - m * m) * n / (n - 1.0)).max(0.0);
+                v[c] = (var / n) as f32;
+            }
+            *p = Rgb::from_array(v);
+        }
+        img
+    }
+}

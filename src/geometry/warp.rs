@@ -1,0 +1,138 @@
+//! Warps from the unit square to directions and points, each with its density.
+
+use super::{INV_2PI, INV_4PI, INV_PI, PI, Vec2, Vec3};
+
+/// Shirley–Chiu concentric map of the unit square to the unit disk (area preserving).
+pub fn concentric_disk(u: Vec2) -> Vec2 {
+    let a = 2.0 * u.x - 1.0;
+    let b = 2.0 * u.y - 1.0;
+    if a == 0.0 && b == 0.0 {
+        return Vec2::ZERO;
+    }
+    let (r, phi) = if a * a > b * b {
+        (a, (PI / 4.0) * (b / a))
+    } else {
+        (b, PI / 2.0 - (PI / 4.0) * (a / b))
+    };
+    Vec2::new(r * phi.cos(), r * phi.sin())
+}
+
+/// Cosine-weighted hemisphere around +z (Malley's method); density cos(theta)/pi.
+pub fn cosine_hemisphere(u: Vec2) -> Vec3 {
+    let d = concentric_disk(u);
+    let z = (1.0 - d.x * d.x - d.y * d.y).max(0.0).sqrt();
+    Vec3::new(d.x, d.y, z)
+}
+
+#[inline]
+pub fn cosine_hemisphere_pdf(cos_theta: f32) -> f32 {
+    if cos_theta > 0.0 {
+        cos_theta * INV_PI
+    } else {
+        0.0
+    }
+}
+
+/// Uniform direction on the unit sphere; density 1/(4 pi).
+pub fn uniform_sphere(u: Vec2) -> Vec3 {
+    let z = 1.0 - 2.0 * u.x;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = 2.0 * PI * u.y;
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+pub const UNIFORM_SPHERE_PDF: f32 = INV_4PI;
+
+/// Uniform direction in the cone of half-angle acos(cos_max) around +z (seed 003, sphere lights):
+/// cos(theta) = (1 - u0) + u0 cos_max, density 1 / (2 pi (1 - cos_max)).
+pub fn uniform_cone(u: Vec2, cos_max: f32) -> Vec3 {
+    let cos_t = (1.0 - u.x) + u.x * cos_max;
+    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    let phi = 2.0 * PI * u.y;
+    Vec3::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t)
+}
+
+#[inline]
+pub fn uniform_cone_pdf(cos_max: f32) -> f32 {
+    INV_2PI / (1.0 - cos_max)
+}
+
+/// Uniform barycentrics (b0, b1) on a triangle (Heitz 2019 low-distortion square-to-triangle map).
+pub fn uniform_triangle(u: Vec2) -> (f32, f32) {
+    let (b0, b1);
+    if u.x < u.y {
+        b0 = u.x / 2.0;
+        b1 = u.y - b0;
+    } else {
+        b1 = u.y / 2.0;
+        b0 = u.x - b1;
+    }
+    (b0, b1)
+}
+
+/// Direction around +z with density (s + 1)/(2 pi) cos^s (theta): the modified-Phong lobe
+/// (seed 003, "Material Importance Sampling for Phong": cos theta = (1 - u0)^(1/(s+1))).
+pub fn power_cosine(u: Vec2, s: f32) -> Vec3 {
+    let cos_t = (1.0 - u.x).powf(1.0 / (s + 1.0));
+    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    let phi = 2.0 * PI * u.y;
+    Vec3::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t)
+}
+
+#[inline]
+pub fn power_cosine_pdf(cos_t: f32, s: f32) -> f32 {
+    if cos_t > 0.0 {
+        (s + 1.0) * INV_2PI * cos_t.powf(s)
+    } else {
+        0.0
+    }
+}
+
+/// Power heuristic with beta = 2 (Veach 1997, eq. 9.13), written for n_f = n_g = 1.
+#[inline]
+pub fn power_heuristic(pdf_f: f32, pdf_g: f32) -> f32 {
+    let f = pdf_f * pdf_f;
+    let g = pdf_g * pdf_g;
+    if f == 0.0 {
+        return 0.0;
+    }
+    if g.is_infinite() {
+        return 0.0;
+    }
+    if f.is_infinite() {
+        return 1.0;
+    }
+    f / (f + g)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn warps_land_where_they_should() {
+        let mut u = 0.1f32;
+        for _ in 0..1000 {
+            u = (u * 7.31 + 0.377).fract();
+            let v = ((u * 13.7) + 0.19).fract();
+            let q = Vec2::new(u, v);
+            let d = cosine_hemisphere(q);
+            assert!((d.length() - 1.0).abs() < 1e-4 && d.z >= 0.0);
+            assert!((uniform_sphere(q).length() - 1.0).abs() < 1e-4);
+            let c = uniform_cone(q, 0.9);
+            assert!(c.z >= 0.9 - 1e-5);
+            let (b0, b1) = uniform_triangle(q);
+            assert!(b0 >= 0.0 && b1 >= 0.0 && b0 + b1 <= 1.0 + 1e-6);
+            let p = power_cosine(q, 20.0);
+            assert!((p.length() - 1.0).abs() < 1e-4 && p.z >= 0.0);
+        }
+    }
+
+    #[test]
+    fn power_heuristic_limits() {
+        assert_eq!(power_heuristic(0.0, 1.0), 0.0);
+        assert_eq!(power_heuristic(1.0, 0.0), 1.0);
+        assert!((power_heuristic(1.0, 1.0) - 0.5).abs() < 1e-6);
+        assert_eq!(power_heuristic(f32::INFINITY, 3.0), 1.0);
+    }
+}

@@ -1,0 +1,129 @@
+//! Unidirectional path tracer: next-event estimation and BSDF sampling combined by MIS with the
+//! power heuristic, Russian roulette, maximum depth.
+//!
+//! Depth counts bounces: a path of k vertices (camera and light vertex included) has depth
+//! k - 2. Depth 0 is an emitter seen directly, depth 1 direct lighting. `max_depth` D keeps
+//! every path of depth <= D.
+//!
+//! Light sampling is treated in the direction domain (seed 004): its density for a direction is
+//! the sum, over every light the ray meets, of (selection probability x that light's density),
+//! and the value of a light-sampled direction is the radiance of the first surface along it.
+
+use super::RayStats;
+use crate::geometry::warp::power_heuristic;
+use crate::geometry::{Ray, Rgb, Vec3, max_component};
+use crate::material::{Bsdf, Mode};
+use crate::sampler::Sampler;
+use crate::scene::{NO_LIGHT, Scene, SurfaceHit};
+
+/// Paths of this many bounces or more are subject to Russian roulette.
+pub const RR_START_DEPTH: u32 = 3;
+
+/// Radiance along `ray` (one pixel sample).
+pub fn li(scene: &Scene, ray: Ray, sampler: &mut Sampler, max_depth: u32, stats: &mut RayStats) -> Rgb {
+    let mut l = Rgb::ZERO;
+    let mut beta = Rgb::ONE;
+    let mut ray = ray;
+    // Previous scattering vertex: position and BSDF pdf of the sampled direction; None after the
+    // camera or a delta bounce (emission is then counted with weight 1).
+    let mut prev: Option<(Vec3, f32)> = None;
+    let mut depth = 0u32;
+    loop {
+        stats.closest += 1;
+        let Some(hit) = scene.intersect(&ray) else {
+            break;
+        };
+        let wo = -ray.d;
+        if hit.light != NO_LIGHT {
+            let le = scene.lights[hit.light as usize].le(hit.ng, wo);
+            if le != Rgb::ZERO {
+                let w = match prev {
+                    None => 1.0,
+                    Some((p, pdf_bsdf)) => power_heuristic(pdf_bsdf, scene.light_pdf_dir(p, ray.d)),
+                };
+                l += beta * le * w;
+            }
+        }
+        if depth >= max_depth {
+            break;
+        }
+        let bsdf = Bsdf::new(&scene.materials[hit.material as usize], hit.ng, hit.ns, hit.uv);
+        if bsdf.is_black() {
+            break;
+        }
+        if !bsdf.is_delta() {
+            l += beta * direct(scene, &hit, &bsdf, wo, sampler, stats);
+        }
+        let u_lobe = sampler.next_1d();
+        let u = sampler.next_2d();
+        let Some(s) = bsdf.sample(wo, u_lobe, u, Mode::Radiance) else {
+            break;
+        };
+        beta *= s.f * (s.wi.dot(hit.ns).abs() / s.pdf);
+        prev = if s.delta { None } else { Some((hit.p, s.pdf)) };
+        ray = Scene::spawn_ray(hit.p, hit.ng, s.wi);
+        depth += 1;
+        if depth >= RR_START_DEPTH {
+            let q = max_component(beta).min(0.95);
+            if !(sampler.next_1d() < q) {
+                break;
+            }
+            beta /= q;
+        }
+    }
+    l
+}
+
+/// Next-event estimate at `hit`: one light sample, MIS-weighted against BSDF sampling.
+fn direct(
+    scene: &Scene,
+    hit: &SurfaceHit,
+    bsdf: &Bsdf,
+    wo: Vec3,
+    sampler: &mut Sampler,
+    stats: &mut RayStats,
+) -> Rgb {
+    let u_light = sampler.next_1d();
+    let u = sampler.next_2d();
+    let Some((li, pmf)) = scene.sample_light(u_light) else {
+        return Rgb::ZERO;
+    };
+    let light = &scene.lights[li as usize];
+    let Some(ls) = light.sample_li(hit.p, u) else {
+        return Rgb::ZERO;
+    };
+    let f = bsdf.eval(wo, ls.wi, Mode::Radiance);
+    if f == Rgb::ZERO {
+        return Rgb::ZERO;
+    }
+    let cos = ls.wi.dot(hit.ns).abs();
+    if ls.delta {
+        stats.shadow += 1;
+        if ls.le == Rgb::ZERO || scene.occluded(hit.p, hit.ng, ls.p, Vec3::ZERO) {
+            return Rgb::ZERO;
+        }
+        return f * ls.le * (cos / pmf);
+    }
+    stats.shadow += 1;
+    let le = if !scene.occluded(hit.p, hit.ng, ls.p, ls.n) {
+        ls.le
+    } else if scene.emitters_may_occlude_each_other() {
+        // Direction domain: the value is the radiance of whatever emitter is hit first.
+        stats.closest += 1;
+        match scene.intersect(&Scene::spawn_ray(hit.p, hit.ng, ls.wi)) {
+            Some(h) if h.light != NO_LIGHT => scene.lights[h.light as usize].le(h.ng, -ls.wi),
+            _ => Rgb::ZERO,
+        }
+    } else {
+        Rgb::ZERO
+    };
+    if le == Rgb::ZERO {
+        return Rgb::ZERO;
+    }
+    let pdf_light = scene.light_pdf_dir(hit.p, ls.wi);
+    if !(pdf_light > 0.0) {
+        return Rgb::ZERO;
+    }
+    let w = power_heuristic(pdf_light, bsdf.pdf(wo, ls.wi));
+    f * le * (cos * w / pdf_light)
+}

@@ -1,0 +1,15 @@
+//! omis: a bidirectional path tracer with optimal multiple importance sampling, and the render
+//! service around it. See DESIGN.md (architecture) and README.md (use).
+//!
+//! Data flows one way: scene -> accel -> integrator (material, light, sampler) -> film -> cli.
+
+pub mod accel;
+pub mod camera;
+pub mod cli;
+pub mod film;
+pub mod geometry;
+pub mod integrator;
+pub mod light;
+pub mod material;
+pub mod sampler;
+pub mod scene;

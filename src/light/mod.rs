@@ -1,0 +1,312 @@
+//! Emitters: one-sided triangle area lights, sphere lights and point lights, with light selection
+//! proportional to power.
+
+mod distribution;
+
+pub use distribution::Distribution1D;
+
+use crate::geometry::warp::uniform_sphere;
+use crate::geometry::{Frame, PI, Rgb, Vec2, Vec3, luminance};
+
+#[derive(Clone, Debug)]
+pub enum Light {
+    /// One-sided area light on a triangle; emits on the side of `n`.
+    Triangle {
+        p0: Vec3,
+        e1: Vec3,
+        e2: Vec3,
+        n: Vec3,
+        area: f32,
+        radiance: Rgb,
+    },
+    /// Sphere emitting outward (or inward when `inward`, e.g. an enclosing furnace).
+    Sphere {
+        center: Vec3,
+        radius: f32,
+        inward: bool,
+        radiance: Rgb,
+    },
+    /// Isotropic point light of radiant intensity `intensity`.
+    Point { position: Vec3, intensity: Rgb },
+}
+
+/// A point sampled on a light, as seen from a reference point.
+#[derive(Clone, Copy, Debug)]
+pub struct LightSample {
+    /// Point on the light.
+    pub p: Vec3,
+    /// Geometric normal of the light surface at `p` (outward for spheres; zero for points).
+    pub n: Vec3,
+    /// Unit direction from the reference point toward `p`.
+    pub wi: Vec3,
+    pub dist: f32,
+    /// Radiance arriving from `p` along -wi (intensity / dist^2 for point lights).
+    pub le: Rgb,
+    /// Solid-angle density of `wi` under this light's sampling (1 for point lights).
+    pub pdf: f32,
+    pub delta: bool,
+}
+
+impl Light {
+    pub fn triangle(p0: Vec3, p1: Vec3, p2: Vec3, n: Vec3, radiance: Rgb) -> Option<Light> {
+        let e1 = p1 - p0;
+        let e2 = p2 - p0;
+        let area = 0.5 * e1.cross(e2).length();
+        if !(area > 0.0) || !area.is_finite() {
+            return None;
+        }
+        Some(Light::Triangle {
+            p0,
+            e1,
+            e2,
+            n,
+            area,
+            radiance,
+        })
+    }
+
+    pub fn is_delta(&self) -> bool {
+        matches!(self, Light::Point { .. })
+    }
+
+    /// Emitted power (luminance), used for light selection.
+    pub fn power(&self) -> f32 {
+        match self {
+            Light::Triangle { area, radiance, .. } => PI * area * luminance(*radiance),
+            Light::Sphere {
+                radius, radiance, ..
+            } => PI * 4.0 * PI * radius * radius * luminance(*radiance),
+            Light::Point { intensity, .. } => 4.0 * PI * luminance(*intensity),
+        }
+    }
+
+    /// Radiance leaving surface point `p` (normal `n` as returned by sampling) toward direction `w`.
+    #[inline]
+    pub fn le(&self, n: Vec3, w: Vec3) -> Rgb {
+        match self {
+            Light::Triangle { radiance, .. } => {
+                if n.dot(w) > 0.0 {
+                    *radiance
+                } else {
+                    Rgb::ZERO
+                }
+            }
+            Light::Sphere {
+                radiance, inward, ..
+            } => {
+                let c = n.dot(w);
+                if (c > 0.0) != *inward && c != 0.0 {
+                    *radiance
+                } else {
+                    Rgb::ZERO
+                }
+            }
+            Light::Point { .. } => Rgb::ZERO,
+        }
+    }
+
+    /// Samples a direction toward the light from `p_ref` (seed 003: sphere lights by uniform cone
+    /// sampling from outside, uniform area sampling from inside; triangles by uniform area).
+    pub fn sample_li(&self, p_ref: Vec3, u: Vec2) -> Option<LightSample> {
+        match *self {
+            Light::Triangle {
+                p0,
+                e1,
+                e2,
+                n,
+                area,
+                radiance,
+            } => {
+                let (b1, b2) = crate::geometry::warp::uniform_triangle(u);
+                let p = p0 + e1 * b1 + e2 * b2;
+                let d = p - p_ref;
+                let dist2 = d.length_squared();
+                let dist = dist2.sqrt();
+                if !(dist > 0.0) {
+                    return None;
+                }
+                let wi = d / dist;
+                let cos_l = n.dot(-wi).abs();
+                if cos_l <= 0.0 {
+                    return None;
+                }
+                let pdf = dist2 / (cos_l * area);
+                let le = if n.dot(-wi) > 0.0 { radiance } else { Rgb::ZERO };
+                finite_sample(LightSample {
+                    p,
+                    n,
+                    wi,
+                    dist,
+                    le,
+                    pdf,
+                    delta: false,
+                })
+            }
+            Light::Sphere {
+                center,
+                radius,
+                inward,
+                radiance,
+            } => {
+                let to_c = center - p_ref;
+                let dc2 = to_c.length_squared();
+                let r2 = radius * radius;
+                if dc2 > r2 * 1.000_01 {
+                    let dc = dc2.sqrt();
+                    let sin2_max = r2 / dc2;
+                    let cos_max = (1.0 - sin2_max).max(0.0).sqrt();
+                    let one_minus_cos_max = sin2_max / (1.0 + cos_max);
+                    // Cone sampling written with 1 - cos to keep precision for distant lights.
+                    let omc = u.x * one_minus_cos_max;
+                    let cos_t = 1.0 - omc;
+                    let sin_t = (omc * (2.0 - omc)).max(0.0).sqrt();
+                    let phi = 2.0 * PI * u.y;
+                    let axis = to_c / dc;
+                    let wi = Frame::from_normal(axis)
+                        .to_world(Vec3::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t))
+                        .normalize();
+                    // Near intersection of the sampled direction with the sphere.
+                    let disc = (r2 - dc2 * sin_t * sin_t).max(0.0);
+                    let dist = (dc * cos_t - disc.sqrt()).max(0.0);
+                    let p = p_ref + wi * dist;
+                    let n = (p - center).normalize();
+                    let pdf = 1.0 / (2.0 * PI * one_minus_cos_max);
+                    let le = if inward { Rgb::ZERO } else { radiance };
+                    finite_sample(LightSample {
+                        p,
+                        n,
+                        wi,
+                        dist,
+                        le,
+                        pdf,
+                        delta: false,
+                    })
+                } else {
+                    let n = uniform_sphere(u);
+                    let p = center + n * radius;
+                    let d = p - p_ref;
+                    let dist2 = d.length_squared();
+                    let dist = dist2.sqrt();
+                    if !(dist > 0.0) {
+                        return None;
+                    }
+                    let wi = d / dist;
+                    let cos_l = n.dot(wi).abs();
+                    if cos_l <= 0.0 {
+                        return None;
+                    }
+                    let pdf = dist2 / (cos_l * 4.0 * PI * r2);
+                    let le = self.le(n, -wi);
+                    finite_sample(LightSample {
+                        p,
+                        n,
+                        wi,
+                        dist,
+                        le,
+                        pdf,
+                        delta: false,
+                    })
+                }
+            }
+            Light::Point {
+                position,
+                intensity,
+            } => {
+                let d = position - p_ref;
+                let dist2 = d.length_squared();
+                let dist = dist2.sqrt();
+                if !(dist > 0.0) {
+                    return None;
+                }
+                finite_sample(LightSample {
+                    p: position,
+                    n: Vec3::ZERO,
+                    wi: d / dist,
+                    dist,
+                    le: intensity / dist2,
+                    pdf: 1.0,
+                    delta: true,
+                })
+            }
+        }
+    }
+
+    /// Solid-angle density with which `sample_li(p_ref, ..)` produces direction `wi`, whether or
+    /// not the light is the first thing the ray meets (seed 004: the light-sampling pdf of a
+    /// direction sums over every light the ray reaches). Zero for point lights.
+    pub fn pdf_li(&self, p_ref: Vec3, wi: Vec3) -> f32 {
+        match *self {
+            Light::Triangle {
+                p0, e1, e2, area, ..
+            } => {
+                // Moeller–Trumbore.
+                let pv = wi.cross(e2);
+                let det = e1.dot(pv);
+                if det.abs() < 1e-12 {
+                    return 0.0;
+                }
+                let inv = 1.0 / det;
+                let tv = p_ref - p0;
+                let b1 = tv.dot(pv) * inv;
+                if !(0.0..=1.0).contains(&b1) {
+                    return 0.0;
+                }
+                let qv = tv.cross(e1);
+                let b2 = wi.dot(qv) * inv;
+                if b2 < 0.0 || b1 + b2 > 1.0 {
+                    return 0.0;
+                }
+                let t = e2.dot(qv) * inv;
+                if !(t > 0.0) {
+                    return 0.0;
+                }
+                let ng = e1.cross(e2) / (2.0 * area);
+                let cos_l = ng.dot(wi).abs();
+                if cos_l <= 0.0 {
+                    return 0.0;
+                }
+                let p = t * t / (cos_l * area);
+                if p.is_finite() { p } else { 0.0 }
+            }
+            Light::Sphere { center, radius, .. } => {
+                let to_c = center - p_ref;
+                let dc2 = to_c.length_squared();
+                let r2 = radius * radius;
+                let geom = crate::accel::SphereGeom { center, radius };
+                let Some((t0, t1)) = geom.roots(p_ref, wi) else {
+                    return 0.0;
+                };
+                if dc2 > r2 * 1.000_01 {
+                    if t1 <= 0.0 {
+                        return 0.0;
+                    }
+                    let sin2_max = r2 / dc2;
+                    let cos_max = (1.0 - sin2_max).max(0.0).sqrt();
+                    1.0 / (2.0 * PI * (sin2_max / (1.0 + cos_max)))
+                } else {
+                    let t = if t0 > 0.0 { t0 } else { t1 };
+                    if !(t > 0.0) {
+                        return 0.0;
+                    }
+                    let p = p_ref + wi * t;
+                    let n = (p - center) / radius;
+                    let cos_l = n.dot(wi).abs();
+                    if cos_l <= 0.0 {
+                        return 0.0;
+                    }
+                    let pdf = t * t / (cos_l * 4.0 * PI * r2);
+                    if pdf.is_finite() { pdf } else { 0.0 }
+                }
+            }
+            Light::Point { .. } => 0.0,
+        }
+    }
+}
+
+fn finite_sample(s: LightSample) -> Option<LightSample> {
+    if s.pdf > 0.0 && s.pdf.is_finite() && s.wi.is_finite() && s.le.is_finite() {
+        Some(s)
+    } else {
+        None
+    }
+}

@@ -1,0 +1,303 @@
+//! The scattering models in their local shading frame (+z = shading normal, wo.z > 0 for the
+//! reflection-only models, which the caller guarantees by flipping two-sided surfaces).
+//!
+//! Conventions: `eval` returns the BSDF value f(wo, wi) without the cosine; `pdf(wo, wi)` is the
+//! solid-angle density with which `sample(wo, ..)` produces wi; delta lobes return f = 0 and
+//! pdf = 0 from `eval`/`pdf` and a discrete probability from `sample`.
+
+use super::fresnel;
+use super::microfacet::Ggx;
+use super::Mode;
+use crate::geometry::warp::{
+    cosine_hemisphere, cosine_hemisphere_pdf, power_cosine, power_cosine_pdf,
+};
+use crate::geometry::{Frame, INV_2PI, INV_PI, Rgb, Vec2, Vec3, luminance};
+
+#[derive(Clone, Copy, Debug)]
+pub enum Lobe {
+    /// Absorbs everything (e.g. the geometry of an emitter with no reflectance).
+    Black,
+    Lambert {
+        r: Rgb,
+    },
+    /// Modified Phong (Lafortune & Willems 1994), energy-normalised: kd/pi + ks (n+2)/(2 pi) cos^n a.
+    /// The specular lobe is chosen with probability `q` from the albedos (seed 003).
+    Phong {
+        kd: Rgb,
+        ks: Rgb,
+        n: f32,
+        q: f32,
+    },
+    Mirror {
+        r: Rgb,
+    },
+    /// Smooth dielectric; `eta` = interior / exterior index.
+    Dielectric {
+        eta: f32,
+        r: Rgb,
+        t: Rgb,
+    },
+    /// GGX rough conductor with complex Fresnel, reflectance scaled by `scale`.
+    Conductor {
+        ggx: Ggx,
+        eta: Rgb,
+        k: Rgb,
+        scale: Rgb,
+    },
+    /// Diffuse base under a GGX dielectric coat. `diffuse` is the effective diffuse albedo factor
+    /// (already divided by the internal-reflection term when the layered model is used).
+    Plastic {
+        ggx: Ggx,
+        kd: Rgb,
+        ks: Rgb,
+        eta: f32,
+        layered: bool,
+        /// 1 / (pi eta^2) for the layered model, 1 / pi otherwise.
+        diffuse_norm: f32,
+    },
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct LocalSample {
+    pub wi: Vec3,
+    pub f: Rgb,
+    pub pdf: f32,
+    pub delta: bool,
+}
+
+#[inline]
+fn reflect_z(w: Vec3) -> Vec3 {
+    Vec3::new(-w.x, -w.y, w.z)
+}
+
+impl Lobe {
+    pub fn is_delta(&self) -> bool {
+        matches!(self, Lobe::Mirror { .. } | Lobe::Dielectric { .. })
+    }
+
+    pub fn is_black(&self) -> bool {
+        matches!(self, Lobe::Black)
+    }
+
+    /// Transmissive lobes see both sides of the surface; the others are reflection-only.
+    pub fn transmits(&self) -> bool {
+        matches!(self, Lobe::Dielectric { .. })
+    }
+
+    fn plastic_spec_prob(ks: Rgb, kd: Rgb, f_o: f32) -> f32 {
+        let s = luminance(ks) * f_o;
+        let d = luminance(kd) * (1.0 - f_o);
+        if s + d <= 0.0 { 0.0 } else { s / (s + d) }
+    }
+
+    pub fn eval(&self, wo: Vec3, wi: Vec3, mode: Mode) -> Rgb {
+        let _ = mode;
+        match *self {
+            Lobe::Black | Lobe::Mirror { .. } | Lobe::Dielectric { .. } => Rgb::ZERO,
+            Lobe::Lambert { r } => {
+                if wo.z > 0.0 && wi.z > 0.0 {
+                    r * INV_PI
+                } else {
+                    Rgb::ZERO
+                }
+            }
+            Lobe::Phong { kd, ks, n, .. } => {
+                if wo.z <= 0.0 || wi.z <= 0.0 {
+                    return Rgb::ZERO;
+                }
+                let c = reflect_z(wo).dot(wi).max(0.0);
+                kd * INV_PI + ks * ((n + 2.0) * INV_2PI * c.powf(n))
+            }
+            Lobe::Conductor { ggx, eta, k, scale } => {
+                if wo.z <= 0.0 || wi.z <= 0.0 {
+                    return Rgb::ZERO;
+                }
+                let h = (wo + wi).normalize();
+                let f = fresnel::conductor(wo.dot(h), eta, k);
+                scale * f * (ggx.d(h) * ggx.g2(wo, wi) / (4.0 * wo.z * wi.z))
+            }
+            Lobe::Plastic {
+                ggx,
+                kd,
+                ks,
+                eta,
+                diffuse_norm,
+                layered,
+            } => {
+                if wo.z <= 0.0 || wi.z <= 0.0 {
+                    return Rgb::ZERO;
+                }
+                let h = (wo + wi).normalize();
+                let spec = ks
+                    * (fresnel::dielectric(wo.dot(h), eta) * ggx.d(h) * ggx.g2(wo, wi)
+                        / (4.0 * wo.z * wi.z));
+                let coupling = if layered {
+                    (1.0 - fresnel::dielectric(wo.z, eta)) * (1.0 - fresnel::dielectric(wi.z, eta))
+                } else {
+                    1.0
+                };
+                spec + kd * (diffuse_norm * coupling)
+            }
+        }
+    }
+
+    pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
+        match *self {
+            Lobe::Black | Lobe::Mirror { .. } | Lobe::Dielectric { .. } => 0.0,
+            Lobe::Lambert { .. } => {
+                if wo.z > 0.0 {
+                    cosine_hemisphere_pdf(wi.z)
+                } else {
+                    0.0
+                }
+            }
+            Lobe::Phong { n, q, .. } => {
+                if wo.z <= 0.0 || wi.z <= 0.0 {
+                    return 0.0;
+                }
+                let c = reflect_z(wo).dot(wi);
+                (1.0 - q) * cosine_hemisphere_pdf(wi.z) + q * power_cosine_pdf(c, n)
+            }
+            Lobe::Conductor { ggx, .. } => ggx.reflection_pdf(wo, wi),
+            Lobe::Plastic {
+                ggx, kd, ks, eta, ..
+            } => {
+                if wo.z <= 0.0 || wi.z <= 0.0 {
+                    return 0.0;
+                }
+                let q = Self::plastic_spec_prob(ks, kd, fresnel::dielectric(wo.z, eta));
+                q * ggx.reflection_pdf(wo, wi) + (1.0 - q) * cosine_hemisphere_pdf(wi.z)
+            }
+        }
+    }
+
+    /// Samples wi given wo; `u_lobe` picks a lobe, `u` the direction within it.
+    pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2, mode: Mode) -> Option<LocalSample> {
+        let continuous = |wi: Vec3| -> Option<LocalSample> {
+            let pdf = self.pdf(wo, wi);
+            if !(pdf > 0.0) || !pdf.is_finite() {
+                return None;
+            }
+            Some(LocalSample {
+                wi,
+                f: self.eval(wo, wi, mode),
+                pdf,
+                delta: false,
+            })
+        };
+        match *self {
+            Lobe::Black => None,
+            Lobe::Lambert { .. } => {
+                if wo.z <= 0.0 {
+                    return None;
+                }
+                continuous(cosine_hemisphere(u))
+            }
+            Lobe::Phong { n, q, .. } => {
+                if wo.z <= 0.0 {
+                    return None;
+                }
+                let wi = if u_lobe < q {
+                    let r = reflect_z(wo);
+                    Frame::from_normal(r).to_world(power_cosine(u, n))
+                } else {
+                    cosine_hemisphere(u)
+                };
+                if wi.z <= 0.0 {
+                    return None;
+                }
+                continuous(wi)
+            }
+            Lobe::Mirror { r } => {
+                if wo.z <= 0.0 {
+                    return None;
+                }
+                let wi = reflect_z(wo);
+                Some(LocalSample {
+                    wi,
+                    f: r / wi.z,
+                    pdf: 1.0,
+                    delta: true,
+                })
+            }
+            Lobe::Dielectric { eta, r, t } => {
+                if wo.z == 0.0 {
+                    return None;
+                }
+                let entering = wo.z > 0.0;
+                let eta_rel = if entering { eta } else { 1.0 / eta };
+                let cos_o = wo.z.abs();
+                let f = fresnel::dielectric(cos_o, eta_rel);
+                if u_lobe < f {
+                    let wi = reflect_z(wo);
+                    Some(LocalSample {
+                        wi,
+                        f: r * (f / cos_o),
+                        pdf: f,
+                        delta: true,
+                    })
+                } else {
+                    let cos_t = fresnel::refracted_cos(cos_o, eta_rel)?;
+                    let nz = if entering { 1.0 } else { -1.0 };
+                    let wi = -wo / eta_rel + Vec3::new(0.0, 0.0, nz * (cos_o / eta_rel - cos_t));
+                    let wi = wi.normalize();
+                    let mut ft = t * ((1.0 - f) / wi.z.abs());
+                    if mode == Mode::Radiance {
+                        // Radiance is compressed into the denser medium: (eta_o / eta_i)^2 with
+                        // eta_o on wo's side (Veach 1997 §5.2).
+                        ft /= eta_rel * eta_rel;
+                    }
+                    Some(LocalSample {
+                        wi,
+                        f: ft,
+                        pdf: 1.0 - f,
+                        delta: true,
+                    })
+                }
+            }
+            Lobe::Conductor { ggx, .. } => {
+                if wo.z <= 0.0 {
+                    return None;
+                }
+                let h = ggx.sample_visible_normal(wo, u);
+                let wi = 2.0 * wo.dot(h) * h - wo;
+                if wi.z <= 0.0 {
+                    return None;
+                }
+                continuous(wi)
+            }
+            Lobe::Plastic {
+                ggx, kd, ks, eta, ..
+            } => {
+                if wo.z <= 0.0 {
+                    return None;
+                }
+                let q = Self::plastic_spec_prob(ks, kd, fresnel::dielectric(wo.z, eta));
+                let wi = if u_lobe < q {
+                    let h = ggx.sample_visible_normal(wo, u);
+                    2.0 * wo.dot(h) * h - wo
+                } else {
+                    cosine_hemisphere(u)
+                };
+                if wi.z <= 0.0 {
+                    return None;
+                }
+                continuous(wi)
+            }
+        }
+    }
+
+    /// Discrete probability of the delta event that maps wo to wi (for BDPT's reverse pdfs);
+    /// zero for non-delta lobes.
+    pub fn delta_pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
+        match *self {
+            Lobe::Mirror { .. } => 1.0,
+            Lobe::Dielectric { eta, .. } => {
+                let eta_rel = if wo.z > 0.0 { eta } else { 1.0 / eta };
+                let f = fresnel::dielectric(wo.z.abs(), eta_rel);
+                if wo.z * wi.z > 0.0 { f } else { 1.0 - f }
+            }
+            _ => 0.0,
+        }
+    }
+}

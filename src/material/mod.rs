@@ -1,0 +1,319 @@
+//! Materials and the BSDF at a surface point: eval, sample and pdf in both directions.
+
+pub mod fresnel;
+pub mod lobe;
+pub mod microfacet;
+pub mod texture;
+
+use crate::geometry::{Frame, Rgb, Vec2, Vec3, luminance};
+pub use lobe::{LocalSample, Lobe};
+use microfacet::Ggx;
+pub use texture::{Bitmap, Texture};
+
+/// Which quantity a path carries: radiance (camera subpaths) or importance (light subpaths).
+/// Refraction and shading normals make the BSDF non-symmetric (Veach 1997 ch. 5).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Mode {
+    Radiance,
+    Importance,
+}
+
+/// A material as the scene describes it; textures are resolved per hit by [`Bsdf::new`].
+#[derive(Clone, Debug)]
+pub enum MaterialKind {
+    Lambert {
+        albedo: Texture,
+    },
+    Phong {
+        kd: Rgb,
+        ks: Rgb,
+        exponent: f32,
+    },
+    Mirror {
+        reflectance: Rgb,
+    },
+    Dielectric {
+        /// Interior / exterior index of refraction.
+        ior: f32,
+        reflectance: Rgb,
+        transmittance: Rgb,
+    },
+    RoughConductor {
+        eta: Rgb,
+        k: Rgb,
+        alpha_u: f32,
+        alpha_v: f32,
+        scale: Rgb,
+    },
+    Plastic {
+        diffuse: Texture,
+        specular: Rgb,
+        ior: f32,
+        alpha: f32,
+        /// Layered (energy-coupled) diffuse term; `false` gives the additive pbrt-v3 model.
+        layered: bool,
+        /// Mitsuba's "nonlinear" internal-scattering term (only with `layered`).
+        nonlinear: bool,
+    },
+}
+
+#[derive(Clone, Debug)]
+pub struct Material {
+    pub name: String,
+    pub kind: MaterialKind,
+    /// Reflection-only models reflect on both sides when true; on the back side they are black
+    /// otherwise (Mitsuba's default). Transmissive models always see both sides.
+    pub two_sided: bool,
+    /// Internal diffuse Fresnel reflectance of the plastic coat, precomputed.
+    fdr: f32,
+}
+
+impl Material {
+    pub fn new(name: impl Into<String>, kind: MaterialKind, two_sided: bool) -> Self {
+        let fdr = match &kind {
+            MaterialKind::Plastic { ior, .. } => fresnel::internal_diffuse_reflectance(*ior),
+            _ => 0.0,
+        };
+        Material {
+            name: name.into(),
+            kind,
+            two_sided,
+            fdr,
+        }
+    }
+
+    /// The lobe at surface coordinates `uv`.
+    pub fn lobe(&self, uv: Vec2) -> Lobe {
+        match &self.kind {
+            MaterialKind::Lambert { albedo } => {
+                let r = albedo.eval(uv);
+                if r == Rgb::ZERO {
+                    Lobe::Black
+                } else {
+                    Lobe::Lambert { r }
+                }
+            }
+            MaterialKind::Phong { kd, ks, exponent } => {
+                let sd = kd.x + kd.y + kd.z;
+                let ss = ks.x + ks.y + ks.z;
+                if sd + ss <= 0.0 {
+                    return Lobe::Black;
+                }
+                Lobe::Phong {
+                    kd: *kd,
+                    ks: *ks,
+                    n: *exponent,
+                    q: ss / (sd + ss),
+                }
+            }
+            MaterialKind::Mirror { reflectance } => Lobe::Mirror { r: *reflectance },
+            MaterialKind::Dielectric {
+                ior,
+                reflectance,
+                transmittance,
+            } => Lobe::Dielectric {
+                eta: *ior,
+                r: *reflectance,
+                t: *transmittance,
+            },
+            MaterialKind::RoughConductor {
+                eta,
+                k,
+                alpha_u,
+                alpha_v,
+                scale,
+            } => Lobe::Conductor {
+                ggx: Ggx::new(*alpha_u, *alpha_v),
+                eta: *eta,
+                k: *k,
+                scale: *scale,
+            },
+            MaterialKind::Plastic {
+                diffuse,
+                specular,
+                ior,
+                alpha,
+                layered,
+                nonlinear,
+            } => {
+                let mut kd = diffuse.eval(uv);
+                let diffuse_norm = if *layered {
+                    // Mitsuba 0.5 roughplastic: kd / (1 - kd Fdr) (nonlinear) or kd / (1 - Fdr),
+                    // times (1 - F(wi)) (1 - F(wo)) / (pi eta^2).
+                    kd = if *nonlinear {
+                        kd / (Rgb::ONE - kd * self.fdr)
+                    } else {
+                        kd / (1.0 - self.fdr)
+                    };
+                    1.0 / (crate::geometry::PI * ior * ior)
+                } else {
+                    crate::geometry::INV_PI
+                };
+                Lobe::Plastic {
+                    ggx: Ggx::new(*alpha, *alpha),
+                    kd,
+                    ks: *specular,
+                    eta: *ior,
+                    layered: *layered,
+                    diffuse_norm,
+                }
+            }
+        }
+    }
+
+    /// Rough average albedo, for statistics and heuristics.
+    pub fn approx_albedo(&self) -> f32 {
+        match &self.kind {
+            MaterialKind::Lambert { albedo } => luminance(albedo.average()),
+            MaterialKind::Phong { kd, ks, .. } => luminance(*kd + *ks),
+            MaterialKind::Mirror { reflectance } => luminance(*reflectance),
+            MaterialKind::Dielectric { .. } => 1.0,
+            MaterialKind::RoughConductor { scale, .. } => luminance(*scale),
+            MaterialKind::Plastic { diffuse, .. } => luminance(diffuse.average()),
+        }
+    }
+}
+
+/// A BSDF sample in world space.
+#[derive(Clone, Copy, Debug)]
+pub struct BsdfSample {
+    pub wi: Vec3,
+    pub f: Rgb,
+    pub pdf: f32,
+    pub delta: bool,
+}
+
+/// The BSDF at one surface point: a resolved lobe in the shading frame, plus the geometric normal
+/// that decides which side of the surface a direction is on.
+#[derive(Clone, Copy, Debug)]
+pub struct Bsdf {
+    pub lobe: Lobe,
+    pub frame: Frame,
+    pub ng: Vec3,
+    two_sided: bool,
+}
+
+impl Bsdf {
+    /// `ng` is the geometric normal, `ns` the shading normal on the same side.
+    pub fn new(material: &Material, ng: Vec3, ns: Vec3, uv: Vec2) -> Bsdf {
+        Bsdf {
+            lobe: material.lobe(uv),
+            frame: Frame::from_normal(ns),
+            ng,
+            two_sided: material.two_sided,
+        }
+    }
+
+    pub fn is_delta(&self) -> bool {
+        self.lobe.is_delta()
+    }
+
+    pub fn is_black(&self) -> bool {
+        self.lobe.is_black()
+    }
+
+    /// Local directions for a query, with reflection-only lobes flipped to wo's side of a
+    /// two-sided surface; `None` when the query has no value (back of a one-sided surface, or
+    /// geometric and shading normals disagree about the side of a direction).
+    #[inline]
+    fn localize(&self, wo: Vec3, wi: Vec3) -> Option<(Vec3, Vec3)> {
+        let go = wo.dot(self.ng);
+        let gi = wi.dot(self.ng);
+        if go == 0.0 || gi == 0.0 {
+            return None;
+        }
+        let mut lo = self.frame.to_local(wo);
+        let mut li = self.frame.to_local(wi);
+        if self.lobe.transmits() {
+            // Geometric and shading classification of reflection vs transmission must agree.
+            if (go * gi > 0.0) != (lo.z * li.z > 0.0) || lo.z * go <= 0.0 {
+                return None;
+            }
+            return Some((lo, li));
+        }
+        if go * gi <= 0.0 {
+            return None;
+        }
+        if go < 0.0 {
+            if !self.two_sided {
+                return None;
+            }
+            lo.z = -lo.z;
+            li.z = -li.z;
+        }
+        Some((lo, li))
+    }
+
+    /// Veach's adjoint correction for shading normals on importance-carrying paths
+    /// (Veach 1997 eq. 5.19): |wo.ns| |wi.ng| / (|wo.ng| |wi.ns|).
+    #[inline]
+    fn shading_correction(&self, wo: Vec3, wi: Vec3, mode: Mode) -> f32 {
+        if mode == Mode::Radiance {
+            return 1.0;
+        }
+        let num = wo.dot(self.frame.n).abs() * wi.dot(self.ng).abs();
+        let den = wo.dot(self.ng).abs() * wi.dot(self.frame.n).abs();
+        if den == 0.0 { 0.0 } else { num / den }
+    }
+
+    /// f(wo, wi) without the cosine. Zero for delta lobes.
+    pub fn eval(&self, wo: Vec3, wi: Vec3, mode: Mode) -> Rgb {
+        match self.localize(wo, wi) {
+            Some((lo, li)) => self.lobe.eval(lo, li, mode) * self.shading_correction(wo, wi, mode),
+            None => Rgb::ZERO,
+        }
+    }
+
+    /// Solid-angle density of sampling wi from wo. Zero for delta lobes; never negative or NaN.
+    pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
+        match self.localize(wo, wi) {
+            Some((lo, li)) => {
+                let p = self.lobe.pdf(lo, li);
+                if p.is_finite() && p > 0.0 { p } else { 0.0 }
+            }
+            None => 0.0,
+        }
+    }
+
+    /// Discrete probability of the delta event taking wo to wi (1 for mirrors, F or 1 - F for
+    /// smooth dielectrics); zero for non-delta lobes.
+    pub fn delta_pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
+        match self.localize(wo, wi) {
+            Some((lo, li)) => self.lobe.delta_pdf(lo, li),
+            None => 0.0,
+        }
+    }
+
+    pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2, mode: Mode) -> Option<BsdfSample> {
+        let go = wo.dot(self.ng);
+        if go == 0.0 {
+            return None;
+        }
+        let mut lo = self.frame.to_local(wo);
+        let flip = !self.lobe.transmits() && go < 0.0;
+        if flip {
+            if !self.two_sided {
+                return None;
+            }
+            lo.z = -lo.z;
+        }
+        let s = self.lobe.sample(lo, u_lobe, u, mode)?;
+        let mut li = s.wi;
+        if flip {
+            li.z = -li.z;
+        }
+        let wi = self.frame.to_world(li);
+        // Reject samples whose geometric side contradicts the local one (keeps pdf consistent).
+        self.localize(wo, wi)?;
+        let f = s.f * self.shading_correction(wo, wi, mode);
+        if !(s.pdf > 0.0) || !s.pdf.is_finite() || !f.is_finite() {
+            return None;
+        }
+        Some(BsdfSample {
+            wi,
+            f,
+            pdf: s.pdf,
+            delta: s.delta,
+        })
+    }
+}

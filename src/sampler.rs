@@ -1,0 +1,350 @@
+//! Samplers. Every random number of pixel sample `i` of pixel (x, y) derives from
+//! hash(seed, x, y, i) and a dimension counter, so a render is a deterministic function of
+//! (scene, settings, seed) whatever the thread count, tiling or order of work.
+
+use crate::geometry::Vec2;
+use serde::{Deserialize, Serialize};
+
+/// 64-bit finaliser of MurmurHash3 / SplitMix64 (Steele et al. 2014).
+#[inline]
+pub fn mix64(mut z: u64) -> u64 {
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// Hash of a sequence of words; order matters.
+#[inline]
+pub fn hash_words(words: &[u64]) -> u64 {
+    let mut h = 0x9e37_79b9_7f4a_7c15u64;
+    for &w in words {
+        h = mix64(h ^ w.wrapping_add(0x9e37_79b9_7f4a_7c15).wrapping_add(h << 6));
+    }
+    h
+}
+
+/// PCG32 (O'Neill 2014, XSH-RR variant).
+#[derive(Clone, Debug)]
+pub struct Pcg32 {
+    state: u64,
+    inc: u64,
+}
+
+impl Pcg32 {
+    const MULT: u64 = 6_364_136_223_846_793_005;
+
+    pub fn new(seed: u64, stream: u64) -> Self {
+        let mut r = Pcg32 {
+            state: 0,
+            inc: (stream << 1) | 1,
+        };
+        r.next_u32();
+        r.state = r.state.wrapping_add(seed);
+        r.next_u32();
+        r
+    }
+
+    #[inline]
+    pub fn next_u32(&mut self) -> u32 {
+        let old = self.state;
+        self.state = old.wrapping_mul(Self::MULT).wrapping_add(self.inc);
+        let xorshifted = (((old >> 18) ^ old) >> 27) as u32;
+        let rot = (old >> 59) as u32;
+        xorshifted.rotate_right(rot)
+    }
+
+    /// Uniform in [0, 1).
+    #[inline]
+    pub fn next_f32(&mut self) -> f32 {
+        u32_to_unit(self.next_u32())
+    }
+
+    pub fn next_f64(&mut self) -> f64 {
+        let hi = (self.next_u32() as u64) << 21;
+        let lo = (self.next_u32() >> 11) as u64;
+        ((hi | lo) as f64) * (1.0 / (1u64 << 53) as f64)
+    }
+}
+
+/// Top 24 bits of `x` as a float in [0, 1).
+#[inline]
+fn u32_to_unit(x: u32) -> f32 {
+    (x >> 8) as f32 * (1.0 / (1u32 << 24) as f32)
+}
+
+/// Which sample generator a render uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum SamplerKind {
+    /// Independent uniform numbers from PCG32.
+    Independent,
+    /// Stratified: jittered strata in 1D and correlated multi-jittered (Kensler 2013) in 2D, over
+    /// blocks of `spp` samples.
+    Stratified,
+    /// Owen-scrambled Sobol' (0,2)-sequence, padded per dimension pair (Burley 2020).
+    #[default]
+    Sobol,
+}
+
+/// Which family of dimensions a sampler serves: camera subpaths and light subpaths of the same
+/// pixel sample draw from independent streams.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stream {
+    Camera = 0,
+    Light = 1,
+}
+
+/// The random numbers of one pixel sample.
+#[derive(Clone, Debug)]
+pub struct Sampler {
+    kind: SamplerKind,
+    /// hash(seed, x, y, stream): scrambles per pixel.
+    pixel_hash: u64,
+    index: u32,
+    /// Stratification block (the requested spp, or the pass size in time-budget renders).
+    block: u32,
+    dim: u32,
+    rng: Pcg32,
+}
+
+impl Sampler {
+    pub fn new(
+        kind: SamplerKind,
+        seed: u64,
+        x: u32,
+        y: u32,
+        index: u32,
+        block: u32,
+        stream: Stream,
+    ) -> Self {
+        let pixel_hash = hash_words(&[seed, x as u64, y as u64, stream as u64]);
+        let sample_hash = hash_words(&[pixel_hash, index as u64]);
+        Sampler {
+            kind,
+            pixel_hash,
+            index,
+            block: block.max(1),
+            dim: 0,
+            rng: Pcg32::new(sample_hash, stream as u64),
+        }
+    }
+
+    pub fn kind(&self) -> SamplerKind {
+        self.kind
+    }
+
+    #[inline]
+    pub fn next_1d(&mut self) -> f32 {
+        let d = self.dim;
+        self.dim += 1;
+        match self.kind {
+            SamplerKind::Independent => self.rng.next_f32(),
+            SamplerKind::Stratified => {
+                let round = self.index / self.block;
+                let j = self.index % self.block;
+                let h = hash_words(&[self.pixel_hash, d as u64, round as u64]) as u32;
+                let stratum = permute(j, self.block, h);
+                let jitter = self.rng.next_f32();
+                ((stratum as f32 + jitter) / self.block as f32).min(ONE_MINUS_EPS)
+            }
+            SamplerKind::Sobol => {
+                let h = hash_words(&[self.pixel_hash, d as u64]);
+                let i = nested_uniform_scramble(self.index, h as u32);
+                let x = sobol_dim0(i);
+                u32_to_unit(nested_uniform_scramble(x, (h >> 32) as u32))
+            }
+        }
+    }
+
+    #[inline]
+    pub fn next_2d(&mut self) -> Vec2 {
+        let d = self.dim;
+        self.dim += 1;
+        match self.kind {
+            SamplerKind::Independent => Vec2::new(self.rng.next_f32(), self.rng.next_f32()),
+            SamplerKind::Stratified => {
+                let round = self.index / self.block;
+                let j = self.index % self.block;
+                let h = hash_words(&[self.pixel_hash, d as u64, round as u64]) as u32;
+                cmj(j, self.block, h, &mut self.rng)
+            }
+            SamplerKind::Sobol => {
+                let h = hash_words(&[self.pixel_hash, d as u64]);
+                let h2 = mix64(h);
+                let i = nested_uniform_scramble(self.index, h as u32);
+                let x = nested_uniform_scramble(sobol_dim0(i), (h >> 32) as u32);
+                let y = nested_uniform_scramble(sobol_dim1(i), h2 as u32);
+                Vec2::new(u32_to_unit(x), u32_to_unit(y))
+            }
+        }
+    }
+}
+
+const ONE_MINUS_EPS: f32 = 1.0 - f32::EPSILON / 2.0;
+
+/// First Sobol' dimension: the van der Corput sequence in base 2 (bit reversal).
+#[inline]
+fn sobol_dim0(i: u32) -> u32 {
+    i.reverse_bits()
+}
+
+/// Second Sobol' dimension (primitive polynomial x + 1): direction numbers v_k = v_{k-1} ^ (v_{k-1} >> 1).
+#[inline]
+fn sobol_dim1(mut i: u32) -> u32 {
+    let mut v = 1u32 << 31;
+    let mut r = 0u32;
+    while i != 0 {
+        if i & 1 != 0 {
+            r ^= v;
+        }
+        i >>= 1;
+        v ^= v >> 1;
+    }
+    r
+}
+
+/// Laine–Karras style hash permutation, as improved by Burley 2020 ("Practical Hash-based Owen
+/// Scrambling", JCGT 9(4)): an Owen scramble of the bit-reversed word.
+#[inline]
+fn laine_karras_permutation(mut x: u32, seed: u32) -> u32 {
+    x = x.wrapping_add(seed);
+    x ^= x.wrapping_mul(0x6c50_b47c);
+    x ^= x.wrapping_mul(0xb82f_1e52);
+    x ^= x.wrapping_mul(0xc7af_e638);
+    x ^= x.wrapping_mul(0x8d22_f6e6);
+    x
+}
+
+#[inline]
+fn nested_uniform_scramble(x: u32, seed: u32) -> u32 {
+    laine_karras_permutation(x.reverse_bits(), seed).reverse_bits()
+}
+
+/// Hash permutation of [0, l) by cycle walking (Kensler 2013, "Correlated Multi-Jittered Sampling").
+fn permute(mut i: u32, l: u32, p: u32) -> u32 {
+    if l <= 1 {
+        return 0;
+    }
+    let mut w = l - 1;
+    w |= w >> 1;
+    w |= w >> 2;
+    w |= w >> 4;
+    w |= w >> 8;
+    w |= w >> 16;
+    loop {
+        i ^= p;
+        i = i.wrapping_mul(0xe170_893d);
+        i ^= p >> 16;
+        i ^= (i & w) >> 4;
+        i ^= p >> 8;
+        i = i.wrapping_mul(0x0929_eb3f);
+        i ^= p >> 23;
+        i ^= (i & w) >> 1;
+        i = i.wrapping_mul(1 | p >> 27);
+        i = i.wrapping_mul(0x6935_fa69);
+        i ^= (i & w) >> 11;
+        i = i.wrapping_mul(0x74dc_b303);
+        i ^= (i & w) >> 2;
+        i = i.wrapping_mul(0x9e50_1cc3);
+        i ^= (i & w) >> 2;
+        i = i.wrapping_mul(0xc860_a3df);
+        i &= w;
+        i ^= i >> 5;
+        if i < l {
+            break;
+        }
+    }
+    (i.wrapping_add(p)) % l
+}
+
+/// Correlated multi-jittered 2D sample `s` of `n` (Kensler 2013): stratified in an m x k grid and in
+/// both 1D projections, for any n.
+fn cmj(s: u32, n: u32, p: u32, rng: &mut Pcg32) -> Vec2 {
+    let m = (n as f32).sqrt().ceil().max(1.0) as u32;
+    let k = n.div_ceil(m);
+    let s = permute(s, n, p.wrapping_mul(0x51633e2d));
+    let sx = permute(s % m, m, p.wrapping_mul(0x68bc21eb));
+    let sy = permute(s / m, k, p.wrapping_mul(0x02e5be93));
+    let jx = rng.next_f32();
+    let jy = rng.next_f32();
+    let x = ((s % m) as f32 + (sy as f32 + jx) / k as f32) / m as f32;
+    let y = ((s / m) as f32 + (sx as f32 + jy) / m as f32) / k as f32;
+    Vec2::new(x.min(ONE_MINUS_EPS), y.min(ONE_MINUS_EPS))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn permute_is_a_permutation() {
+        for l in [1u32, 2, 3, 7, 16, 100, 257] {
+            let mut seen = vec![false; l as usize];
+            for i in 0..l {
+                let j = permute(i, l, 0xdead_beef);
+                assert!(j < l);
+                assert!(!seen[j as usize]);
+                seen[j as usize] = true;
+            }
+        }
+    }
+
+    fn samples(kind: SamplerKind, n: u32) -> Vec<Vec2> {
+        (0..n)
+            .map(|i| Sampler::new(kind, 7, 3, 4, i, n, Stream::Camera).next_2d())
+            .collect()
+    }
+
+    #[test]
+    fn all_kinds_in_unit_square_and_deterministic() {
+        for kind in [
+            SamplerKind::Independent,
+            SamplerKind::Stratified,
+            SamplerKind::Sobol,
+        ] {
+            let a = samples(kind, 64);
+            let b = samples(kind, 64);
+            assert_eq!(a, b);
+            for s in &a {
+                assert!((0.0..1.0).contains(&s.x) && (0.0..1.0).contains(&s.y));
+            }
+        }
+    }
+
+    #[test]
+    fn stratified_and_sobol_cover_every_stratum() {
+        // 16 samples: one per 1/16 column for both; Sobol is a (0,4)-net in base 2 for 16 points.
+        for kind in [SamplerKind::Stratified, SamplerKind::Sobol] {
+            let s = samples(kind, 16);
+            let mut cols = [0; 16];
+            let mut rows = [0; 16];
+            for p in &s {
+                cols[(p.x * 16.0) as usize] += 1;
+                rows[(p.y * 16.0) as usize] += 1;
+            }
+            assert!(cols.iter().all(|&c| c == 1), "{kind:?} cols {cols:?}");
+            assert!(rows.iter().all(|&c| c == 1), "{kind:?} rows {rows:?}");
+        }
+    }
+
+    #[test]
+    fn one_d_means_are_unbiased() {
+        for kind in [
+            SamplerKind::Independent,
+            SamplerKind::Stratified,
+            SamplerKind::Sobol,
+        ] {
+            let mut sum = 0.0f64;
+            let n = 4096;
+            for px in 0..64u32 {
+                for i in 0..64u32 {
+                    let mut s = Sampler::new(kind, 1, px, 0, i, 64, Stream::Light);
+                    s.next_2d();
+                    sum += s.next_1d() as f64;
+                }
+            }
+            let mean = sum / n as f64;
+            assert!((mean - 0.5).abs() < 0.02, "{kind:?} {mean}");
+        }
+    }
+}

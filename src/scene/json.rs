@@ -1,0 +1,625 @@
+//! The native scene format: JSON, documented in scenes/README.md.
+
+use super::{MeshData, SceneBuilder, SceneError};
+use crate::camera::Camera;
+use crate::geometry::{Mat4, Rgb, Transform, Vec2, Vec3};
+use crate::material::{Bitmap, Material, MaterialKind, Texture};
+use serde::Deserialize;
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SceneFile {
+    camera: CameraDesc,
+    #[serde(default)]
+    render: RenderDesc,
+    #[serde(default)]
+    materials: BTreeMap<String, MaterialDesc>,
+    #[serde(default)]
+    shapes: Vec<ShapeDesc>,
+    #[serde(default)]
+    lights: Vec<LightDesc>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CameraDesc {
+    position: [f32; 3],
+    look_at: [f32; 3],
+    #[serde(default = "default_up")]
+    up: [f32; 3],
+    /// Vertical field of view in degrees.
+    fov: f32,
+    resolution: [u32; 2],
+}
+
+fn default_up() -> [f32; 3] {
+    [0.0, 1.0, 0.0]
+}
+
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct RenderDesc {
+    spp: Option<u32>,
+    max_depth: Option<u32>,
+}
+
+/// A colour: one grey value or [r, g, b].
+#[derive(Deserialize, Clone, Copy)]
+#[serde(untagged)]
+enum Color {
+    Grey(f32),
+    Rgb([f32; 3]),
+}
+
+impl Color {
+    fn rgb(self) -> Rgb {
+        match self {
+            Color::Grey(g) => Rgb::splat(g),
+            Color::Rgb(c) => Rgb::from_array(c),
+        }
+    }
+}
+
+#[derive(Deserialize, Clone)]
+#[serde(untagged)]
+enum ColorOrTexture {
+    Color(Color),
+    Texture {
+        texture: String,
+        #[serde(default)]
+        scale: Option<Color>,
+    },
+}
+
+fn one() -> Color {
+    Color::Grey(1.0)
+}
+fn ior_default() -> f32 {
+    1.5
+}
+fn ext_ior_default() -> f32 {
+    1.0
+}
+fn yes() -> bool {
+    true
+}
+fn alpha_default() -> f32 {
+    0.1
+}
+
+#[derive(Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+enum MaterialDesc {
+    Lambert {
+        albedo: ColorOrTexture,
+        #[serde(default = "yes")]
+        two_sided: bool,
+    },
+    Phong {
+        kd: Color,
+        ks: Color,
+        exponent: f32,
+        #[serde(default = "yes")]
+        two_sided: bool,
+    },
+    Mirror {
+        #[serde(default = "one")]
+        reflectance: Color,
+        #[serde(default = "yes")]
+        two_sided: bool,
+    },
+    Dielectric {
+        #[serde(default = "ior_default")]
+        ior: f32,
+        #[serde(default = "ext_ior_default")]
+        ext_ior: f32,
+        #[serde(default = "one")]
+        reflectance: Color,
+        #[serde(default = "one")]
+        transmittance: Color,
+    },
+    RoughConductor {
+        eta: Color,
+        k: Color,
+        #[serde(default)]
+        alpha: Option<f32>,
+        #[serde(default)]
+        alpha_u: Option<f32>,
+        #[serde(default)]
+        alpha_v: Option<f32>,
+        #[serde(default = "one")]
+        scale: Color,
+        #[serde(default = "yes")]
+        two_sided: bool,
+    },
+    Plastic {
+        diffuse: ColorOrTexture,
+        #[serde(default = "one")]
+        specular: Color,
+        #[serde(default = "ior_default")]
+        ior: f32,
+        #[serde(default = "alpha_default")]
+        alpha: f32,
+        #[serde(default = "yes")]
+        layered: bool,
+        #[serde(default)]
+        nonlinear: bool,
+        #[serde(default = "yes")]
+        two_sided: bool,
+    },
+}
+
+#[derive(Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+enum TransformOp {
+    Translate([f32; 3]),
+    Scale(Color),
+    Rotate { axis: [f32; 3], degrees: f32 },
+    /// 16 numbers, row-major, acting on column vectors.
+    Matrix([f32; 16]),
+}
+
+#[derive(Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+enum ShapeDesc {
+    Mesh {
+        file: String,
+        material: String,
+        #[serde(default)]
+        emission: Option<Color>,
+        #[serde(default)]
+        transform: Vec<TransformOp>,
+    },
+    Triangles {
+        positions: Vec<[f32; 3]>,
+        indices: Vec<[u32; 3]>,
+        #[serde(default)]
+        normals: Vec<[f32; 3]>,
+        #[serde(default)]
+        uvs: Vec<[f32; 2]>,
+        material: String,
+        #[serde(default)]
+        emission: Option<Color>,
+        #[serde(default)]
+        transform: Vec<TransformOp>,
+    },
+    /// Parallelogram corner, corner + edge1, corner + edge1 + edge2, corner + edge2; it faces
+    /// (and emits toward) edge1 x edge2.
+    Quad {
+        corner: [f32; 3],
+        edge1: [f32; 3],
+        edge2: [f32; 3],
+        material: String,
+        #[serde(default)]
+        emission: Option<Color>,
+        #[serde(default)]
+        transform: Vec<TransformOp>,
+    },
+    Sphere {
+        center: [f32; 3],
+        radius: f32,
+        material: String,
+        #[serde(default)]
+        emission: Option<Color>,
+        #[serde(default)]
+        inward: bool,
+    },
+}
+
+#[derive(Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+enum LightDesc {
+    Point {
+        position: [f32; 3],
+        intensity: Color,
+    },
+}
+
+/// Resolves `rel` against the scene's folder, refusing absolute paths and any path that leaves
+/// the folder (after following links), and missing files.
+pub fn resolve_in_folder(scene_file: &Path, rel: &str, location: &str) -> Result<PathBuf, SceneError> {
+    let err = |m: String| SceneError::new(scene_file, location, m);
+    let relp = Path::new(rel);
+    if relp.is_absolute() {
+        return Err(err(format!(
+            "'{rel}' is an absolute path; paths must be relative to the scene's folder"
+        )));
+    }
+    let dir = scene_file.parent().unwrap_or(Path::new("."));
+    let dir = if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    };
+    let base = dir
+        .canonicalize()
+        .map_err(|e| err(format!("cannot resolve the scene's folder: {e}")))?;
+    let joined = base.join(relp);
+    let canon = joined
+        .canonicalize()
+        .map_err(|e| err(format!("'{rel}' not found ({e})")))?;
+    if !canon.starts_with(&base) {
+        return Err(err(format!("'{rel}' leaves the scene's folder; refused")));
+    }
+    Ok(canon)
+}
+
+fn build_transform(ops: &[TransformOp], file: &Path, loc: &str) -> Result<Transform, SceneError> {
+    let mut t = Transform::IDENTITY;
+    for (i, op) in ops.iter().enumerate() {
+        let m = match op {
+            TransformOp::Translate(v) => Mat4::from_translation(Vec3::from_array(*v)),
+            TransformOp::Scale(c) => Mat4::from_scale(c.rgb()),
+            TransformOp::Rotate { axis, degrees } => {
+                let a = Vec3::from_array(*axis).normalize_or_zero();
+                if a == Vec3::ZERO {
+                    return Err(SceneError::new(
+                        file,
+                        format!("{loc}.transform[{i}].rotate.axis"),
+                        "rotation axis is zero",
+                    ));
+                }
+                Mat4::from_axis_angle(a, degrees.to_radians())
+            }
+            TransformOp::Matrix(m) => Mat4::from_cols_array(m).transpose(),
+        };
+        let step = Transform::new(m).ok_or_else(|| {
+            SceneError::new(
+                file,
+                format!("{loc}.transform[{i}]"),
+                "transform is singular or not finite",
+            )
+        })?;
+        t = t.then(&step);
+    }
+    Ok(t)
+}
+
+struct Loader<'a> {
+    file: &'a Path,
+    textures: HashMap<PathBuf, Arc<Bitmap>>,
+}
+
+impl Loader<'_> {
+    fn texture(&mut self, v: &ColorOrTexture, loc: &str) -> Result<Texture, SceneError> {
+        match v {
+            ColorOrTexture::Color(c) => {
+                let c = c.rgb();
+                check_color(self.file, loc, c)?;
+                Ok(Texture::Constant(c))
+            }
+            ColorOrTexture::Texture { texture, scale } => {
+                let path = resolve_in_folder(self.file, texture, &format!("{loc}.texture"))?;
+                let image = match self.textures.get(&path) {
+                    Some(b) => b.clone(),
+                    None => {
+                        let b = Arc::new(Bitmap::load(&path).map_err(|e| {
+                            SceneError::new(self.file, format!("{loc}.texture"), e)
+                        })?);
+                        self.textures.insert(path, b.clone());
+                        b
+                    }
+                };
+                let scale = scale.map(Color::rgb).unwrap_or(Rgb::ONE);
+                check_color(self.file, &format!("{loc}.scale"), scale)?;
+                Ok(Texture::Bitmap { image, scale })
+            }
+        }
+    }
+}
+
+fn check_color(file: &Path, loc: &str, c: Rgb) -> Result<(), SceneError> {
+    if c.is_finite() && c.min_element() >= 0.0 {
+        Ok(())
+    } else {
+        Err(SceneError::new(file, loc, format!("must be finite and >= 0, got {c:?}")))
+    }
+}
+
+fn check_positive(file: &Path, loc: &str, v: f32) -> Result<(), SceneError> {
+    if v > 0.0 && v.is_finite() {
+        Ok(())
+    } else {
+        Err(SceneError::new(file, loc, format!("must be > 0, got {v}")))
+    }
+}
+
+fn material(
+    loader: &mut Loader,
+    name: &str,
+    desc: &MaterialDesc,
+) -> Result<Material, SceneError> {
+    let file = loader.file;
+    let loc = format!("materials.{name}");
+    let at = |f: &str| format!("{loc}.{f}");
+    let (kind, two_sided) = match desc {
+        MaterialDesc::Lambert { albedo, two_sided } => (
+            MaterialKind::Lambert {
+                albedo: loader.texture(albedo, &at("albedo"))?,
+            },
+            *two_sided,
+        ),
+        MaterialDesc::Phong {
+            kd,
+            ks,
+            exponent,
+            two_sided,
+        } => {
+            check_color(file, &at("kd"), kd.rgb())?;
+            check_color(file, &at("ks"), ks.rgb())?;
+            if !(*exponent >= 0.0 && exponent.is_finite()) {
+                return Err(SceneError::new(file, at("exponent"), "must be finite and >= 0"));
+            }
+            let sum = kd.rgb() + ks.rgb();
+            if sum.max_element() > 1.0 {
+                return Err(SceneError::new(
+                    file,
+                    at("ks"),
+                    "kd + ks must not exceed 1 in any channel (energy conservation)",
+                ));
+            }
+            (
+                MaterialKind::Phong {
+                    kd: kd.rgb(),
+                    ks: ks.rgb(),
+                    exponent: *exponent,
+                },
+                *two_sided,
+            )
+        }
+        MaterialDesc::Mirror {
+            reflectance,
+            two_sided,
+        } => {
+            check_color(file, &at("reflectance"), reflectance.rgb())?;
+            (
+                MaterialKind::Mirror {
+                    reflectance: reflectance.rgb(),
+                },
+                *two_sided,
+            )
+        }
+        MaterialDesc::Dielectric {
+            ior,
+            ext_ior,
+            reflectance,
+            transmittance,
+        } => {
+            check_positive(file, &at("ior"), *ior)?;
+            check_positive(file, &at("ext_ior"), *ext_ior)?;
+            check_color(file, &at("reflectance"), reflectance.rgb())?;
+            check_color(file, &at("transmittance"), transmittance.rgb())?;
+            (
+                MaterialKind::Dielectric {
+                    ior: ior / ext_ior,
+                    reflectance: reflectance.rgb(),
+                    transmittance: transmittance.rgb(),
+                },
+                true,
+            )
+        }
+        MaterialDesc::RoughConductor {
+            eta,
+            k,
+            alpha,
+            alpha_u,
+            alpha_v,
+            scale,
+            two_sided,
+        } => {
+            let au = alpha_u.or(*alpha).unwrap_or(0.1);
+            let av = alpha_v.or(*alpha).unwrap_or(au);
+            check_positive(file, &at("alpha"), au)?;
+            check_positive(file, &at("alpha"), av)?;
+            check_color(file, &at("eta"), eta.rgb())?;
+            check_color(file, &at("k"), k.rgb())?;
+            check_color(file, &at("scale"), scale.rgb())?;
+            (
+                MaterialKind::RoughConductor {
+                    eta: eta.rgb(),
+                    k: k.rgb(),
+                    alpha_u: au,
+                    alpha_v: av,
+                    scale: scale.rgb(),
+                },
+                *two_sided,
+            )
+        }
+        MaterialDesc::Plastic {
+            diffuse,
+            specular,
+            ior,
+            alpha,
+            layered,
+            nonlinear,
+            two_sided,
+        } => {
+            check_positive(file, &at("ior"), *ior)?;
+            check_positive(file, &at("alpha"), *alpha)?;
+            check_color(file, &at("specular"), specular.rgb())?;
+            (
+                MaterialKind::Plastic {
+                    diffuse: loader.texture(diffuse, &at("diffuse"))?,
+                    specular: specular.rgb(),
+                    ior: *ior,
+                    alpha: *alpha,
+                    layered: *layered,
+                    nonlinear: *nonlinear,
+                },
+                *two_sided,
+            )
+        }
+    };
+    Ok(Material::new(name, kind, two_sided))
+}
+
+fn v3(a: [f32; 3]) -> Vec3 {
+    Vec3::from_array(a)
+}
+
+/// Parses JSON scene text; `file` names the source in errors and anchors relative paths.
+pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
+    let de = &mut serde_json::Deserializer::from_str(text);
+    let desc: SceneFile = serde_path_to_error::deserialize(de).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        let location = if path == "." || path.is_empty() {
+            format!("line {}", inner.line())
+        } else {
+            format!("{path} (line {})", inner.line())
+        };
+        SceneError::new(file, location, inner.to_string())
+    })?;
+    let mut b = SceneBuilder::new(file);
+    b.defaults.spp = desc.render.spp;
+    b.defaults.max_depth = desc.render.max_depth;
+    if desc.render.spp == Some(0) {
+        return Err(SceneError::new(file, "render.spp", "must be >= 1"));
+    }
+
+    let c = &desc.camera;
+    let cam = Camera::new(
+        v3(c.position),
+        v3(c.look_at),
+        v3(c.up),
+        c.fov,
+        c.resolution[0],
+        c.resolution[1],
+    )
+    .map_err(|m| SceneError::new(file, "camera", m))?;
+    b.set_camera(cam);
+
+    let mut loader = Loader {
+        file,
+        textures: HashMap::new(),
+    };
+    let mut ids: HashMap<&str, u32> = HashMap::new();
+    for (name, m) in &desc.materials {
+        let mat = material(&mut loader, name, m)?;
+        ids.insert(name.as_str(), b.add_material(mat));
+    }
+    let lookup = |name: &str, loc: &str| -> Result<u32, SceneError> {
+        ids.get(name).copied().ok_or_else(|| {
+            SceneError::new(
+                file,
+                format!("{loc}.material"),
+                format!("unknown material '{name}'"),
+            )
+        })
+    };
+    let emission = |e: &Option<Color>, loc: &str| -> Result<Option<Rgb>, SceneError> {
+        match e {
+            None => Ok(None),
+            Some(c) => {
+                check_color(file, &format!("{loc}.emission"), c.rgb())?;
+                Ok(Some(c.rgb()))
+            }
+        }
+    };
+
+    for (i, shape) in desc.shapes.iter().enumerate() {
+        let loc = format!("shapes[{i}]");
+        match shape {
+            ShapeDesc::Mesh {
+                file: mesh_file,
+                material,
+                emission: e,
+                transform,
+            } => {
+                let m = lookup(material, &loc)?;
+                let path = resolve_in_folder(file, mesh_file, &format!("{loc}.file"))?;
+                let mesh = super::mesh::load_mesh(&path).map_err(|msg| {
+                    SceneError::new(file, format!("{loc}.file"), format!("{}: {msg}", path.display()))
+                })?;
+                let t = build_transform(transform, file, &loc)?;
+                let e = emission(e, &loc)?;
+                b.add_mesh(&mesh, &t, m, e, &format!("{loc} ({})", path.display()))?;
+            }
+            ShapeDesc::Triangles {
+                positions,
+                indices,
+                normals,
+                uvs,
+                material,
+                emission: e,
+                transform,
+            } => {
+                let m = lookup(material, &loc)?;
+                let mesh = MeshData {
+                    positions: positions.iter().map(|p| v3(*p)).collect(),
+                    normals: normals.iter().map(|p| v3(*p)).collect(),
+                    uvs: uvs.iter().map(|p| Vec2::from_array(*p)).collect(),
+                    indices: indices.clone(),
+                };
+                let t = build_transform(transform, file, &loc)?;
+                let e = emission(e, &loc)?;
+                b.add_mesh(&mesh, &t, m, e, &loc)?;
+            }
+            ShapeDesc::Quad {
+                corner,
+                edge1,
+                edge2,
+                material,
+                emission: e,
+                transform,
+            } => {
+                let m = lookup(material, &loc)?;
+                let (c, e1, e2) = (v3(*corner), v3(*edge1), v3(*edge2));
+                if !(e1.cross(e2).length_squared() > 0.0) {
+                    return Err(SceneError::new(file, loc, "quad edges are parallel or zero"));
+                }
+                let mesh = MeshData {
+                    positions: vec![c, c + e1, c + e1 + e2, c + e2],
+                    normals: Vec::new(),
+                    uvs: vec![
+                        Vec2::new(0.0, 0.0),
+                        Vec2::new(1.0, 0.0),
+                        Vec2::new(1.0, 1.0),
+                        Vec2::new(0.0, 1.0),
+                    ],
+                    indices: vec![[0, 1, 2], [0, 2, 3]],
+                };
+                let t = build_transform(transform, file, &loc)?;
+                let e = emission(e, &loc)?;
+                b.add_mesh(&mesh, &t, m, e, &loc)?;
+            }
+            ShapeDesc::Sphere {
+                center,
+                radius,
+                material,
+                emission: e,
+                inward,
+            } => {
+                let m = lookup(material, &loc)?;
+                if !(*radius > 0.0 && radius.is_finite()) {
+                    return Err(SceneError::new(
+                        file,
+                        format!("{loc}.radius"),
+                        format!("radius must be > 0, got {radius}"),
+                    ));
+                }
+                let e = emission(e, &loc)?;
+                b.add_sphere(v3(*center), *radius, *inward, m, e, &loc)?;
+            }
+        }
+    }
+    for (i, l) in desc.lights.iter().enumerate() {
+        let loc = format!("lights[{i}]");
+        match l {
+            LightDesc::Point {
+                position,
+                intensity,
+            } => b.add_point_light(v3(*position), intensity.rgb(), &loc)?,
+        }
+    }
+    Ok(b)
+}
+
+pub fn load(path: &Path) -> Result<super::Scene, SceneError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| SceneError::new(path, "file", format!("cannot read: {e}")))?;
+    parse(&text, path)?.build()
+}

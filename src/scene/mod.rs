@@ -1,0 +1,643 @@
+//! The scene model (world-space triangles, spheres, materials, lights, camera) and its loaders.
+//!
+//! Every loader (JSON, later pbrt-v3 and Mitsuba) feeds a [`SceneBuilder`]; [`SceneBuilder::build`]
+//! validates, builds the BVHs and the light-selection distribution.
+
+pub mod json;
+pub mod mesh;
+
+use crate::accel::{Accel, Prim, SphereGeom};
+use crate::camera::Camera;
+use crate::geometry::{Ray, Rgb, Transform, Vec2, Vec3, offset_origin};
+use crate::light::{Distribution1D, Light};
+use crate::material::Material;
+use std::path::{Path, PathBuf};
+
+pub const NO_LIGHT: u32 = u32::MAX;
+
+/// A load error that names the file and the place in it (JSON path, line, or element).
+#[derive(Debug, thiserror::Error)]
+#[error("{file}: {location}: {message}")]
+pub struct SceneError {
+    pub file: PathBuf,
+    pub location: String,
+    pub message: String,
+}
+
+impl SceneError {
+    pub fn new(file: &Path, location: impl Into<String>, message: impl Into<String>) -> Self {
+        SceneError {
+            file: file.to_path_buf(),
+            location: location.into(),
+            message: message.into(),
+        }
+    }
+}
+
+/// Settings a scene file may suggest; command-line flags override them.
+#[derive(Clone, Debug, Default)]
+pub struct SceneDefaults {
+    pub spp: Option<u32>,
+    pub max_depth: Option<u32>,
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct Triangle {
+    pub v: [u32; 3],
+    pub material: u32,
+    pub light: u32,
+    /// Vertex normals and uvs are present for this triangle's mesh.
+    pub has_normals: bool,
+    pub has_uvs: bool,
+    /// Flip the geometric normal (set when a transform swaps handedness is *not* the reason:
+    /// normals are oriented to agree with the vertex normals, as pbrt does).
+    pub flip: bool,
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct Sphere {
+    pub center: Vec3,
+    pub radius: f32,
+    /// Normals point into the sphere (an enclosure seen from inside).
+    pub inward: bool,
+    pub material: u32,
+    pub light: u32,
+}
+
+/// A ray-surface intersection with everything shading needs.
+#[derive(Clone, Copy, Debug)]
+pub struct SurfaceHit {
+    pub p: Vec3,
+    pub t: f32,
+    /// Geometric normal (unit); the side it points to is the emitting side of area lights.
+    pub ng: Vec3,
+    /// Shading normal (unit), on the same side as `ng`.
+    pub ns: Vec3,
+    pub uv: Vec2,
+    pub material: u32,
+    /// Light index, or `NO_LIGHT`.
+    pub light: u32,
+    pub prim: Prim,
+}
+
+impl SurfaceHit {
+    pub fn is_emitter(&self) -> bool {
+        self.light != NO_LIGHT
+    }
+}
+
+/// Counters a loader can report.
+#[derive(Clone, Debug, Default)]
+pub struct SceneStats {
+    pub triangles: usize,
+    pub spheres: usize,
+    pub lights: usize,
+    pub bvh_build_seconds: f64,
+}
+
+pub struct Scene {
+    pub camera: Camera,
+    pub materials: Vec<Material>,
+    pub positions: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+    pub uvs: Vec<Vec2>,
+    pub triangles: Vec<Triangle>,
+    pub spheres: Vec<Sphere>,
+    pub lights: Vec<Light>,
+    pub light_select: Option<Distribution1D>,
+    pub defaults: SceneDefaults,
+    pub stats: SceneStats,
+    accel: Accel,
+    /// BVH over the emitting primitives only, for summing light pdfs along a ray.
+    emitter_accel: Option<Accel>,
+    /// Indices of the area lights (scanned directly when there are few).
+    area_lights: Vec<u32>,
+    emitters_occlude: bool,
+}
+
+/// Above this many area lights the light-pdf sum of a direction uses the emitter BVH.
+const EMITTER_BVH_THRESHOLD: usize = 8;
+
+impl Scene {
+    /// Loads a scene file, choosing the loader by extension.
+    pub fn load(path: &Path) -> Result<Scene, SceneError> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .unwrap_or("")
+            .to_ascii_lowercase();
+        match ext.as_str() {
+            "json" => json::load(path),
+            other => Err(SceneError::new(
+                path,
+                "file",
+                format!("unknown scene format '.{other}' (expected .json)"),
+            )),
+        }
+    }
+
+    #[inline]
+    pub fn intersect(&self, ray: &Ray) -> Option<SurfaceHit> {
+        let h = self.accel.intersect(ray)?;
+        Some(self.surface_hit(ray, h.prim, h.t, h.bary))
+    }
+
+    fn surface_hit(&self, ray: &Ray, prim: Prim, t: f32, bary: Vec2) -> SurfaceHit {
+        match prim {
+            Prim::Triangle(i) => {
+                let tri = &self.triangles[i as usize];
+                let [a, b, c] = tri.v.map(|k| k as usize);
+                let (p0, p1, p2) = (self.positions[a], self.positions[b], self.positions[c]);
+                let (b1, b2) = (bary.x, bary.y);
+                let b0 = 1.0 - b1 - b2;
+                let p = p0 * b0 + p1 * b1 + p2 * b2;
+                let mut ng = (p1 - p0).cross(p2 - p0).normalize();
+                if tri.flip {
+                    ng = -ng;
+                }
+                let mut ns = ng;
+                if tri.has_normals {
+                    let n = self.normals[a] * b0 + self.normals[b] * b1 + self.normals[c] * b2;
+                    let n = n.normalize_or_zero();
+                    if n != Vec3::ZERO {
+                        ns = if n.dot(ng) < 0.0 { -n } else { n };
+                    }
+                }
+                let uv = if tri.has_uvs {
+                    self.uvs[a] * b0 + self.uvs[b] * b1 + self.uvs[c] * b2
+                } else {
+                    Vec2::new(b1, b2)
+                };
+                SurfaceHit {
+                    p,
+                    t,
+                    ng,
+                    ns,
+                    uv,
+                    material: tri.material,
+                    light: tri.light,
+                    prim,
+                }
+            }
+            Prim::Sphere(i) => {
+                let s = &self.spheres[i as usize];
+                let p = ray.at(t);
+                let mut n = (p - s.center).normalize();
+                // Re-project onto the surface to remove the intersection's error.
+                let p = s.center + n * s.radius;
+                let uv = Vec2::new(
+                    0.5 + n.z.atan2(n.x) * crate::geometry::INV_2PI,
+                    n.y.clamp(-1.0, 1.0).acos() * crate::geometry::INV_PI,
+                );
+                if s.inward {
+                    n = -n;
+                }
+                SurfaceHit {
+                    p,
+                    t,
+                    ng: n,
+                    ns: n,
+                    uv,
+                    material: s.material,
+                    light: s.light,
+                    prim,
+                }
+            }
+        }
+    }
+
+    /// True when something blocks the open segment from `from` to `to` (world points), with the
+    /// origin lifted off the surface of normal `n_from` and the end pulled back from `to`'s
+    /// surface (normal `n_to`, zero for a point light).
+    #[inline]
+    pub fn occluded(&self, from: Vec3, n_from: Vec3, to: Vec3, n_to: Vec3) -> bool {
+        let d = to - from;
+        let o = offset_origin(from, n_from, d);
+        let target = if n_to == Vec3::ZERO {
+            to
+        } else {
+            offset_origin(to, n_to, -d)
+        };
+        let seg = target - o;
+        let len = seg.length();
+        if !(len > 0.0) {
+            return false;
+        }
+        let ray = Ray::segment(o, seg / len, len * (1.0 - 1e-4));
+        self.accel.occluded(&ray)
+    }
+
+    /// Ray leaving surface point `p` (geometric normal `ng`) in direction `d`.
+    #[inline]
+    pub fn spawn_ray(p: Vec3, ng: Vec3, d: Vec3) -> Ray {
+        Ray::new(offset_origin(p, ng, d), d)
+    }
+
+    pub fn accel(&self) -> &Accel {
+        &self.accel
+    }
+
+    /// Probability of selecting light `l`.
+    #[inline]
+    pub fn light_pmf(&self, l: u32) -> f32 {
+        match &self.light_select {
+            Some(d) => d.pmf(l as usize),
+            None => 0.0,
+        }
+    }
+
+    /// Chooses a light proportionally to power: (index, probability).
+    #[inline]
+    pub fn sample_light(&self, u: f32) -> Option<(u32, f32)> {
+        let d = self.light_select.as_ref()?;
+        let (i, p) = d.sample(u);
+        if p > 0.0 { Some((i as u32, p)) } else { None }
+    }
+
+    /// Solid-angle density with which light sampling (select by power, then sample the light)
+    /// produces direction `wi` from `p`: the sum over every light the ray meets (seed 004).
+    pub fn light_pdf_dir(&self, p: Vec3, wi: Vec3) -> f32 {
+        let Some(sel) = &self.light_select else {
+            return 0.0;
+        };
+        let mut sum = 0.0f32;
+        match &self.emitter_accel {
+            None => {
+                for &l in &self.area_lights {
+                    let pmf = sel.pmf(l as usize);
+                    if pmf > 0.0 {
+                        sum += pmf * self.lights[l as usize].pdf_li(p, wi);
+                    }
+                }
+            }
+            Some(acc) => {
+                acc.for_each_candidate(&Ray::new(p, wi), |prim| {
+                    let l = match prim {
+                        Prim::Triangle(l) | Prim::Sphere(l) => l,
+                    };
+                    let pmf = sel.pmf(l as usize);
+                    if pmf > 0.0 {
+                        sum += pmf * self.lights[l as usize].pdf_li(p, wi);
+                    }
+                });
+            }
+        }
+        sum
+    }
+
+    /// False when no emitter can stand between a point and another emitter (at most one area
+    /// light, or all area lights are coplanar triangles): an occluded light sample then has no
+    /// emitted radiance to find.
+    #[inline]
+    pub fn emitters_may_occlude_each_other(&self) -> bool {
+        self.emitters_occlude
+    }
+
+    /// Axis-aligned bounds of all geometry (min, max).
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        let mut lo = Vec3::splat(f32::INFINITY);
+        let mut hi = Vec3::splat(f32::NEG_INFINITY);
+        for t in &self.triangles {
+            for &v in &t.v {
+                lo = lo.min(self.positions[v as usize]);
+                hi = hi.max(self.positions[v as usize]);
+            }
+        }
+        for s in &self.spheres {
+            lo = lo.min(s.center - Vec3::splat(s.radius));
+            hi = hi.max(s.center + Vec3::splat(s.radius));
+        }
+        (lo, hi)
+    }
+}
+
+/// Mesh data in object space, as a loader reads it.
+#[derive(Clone, Debug, Default)]
+pub struct MeshData {
+    pub positions: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+    pub uvs: Vec<Vec2>,
+    pub indices: Vec<[u32; 3]>,
+}
+
+/// Collects geometry, materials and lights in world space; `build` makes the [`Scene`].
+pub struct SceneBuilder {
+    file: PathBuf,
+    camera: Option<Camera>,
+    materials: Vec<Material>,
+    positions: Vec<Vec3>,
+    normals: Vec<Vec3>,
+    uvs: Vec<Vec2>,
+    triangles: Vec<Triangle>,
+    tri_emission: Vec<Rgb>,
+    spheres: Vec<Sphere>,
+    sphere_emission: Vec<Rgb>,
+    point_lights: Vec<Light>,
+    pub defaults: SceneDefaults,
+}
+
+impl SceneBuilder {
+    pub fn new(file: &Path) -> Self {
+        SceneBuilder {
+            file: file.to_path_buf(),
+            camera: None,
+            materials: Vec::new(),
+            positions: Vec::new(),
+            normals: Vec::new(),
+            uvs: Vec::new(),
+            triangles: Vec::new(),
+            tri_emission: Vec::new(),
+            spheres: Vec::new(),
+            sphere_emission: Vec::new(),
+            point_lights: Vec::new(),
+            defaults: SceneDefaults::default(),
+        }
+    }
+
+    pub fn file(&self) -> &Path {
+        &self.file
+    }
+
+    pub fn set_camera(&mut self, camera: Camera) {
+        self.camera = Some(camera);
+    }
+
+    pub fn add_material(&mut self, m: Material) -> u32 {
+        self.materials.push(m);
+        (self.materials.len() - 1) as u32
+    }
+
+    pub fn material_count(&self) -> usize {
+        self.materials.len()
+    }
+
+    fn err(&self, location: &str, message: impl Into<String>) -> SceneError {
+        SceneError::new(&self.file, location, message)
+    }
+
+    /// Adds a mesh transformed to world space. `location` names it in errors.
+    pub fn add_mesh(
+        &mut self,
+        mesh: &MeshData,
+        transform: &Transform,
+        material: u32,
+        emission: Option<Rgb>,
+        location: &str,
+    ) -> Result<(), SceneError> {
+        let nv = mesh.positions.len();
+        if let Some(i) = mesh.positions.iter().position(|p| !p.is_finite()) {
+            return Err(self.err(location, format!("vertex {i} is not finite: {:?}", mesh.positions[i])));
+        }
+        let has_normals = !mesh.normals.is_empty();
+        let has_uvs = !mesh.uvs.is_empty();
+        if has_normals && mesh.normals.len() != nv {
+            return Err(self.err(
+                location,
+                format!("{} normals for {} vertices", mesh.normals.len(), nv),
+            ));
+        }
+        if has_uvs && mesh.uvs.len() != nv {
+            return Err(self.err(location, format!("{} uvs for {} vertices", mesh.uvs.len(), nv)));
+        }
+        if let Some(i) = mesh.normals.iter().position(|n| !n.is_finite()) {
+            return Err(self.err(location, format!("normal {i} is not finite")));
+        }
+        if let Some(i) = mesh.uvs.iter().position(|n| !n.is_finite()) {
+            return Err(self.err(location, format!("uv {i} is not finite")));
+        }
+        if let Some((f, idx)) = mesh
+            .indices
+            .iter()
+            .enumerate()
+            .find(|(_, t)| t.iter().any(|&k| k as usize >= nv))
+        {
+            return Err(self.err(
+                location,
+                format!("face {f} has index {:?} out of range for {nv} vertices", idx),
+            ));
+        }
+        if let Some(e) = emission
+            && !(e.is_finite() && e.min_element() >= 0.0)
+        {
+            return Err(self.err(location, format!("emission must be finite and >= 0, got {e:?}")));
+        }
+        if material as usize >= self.materials.len() {
+            return Err(self.err(location, "material index out of range"));
+        }
+        let base = self.positions.len() as u32;
+        for &p in &mesh.positions {
+            let w = transform.point(p);
+            if !w.is_finite() {
+                return Err(self.err(location, "transformed vertex is not finite"));
+            }
+            self.positions.push(w);
+            self.normals.push(Vec3::ZERO);
+            self.uvs.push(Vec2::ZERO);
+        }
+        if has_normals {
+            for (k, &n) in mesh.normals.iter().enumerate() {
+                self.normals[base as usize + k] = transform.normal(n).normalize_or_zero();
+            }
+        }
+        if has_uvs {
+            for (k, &uv) in mesh.uvs.iter().enumerate() {
+                self.uvs[base as usize + k] = uv;
+            }
+        }
+        let emission = emission.filter(|e| *e != Rgb::ZERO);
+        for idx in &mesh.indices {
+            let v = idx.map(|k| k + base);
+            let [a, b, c] = v.map(|k| self.positions[k as usize]);
+            let ng = (b - a).cross(c - a);
+            if !(ng.length_squared() > 0.0) {
+                continue; // degenerate: can never be hit
+            }
+            let mut flip = false;
+            if has_normals {
+                let ns = self.normals[v[0] as usize] + self.normals[v[1] as usize] + self.normals[v[2] as usize];
+                flip = ns.dot(ng) < 0.0;
+            }
+            self.triangles.push(Triangle {
+                v,
+                material,
+                light: NO_LIGHT,
+                has_normals,
+                has_uvs,
+                flip,
+            });
+            self.tri_emission.push(emission.unwrap_or(Rgb::ZERO));
+        }
+        Ok(())
+    }
+
+    pub fn add_sphere(
+        &mut self,
+        center: Vec3,
+        radius: f32,
+        inward: bool,
+        material: u32,
+        emission: Option<Rgb>,
+        location: &str,
+    ) -> Result<(), SceneError> {
+        if !center.is_finite() {
+            return Err(self.err(location, "sphere center is not finite"));
+        }
+        if !(radius > 0.0 && radius.is_finite()) {
+            return Err(self.err(location, format!("sphere radius must be > 0, got {radius}")));
+        }
+        if let Some(e) = emission
+            && !(e.is_finite() && e.min_element() >= 0.0)
+        {
+            return Err(self.err(location, format!("emission must be finite and >= 0, got {e:?}")));
+        }
+        if material as usize >= self.materials.len() {
+            return Err(self.err(location, "material index out of range"));
+        }
+        self.spheres.push(Sphere {
+            center,
+            radius,
+            inward,
+            material,
+            light: NO_LIGHT,
+        });
+        self.sphere_emission.push(emission.unwrap_or(Rgb::ZERO));
+        Ok(())
+    }
+
+    pub fn add_point_light(
+        &mut self,
+        position: Vec3,
+        intensity: Rgb,
+        location: &str,
+    ) -> Result<(), SceneError> {
+        if !position.is_finite() {
+            return Err(self.err(location, "point light position is not finite"));
+        }
+        if !(intensity.is_finite() && intensity.min_element() >= 0.0) {
+            return Err(self.err(location, "intensity must be finite and >= 0"));
+        }
+        self.point_lights.push(Light::Point {
+            position,
+            intensity,
+        });
+        Ok(())
+    }
+
+    pub fn build(mut self) -> Result<Scene, SceneError> {
+        let camera = self
+            .camera
+            .take()
+            .ok_or_else(|| self.err("camera", "the scene has no camera"))?;
+        let mut lights = Vec::new();
+        let mut area_lights = Vec::new();
+        let mut emit_tris = Vec::new();
+        let mut emit_tri_ids = Vec::new();
+        let mut emit_spheres = Vec::new();
+        let mut emit_sphere_ids = Vec::new();
+        for (i, tri) in self.triangles.iter_mut().enumerate() {
+            let e = self.tri_emission[i];
+            if e == Rgb::ZERO {
+                continue;
+            }
+            let [a, b, c] = tri.v.map(|k| self.positions[k as usize]);
+            let mut n = (b - a).cross(c - a).normalize();
+            if tri.flip {
+                n = -n;
+            }
+            if let Some(l) = Light::triangle(a, b, c, n, e) {
+                tri.light = lights.len() as u32;
+                area_lights.push(tri.light);
+                emit_tris.push([a, b, c]);
+                emit_tri_ids.push(tri.light);
+                lights.push(l);
+            }
+        }
+        for (i, s) in self.spheres.iter_mut().enumerate() {
+            let e = self.sphere_emission[i];
+            if e == Rgb::ZERO {
+                continue;
+            }
+            s.light = lights.len() as u32;
+            area_lights.push(s.light);
+            emit_spheres.push(SphereGeom {
+                center: s.center,
+                radius: s.radius,
+            });
+            emit_sphere_ids.push(s.light);
+            lights.push(Light::Sphere {
+                center: s.center,
+                radius: s.radius,
+                inward: s.inward,
+                radiance: e,
+            });
+        }
+        lights.append(&mut self.point_lights);
+        let powers: Vec<f32> = lights.iter().map(|l| l.power()).collect();
+        let light_select = Distribution1D::new(&powers);
+
+        let tri_geom: Vec<[Vec3; 3]> = self
+            .triangles
+            .iter()
+            .map(|t| t.v.map(|k| self.positions[k as usize]))
+            .collect();
+        let tri_ids: Vec<u32> = (0..self.triangles.len() as u32).collect();
+        let sphere_geom: Vec<SphereGeom> = self
+            .spheres
+            .iter()
+            .map(|s| SphereGeom {
+                center: s.center,
+                radius: s.radius,
+            })
+            .collect();
+        let sphere_ids: Vec<u32> = (0..self.spheres.len() as u32).collect();
+        let accel = Accel::build(&tri_geom, &tri_ids, &sphere_geom, &sphere_ids);
+        let emitter_accel = (area_lights.len() > EMITTER_BVH_THRESHOLD)
+            .then(|| Accel::build(&emit_tris, &emit_tri_ids, &emit_spheres, &emit_sphere_ids));
+        let emitters_occlude = !coplanar_triangle_lights(&lights, &area_lights);
+        let stats = SceneStats {
+            triangles: self.triangles.len(),
+            spheres: self.spheres.len(),
+            lights: lights.len(),
+            bvh_build_seconds: accel.stats.seconds,
+        };
+        Ok(Scene {
+            camera,
+            materials: self.materials,
+            positions: self.positions,
+            normals: self.normals,
+            uvs: self.uvs,
+            triangles: self.triangles,
+            spheres: self.spheres,
+            lights,
+            light_select,
+            defaults: self.defaults,
+            stats,
+            accel,
+            emitter_accel,
+            area_lights,
+            emitters_occlude,
+        })
+    }
+}
+
+/// True when there is at most one area light, or all are triangles in one plane.
+fn coplanar_triangle_lights(lights: &[Light], area: &[u32]) -> bool {
+    let mut plane: Option<(Vec3, Vec3)> = None;
+    for &l in area {
+        let Light::Triangle { p0, e1, e2, .. } = &lights[l as usize] else {
+            return area.len() <= 1;
+        };
+        let n = e1.cross(*e2).normalize();
+        match plane {
+            None => plane = Some((*p0, n)),
+            Some((q, m)) => {
+                let scale = 1e-5 * (1.0 + q.abs().max_element() + p0.abs().max_element());
+                let pts = [*p0, *p0 + *e1, *p0 + *e2];
+                if n.dot(m).abs() < 1.0 - 1e-6 || pts.iter().any(|p| (*p - q).dot(m).abs() > scale) {
+                    return false;
+                }
+            }
+        }
+    }
+    true
+}
