@@ -42,7 +42,9 @@ impl Camera {
             return Err("camera up is parallel to the viewing direction".into());
         }
         if !(vfov_deg > 0.0 && vfov_deg < 179.0) {
-            return Err(format!("camera fov must be in (0, 179) degrees, got {vfov_deg}"));
+            return Err(format!(
+                "camera fov must be in (0, 179) degrees, got {vfov_deg}"
+            ));
         }
         if width == 0 || height == 0 {
             return Err(format!("resolution must be positive, got {width}x{height}"));

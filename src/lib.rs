@@ -3,6 +3,9 @@
 //!
 //! Data flows one way: scene -> accel -> integrator (material, light, sampler) -> film -> cli.
 
+// `!(x > 0.0)` is deliberate throughout: it rejects NaN along with non-positive values.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 pub mod accel;
 pub mod camera;
 pub mod cli;

@@ -133,6 +133,12 @@ impl Sampler {
         self.kind
     }
 
+    /// Per-dimension scrambling seed: one 64-bit mix of the pixel hash and the dimension.
+    #[inline]
+    fn dim_hash(&self, d: u32) -> u64 {
+        mix64(self.pixel_hash ^ (d as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15))
+    }
+
     #[inline]
     pub fn next_1d(&mut self) -> f32 {
         let d = self.dim;
@@ -148,10 +154,9 @@ impl Sampler {
                 ((stratum as f32 + jitter) / self.block as f32).min(ONE_MINUS_EPS)
             }
             SamplerKind::Sobol => {
-                let h = hash_words(&[self.pixel_hash, d as u64]);
+                let h = self.dim_hash(d);
                 let i = nested_uniform_scramble(self.index, h as u32);
-                let x = sobol_dim0(i);
-                u32_to_unit(nested_uniform_scramble(x, (h >> 32) as u32))
+                u32_to_unit(scrambled_dim0(i, (h >> 32) as u32))
             }
         }
     }
@@ -169,10 +174,10 @@ impl Sampler {
                 cmj(j, self.block, h, &mut self.rng)
             }
             SamplerKind::Sobol => {
-                let h = hash_words(&[self.pixel_hash, d as u64]);
+                let h = self.dim_hash(d);
                 let h2 = mix64(h);
                 let i = nested_uniform_scramble(self.index, h as u32);
-                let x = nested_uniform_scramble(sobol_dim0(i), (h >> 32) as u32);
+                let x = scrambled_dim0(i, (h >> 32) as u32);
                 let y = nested_uniform_scramble(sobol_dim1(i), h2 as u32);
                 Vec2::new(u32_to_unit(x), u32_to_unit(y))
             }
@@ -182,10 +187,11 @@ impl Sampler {
 
 const ONE_MINUS_EPS: f32 = 1.0 - f32::EPSILON / 2.0;
 
-/// First Sobol' dimension: the van der Corput sequence in base 2 (bit reversal).
+/// First Sobol' dimension (the van der Corput sequence, i.e. bit reversal of i), Owen-scrambled:
+/// nested_uniform_scramble(reverse(i), seed) = reverse(laine_karras(i, seed)).
 #[inline]
-fn sobol_dim0(i: u32) -> u32 {
-    i.reverse_bits()
+fn scrambled_dim0(i: u32, seed: u32) -> u32 {
+    laine_karras_permutation(i, seed).reverse_bits()
 }
 
 /// Second Sobol' dimension (primitive polynomial x + 1): direction numbers v_k = v_{k-1} ^ (v_{k-1} >> 1).

@@ -108,7 +108,10 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let t0 = Instant::now();
         let mut scene = Scene::load(path).map_err(anyhow::Error::msg)?;
         let load = t0.elapsed().as_secs_f64();
-        scene.camera = scene.camera.with_resolution(w, h).map_err(anyhow::Error::msg)?;
+        scene.camera = scene
+            .camera
+            .with_resolution(w, h)
+            .map_err(anyhow::Error::msg)?;
         let (lo, hi) = scene.bounds();
         let rates = measure_rays(scene.accel(), lo, hi, a.rays, &pool);
         let settings = RenderSettings {
@@ -117,6 +120,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             max_depth: a.max_depth,
             seed: 1,
             sampler: SamplerKind::Sobol,
+            direct: Default::default(),
         };
         let out = pool.install(|| integrator::render(&scene, &settings, 16, &|_| {}));
         let st = out.stats;
@@ -131,7 +135,11 @@ pub fn run(a: BenchArgs) -> Result<()> {
             scene.stats.bvh_build_seconds,
             &rates,
             threads,
-            Some((st.samples as f64 / secs, st.rays() as f64 / secs, bare / secs)),
+            Some((
+                st.samples as f64 / secs,
+                st.rays() as f64 / secs,
+                bare / secs,
+            )),
         );
     }
     for dir in &a.obj_dir {

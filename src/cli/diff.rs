@@ -34,7 +34,10 @@ pub fn run(a: DiffArgs) -> Result<()> {
     if a.json {
         println!("{}", serde_json::to_string(&s)?);
     } else {
-        println!("relMSE {:.6e}  MSE {:.6e}  (eps {})", s.relmse, s.mse, s.eps);
+        println!(
+            "relMSE {:.6e}  MSE {:.6e}  (eps {})",
+            s.relmse, s.mse, s.eps
+        );
         if s.non_finite > 0 {
             println!("{} pixels were not finite and were left out", s.non_finite);
         }

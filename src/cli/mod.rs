@@ -7,7 +7,11 @@ mod render;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "omis", version, about = "Bidirectional path tracer with optimal MIS")]
+#[command(
+    name = "omis",
+    version,
+    about = "Bidirectional path tracer with optimal MIS"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -53,10 +57,18 @@ pub(crate) fn parse_resolution(s: &str) -> Result<(u32, u32), String> {
     let (w, h) = s
         .split_once(['x', 'X'])
         .ok_or_else(|| format!("resolution '{s}' is not WxH"))?;
-    let w: u32 = w.trim().parse().map_err(|_| format!("bad width in '{s}'"))?;
-    let h: u32 = h.trim().parse().map_err(|_| format!("bad height in '{s}'"))?;
+    let w: u32 = w
+        .trim()
+        .parse()
+        .map_err(|_| format!("bad width in '{s}'"))?;
+    let h: u32 = h
+        .trim()
+        .parse()
+        .map_err(|_| format!("bad height in '{s}'"))?;
     if w == 0 || h == 0 || w > 16384 || h > 16384 {
-        return Err(format!("resolution '{s}' must be within 1x1 .. 16384x16384"));
+        return Err(format!(
+            "resolution '{s}' must be within 1x1 .. 16384x16384"
+        ));
     }
     Ok((w, h))
 }

@@ -1,6 +1,7 @@
 //! `omis render`: load a scene, render it, write EXR / PNG, print a summary.
 
 use crate::film::{exr_io, metrics, png};
+use crate::integrator::path::DirectStrategy;
 use crate::integrator::{self, IntegratorKind, RenderSettings};
 use crate::sampler::SamplerKind;
 use crate::scene::Scene;
@@ -26,6 +27,10 @@ pub struct RenderArgs {
     pub sampler: SamplerKind,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Path tracer: how emitters are reached. `light` / `bsdf` use one strategy alone (for
+    /// validation; both are unbiased, BSDF sampling cannot see point lights).
+    #[arg(long, value_enum, default_value_t = DirectStrategy::Mis)]
+    pub direct: DirectStrategy,
     /// Worker threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
@@ -91,6 +96,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         max_depth: a.max_depth.or(scene.defaults.max_depth).unwrap_or(5),
         seed: a.seed,
         sampler: a.sampler,
+        direct: a.direct,
     };
     let out = a.out.clone().unwrap_or_else(|| {
         let stem = a
@@ -105,19 +111,23 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let tiles = integrator::make_tiles(scene.camera.width, scene.camera.height, a.tile_size);
     let bar = ProgressBar::new(tiles.len() as u64);
     bar.set_style(
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} tiles {eta}")
-            .expect("valid template"),
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} tiles {eta}",
+        )
+        .expect("valid template"),
     );
-    let output = pool.install(|| {
-        integrator::render(&scene, &settings, a.tile_size, &|n| bar.inc(n as u64))
-    });
+    let output =
+        pool.install(|| integrator::render(&scene, &settings, a.tile_size, &|n| bar.inc(n as u64)));
     bar.finish_and_clear();
 
     let image = output.sums.mean();
     let variance = output.sums.variance_of_mean();
     let attrs = [
         ("omis.scene", a.scene.display().to_string()),
-        ("omis.integrator", format!("{:?}", settings.integrator).to_lowercase()),
+        (
+            "omis.integrator",
+            format!("{:?}", settings.integrator).to_lowercase(),
+        ),
         ("omis.spp", settings.spp.to_string()),
         ("omis.max_depth", settings.max_depth.to_string()),
         ("omis.seed", settings.seed.to_string()),
@@ -163,7 +173,10 @@ pub fn run(a: RenderArgs) -> Result<()> {
         }
     );
     if st.non_finite > 0 {
-        eprintln!("omis: warning: {} samples were NaN or infinite and were dropped", st.non_finite);
+        eprintln!(
+            "omis: warning: {} samples were NaN or infinite and were dropped",
+            st.non_finite
+        );
     }
     if a.json {
         let mut j = serde_json::json!({
@@ -190,7 +203,10 @@ pub fn run(a: RenderArgs) -> Result<()> {
             j["mse"] = serde_json::json!(e.mse);
             j["eps"] = serde_json::json!(e.eps);
         }
-        println!("{}", serde_json::to_string(&j).context("serialising summary")?);
+        println!(
+            "{}",
+            serde_json::to_string(&j).context("serialising summary")?
+        );
     }
     Ok(())
 }

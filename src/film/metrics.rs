@@ -57,7 +57,11 @@ pub fn error_map(img: &Image, reference: &Image, eps: f64, scale: f64) -> Result
         let la = crate::geometry::luminance(*a) as f64;
         let lr = crate::geometry::luminance(*r) as f64;
         let e = (la - lr) / (lr.abs() + eps.sqrt());
-        let m = if e.is_finite() { (e.abs() / scale).min(1.0) } else { 1.0 };
+        let m = if e.is_finite() {
+            (e.abs() / scale).min(1.0)
+        } else {
+            1.0
+        };
         let v = (m * 255.0 + 0.5) as u8;
         if e >= 0.0 {
             out.extend_from_slice(&[v, 0, 0]);

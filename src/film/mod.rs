@@ -100,10 +100,10 @@ impl PixelSums {
                 continue;
             }
             let mut v = [0.0f32; 3];
-            for c in 0..3 {
+            for (c, out) in v.iter_mut().enumerate() {
                 let m = self.sum[i][c] / n;
                 let var = ((self.sum_sq[i][c] / n - m * m) * n / (n - 1.0)).max(0.0);
-                v[c] = (var / n) as f32;
+                *out = (var / n) as f32;
             }
             *p = Rgb::from_array(v);
         }

@@ -11,7 +11,11 @@ pub fn to_srgb8(img: &Image, exposure: f32) -> Vec<u8> {
     for p in &img.pixels {
         for c in 0..3 {
             let v = p[c] * k;
-            let v = if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 };
+            let v = if v.is_finite() {
+                v.clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
             out.push((linear_to_srgb(v) * 255.0 + 0.5) as u8);
         }
     }

@@ -31,6 +31,9 @@ pub struct RenderSettings {
     pub max_depth: u32,
     pub seed: u64,
     pub sampler: SamplerKind,
+    /// Path tracer only: how emitters are reached (MIS, or one strategy alone for validation).
+    #[serde(default)]
+    pub direct: path::DirectStrategy,
 }
 
 impl Default for RenderSettings {
@@ -41,6 +44,7 @@ impl Default for RenderSettings {
             max_depth: 5,
             seed: 0,
             sampler: SamplerKind::Sobol,
+            direct: path::DirectStrategy::Mis,
         }
     }
 }
@@ -139,9 +143,14 @@ pub fn render_tile(
                 let film = sampler.next_2d();
                 let ray = cam.ray(Vec2::new(x as f32 + film.x, y as f32 + film.y));
                 let mut l = match settings.integrator {
-                    IntegratorKind::Pt => {
-                        path::li(scene, ray, &mut sampler, settings.max_depth, stats)
-                    }
+                    IntegratorKind::Pt => path::li(
+                        scene,
+                        ray,
+                        &mut sampler,
+                        settings.max_depth,
+                        settings.direct,
+                        stats,
+                    ),
                 };
                 if !l.is_finite() {
                     stats.non_finite += 1;
@@ -176,7 +185,14 @@ pub fn render(
         .map(|&tile| {
             let mut sums = PixelSums::new(tile.width(), tile.height());
             let mut stats = RayStats::default();
-            render_tile(scene, settings, tile, 0..settings.spp, &mut sums, &mut stats);
+            render_tile(
+                scene,
+                settings,
+                tile,
+                0..settings.spp,
+                &mut sums,
+                &mut stats,
+            );
             progress(1);
             (tile, sums, stats)
         })

@@ -19,8 +19,41 @@ use crate::scene::{NO_LIGHT, Scene, SurfaceHit};
 /// Paths of this many bounces or more are subject to Russian roulette.
 pub const RR_START_DEPTH: u32 = 3;
 
+/// How emitters are reached at each vertex. `Mis` is the renderer; the single strategies are
+/// unbiased on their own (except that BSDF sampling cannot see point lights) and exist to
+/// validate each other.
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    PartialEq,
+    Eq,
+    Default,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum DirectStrategy {
+    /// Light sampling and BSDF sampling combined with the power heuristic.
+    #[default]
+    Mis,
+    /// Next-event estimation only (emitters hit by BSDF-sampled rays count only after the camera
+    /// or a delta bounce).
+    Light,
+    /// BSDF sampling only (no next-event estimation).
+    Bsdf,
+}
+
 /// Radiance along `ray` (one pixel sample).
-pub fn li(scene: &Scene, ray: Ray, sampler: &mut Sampler, max_depth: u32, stats: &mut RayStats) -> Rgb {
+pub fn li(
+    scene: &Scene,
+    ray: Ray,
+    sampler: &mut Sampler,
+    max_depth: u32,
+    strategy: DirectStrategy,
+    stats: &mut RayStats,
+) -> Rgb {
     let mut l = Rgb::ZERO;
     let mut beta = Rgb::ONE;
     let mut ray = ray;
@@ -37,9 +70,12 @@ pub fn li(scene: &Scene, ray: Ray, sampler: &mut Sampler, max_depth: u32, stats:
         if hit.light != NO_LIGHT {
             let le = scene.lights[hit.light as usize].le(hit.ng, wo);
             if le != Rgb::ZERO {
-                let w = match prev {
-                    None => 1.0,
-                    Some((p, pdf_bsdf)) => power_heuristic(pdf_bsdf, scene.light_pdf_dir(p, ray.d)),
+                let w = match (prev, strategy) {
+                    (None, _) | (_, DirectStrategy::Bsdf) => 1.0,
+                    (Some(_), DirectStrategy::Light) => 0.0,
+                    (Some((p, pdf_bsdf)), DirectStrategy::Mis) => {
+                        power_heuristic(pdf_bsdf, scene.light_pdf_dir(p, ray.d))
+                    }
                 };
                 l += beta * le * w;
             }
@@ -47,12 +83,17 @@ pub fn li(scene: &Scene, ray: Ray, sampler: &mut Sampler, max_depth: u32, stats:
         if depth >= max_depth {
             break;
         }
-        let bsdf = Bsdf::new(&scene.materials[hit.material as usize], hit.ng, hit.ns, hit.uv);
+        let bsdf = Bsdf::new(
+            &scene.materials[hit.material as usize],
+            hit.ng,
+            hit.ns,
+            hit.uv,
+        );
         if bsdf.is_black() {
             break;
         }
-        if !bsdf.is_delta() {
-            l += beta * direct(scene, &hit, &bsdf, wo, sampler, stats);
+        if !bsdf.is_delta() && strategy != DirectStrategy::Bsdf {
+            l += beta * direct(scene, &hit, &bsdf, wo, sampler, strategy, stats);
         }
         let u_lobe = sampler.next_1d();
         let u = sampler.next_2d();
@@ -81,6 +122,7 @@ fn direct(
     bsdf: &Bsdf,
     wo: Vec3,
     sampler: &mut Sampler,
+    strategy: DirectStrategy,
     stats: &mut RayStats,
 ) -> Rgb {
     let u_light = sampler.next_1d();
@@ -124,6 +166,9 @@ fn direct(
     if !(pdf_light > 0.0) {
         return Rgb::ZERO;
     }
-    let w = power_heuristic(pdf_light, bsdf.pdf(wo, ls.wi));
+    let w = match strategy {
+        DirectStrategy::Mis => power_heuristic(pdf_light, bsdf.pdf(wo, ls.wi)),
+        _ => 1.0,
+    };
     f * le * (cos * w / pdf_light)
 }

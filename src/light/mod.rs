@@ -35,7 +35,7 @@ pub enum Light {
 pub struct LightSample {
     /// Point on the light.
     pub p: Vec3,
-    /// Geometric normal of the light surface at `p` (outward for spheres; zero for points).
+    /// Oriented normal of the light surface at `p`, on its emitting side (zero for points).
     pub n: Vec3,
     /// Unit direction from the reference point toward `p`.
     pub wi: Vec3,
@@ -80,22 +80,13 @@ impl Light {
         }
     }
 
-    /// Radiance leaving surface point `p` (normal `n` as returned by sampling) toward direction `w`.
+    /// Radiance leaving a point of the light with oriented normal `n` (the emitting side, as in
+    /// [`LightSample::n`] and `SurfaceHit::ng`) toward direction `w`: one-sided emission.
     #[inline]
     pub fn le(&self, n: Vec3, w: Vec3) -> Rgb {
         match self {
-            Light::Triangle { radiance, .. } => {
+            Light::Triangle { radiance, .. } | Light::Sphere { radiance, .. } => {
                 if n.dot(w) > 0.0 {
-                    *radiance
-                } else {
-                    Rgb::ZERO
-                }
-            }
-            Light::Sphere {
-                radiance, inward, ..
-            } => {
-                let c = n.dot(w);
-                if (c > 0.0) != *inward && c != 0.0 {
                     *radiance
                 } else {
                     Rgb::ZERO
@@ -115,7 +106,7 @@ impl Light {
                 e2,
                 n,
                 area,
-                radiance,
+                ..
             } => {
                 let (b1, b2) = crate::geometry::warp::uniform_triangle(u);
                 let p = p0 + e1 * b1 + e2 * b2;
@@ -131,7 +122,7 @@ impl Light {
                     return None;
                 }
                 let pdf = dist2 / (cos_l * area);
-                let le = if n.dot(-wi) > 0.0 { radiance } else { Rgb::ZERO };
+                let le = self.le(n, -wi);
                 finite_sample(LightSample {
                     p,
                     n,
@@ -146,7 +137,7 @@ impl Light {
                 center,
                 radius,
                 inward,
-                radiance,
+                ..
             } => {
                 let to_c = center - p_ref;
                 let dc2 = to_c.length_squared();
@@ -169,9 +160,10 @@ impl Light {
                     let disc = (r2 - dc2 * sin_t * sin_t).max(0.0);
                     let dist = (dc * cos_t - disc.sqrt()).max(0.0);
                     let p = p_ref + wi * dist;
-                    let n = (p - center).normalize();
+                    let n_out = (p - center).normalize();
+                    let n = if inward { -n_out } else { n_out };
                     let pdf = 1.0 / (2.0 * PI * one_minus_cos_max);
-                    let le = if inward { Rgb::ZERO } else { radiance };
+                    let le = self.le(n, -wi);
                     finite_sample(LightSample {
                         p,
                         n,
@@ -182,8 +174,9 @@ impl Light {
                         delta: false,
                     })
                 } else {
-                    let n = uniform_sphere(u);
-                    let p = center + n * radius;
+                    let n_out = uniform_sphere(u);
+                    let p = center + n_out * radius;
+                    let n = if inward { -n_out } else { n_out };
                     let d = p - p_ref;
                     let dist2 = d.length_squared();
                     let dist = dist2.sqrt();

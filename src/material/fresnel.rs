@@ -49,7 +49,11 @@ pub fn conductor(cos_i: f32, eta: Rgb, k: Rgb) -> Rgb {
         let t4 = t2 * s2;
         let rp = rs * (t3 - t4) / (t3 + t4);
         let r = 0.5 * (rp + rs);
-        if r.is_finite() { r.clamp(0.0, 1.0) } else { 1.0 }
+        if r.is_finite() {
+            r.clamp(0.0, 1.0)
+        } else {
+            1.0
+        }
     };
     Rgb::new(f(eta.x, k.x), f(eta.y, k.y), f(eta.z, k.z))
 }

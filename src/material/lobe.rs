@@ -5,9 +5,9 @@
 //! solid-angle density with which `sample(wo, ..)` produces wi; delta lobes return f = 0 and
 //! pdf = 0 from `eval`/`pdf` and a discrete probability from `sample`.
 
+use super::Mode;
 use super::fresnel;
 use super::microfacet::Ggx;
-use super::Mode;
 use crate::geometry::warp::{
     cosine_hemisphere, cosine_hemisphere_pdf, power_cosine, power_cosine_pdf,
 };

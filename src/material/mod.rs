@@ -6,7 +6,7 @@ pub mod microfacet;
 pub mod texture;
 
 use crate::geometry::{Frame, Rgb, Vec2, Vec3, luminance};
-pub use lobe::{LocalSample, Lobe};
+pub use lobe::{Lobe, LocalSample};
 use microfacet::Ggx;
 pub use texture::{Bitmap, Texture};
 

@@ -22,7 +22,13 @@ impl Bitmap {
         }
         let texels = rgb
             .pixels()
-            .map(|p| Rgb::new(srgb_to_linear(p[0]), srgb_to_linear(p[1]), srgb_to_linear(p[2])))
+            .map(|p| {
+                Rgb::new(
+                    srgb_to_linear(p[0]),
+                    srgb_to_linear(p[1]),
+                    srgb_to_linear(p[2]),
+                )
+            })
             .collect();
         Ok(Bitmap {
             width: w,
@@ -105,11 +111,7 @@ impl Texture {
         match self {
             Texture::Constant(c) => *c,
             Texture::Bitmap { image, scale } => {
-                image
-                    .texels
-                    .iter()
-                    .fold(Rgb::ZERO, |m, t| m.max(*t))
-                    * *scale
+                image.texels.iter().fold(Rgb::ZERO, |m, t| m.max(*t)) * *scale
             }
         }
     }

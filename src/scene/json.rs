@@ -5,6 +5,8 @@ use crate::camera::Camera;
 use crate::geometry::{Mat4, Rgb, Transform, Vec2, Vec3};
 use crate::material::{Bitmap, Material, MaterialKind, Texture};
 use serde::Deserialize;
+use serde::de::DeserializeOwned;
+use serde_json::Value;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -15,12 +17,13 @@ struct SceneFile {
     camera: CameraDesc,
     #[serde(default)]
     render: RenderDesc,
+    /// Typed per entry (see [`typed`]) so that errors keep their JSON path.
     #[serde(default)]
-    materials: BTreeMap<String, MaterialDesc>,
+    materials: BTreeMap<String, Value>,
     #[serde(default)]
-    shapes: Vec<ShapeDesc>,
+    shapes: Vec<Value>,
     #[serde(default)]
-    lights: Vec<LightDesc>,
+    lights: Vec<Value>,
 }
 
 #[derive(Deserialize)]
@@ -90,66 +93,100 @@ fn alpha_default() -> f32 {
     0.1
 }
 
-#[derive(Deserialize)]
-#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 enum MaterialDesc {
-    Lambert {
-        albedo: ColorOrTexture,
-        #[serde(default = "yes")]
-        two_sided: bool,
-    },
-    Phong {
-        kd: Color,
-        ks: Color,
-        exponent: f32,
-        #[serde(default = "yes")]
-        two_sided: bool,
-    },
-    Mirror {
-        #[serde(default = "one")]
-        reflectance: Color,
-        #[serde(default = "yes")]
-        two_sided: bool,
-    },
-    Dielectric {
-        #[serde(default = "ior_default")]
-        ior: f32,
-        #[serde(default = "ext_ior_default")]
-        ext_ior: f32,
-        #[serde(default = "one")]
-        reflectance: Color,
-        #[serde(default = "one")]
-        transmittance: Color,
-    },
-    RoughConductor {
-        eta: Color,
-        k: Color,
-        #[serde(default)]
-        alpha: Option<f32>,
-        #[serde(default)]
-        alpha_u: Option<f32>,
-        #[serde(default)]
-        alpha_v: Option<f32>,
-        #[serde(default = "one")]
-        scale: Color,
-        #[serde(default = "yes")]
-        two_sided: bool,
-    },
-    Plastic {
-        diffuse: ColorOrTexture,
-        #[serde(default = "one")]
-        specular: Color,
-        #[serde(default = "ior_default")]
-        ior: f32,
-        #[serde(default = "alpha_default")]
-        alpha: f32,
-        #[serde(default = "yes")]
-        layered: bool,
-        #[serde(default)]
-        nonlinear: bool,
-        #[serde(default = "yes")]
-        two_sided: bool,
-    },
+    Lambert(LambertMaterial),
+    Phong(PhongMaterial),
+    Mirror(MirrorMaterial),
+    Dielectric(DielectricMaterial),
+    RoughConductor(RoughConductorMaterial),
+    Plastic(PlasticMaterial),
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LambertMaterial {
+    #[serde(rename = "type")]
+    _type: String,
+    albedo: ColorOrTexture,
+    #[serde(default = "yes")]
+    two_sided: bool,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PhongMaterial {
+    #[serde(rename = "type")]
+    _type: String,
+    kd: Color,
+    ks: Color,
+    exponent: f32,
+    #[serde(default = "yes")]
+    two_sided: bool,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MirrorMaterial {
+    #[serde(rename = "type")]
+    _type: String,
+    #[serde(default = "one")]
+    reflectance: Color,
+    #[serde(default = "yes")]
+    two_sided: bool,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct DielectricMaterial {
+    #[serde(rename = "type")]
+    _type: String,
+    #[serde(default = "ior_default")]
+    ior: f32,
+    #[serde(default = "ext_ior_default")]
+    ext_ior: f32,
+    #[serde(default = "one")]
+    reflectance: Color,
+    #[serde(default = "one")]
+    transmittance: Color,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RoughConductorMaterial {
+    #[serde(rename = "type")]
+    _type: String,
+    eta: Color,
+    k: Color,
+    #[serde(default)]
+    alpha: Option<f32>,
+    #[serde(default)]
+    alpha_u: Option<f32>,
+    #[serde(default)]
+    alpha_v: Option<f32>,
+    #[serde(default = "one")]
+    scale: Color,
+    #[serde(default = "yes")]
+    two_sided: bool,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PlasticMaterial {
+    #[serde(rename = "type")]
+    _type: String,
+    diffuse: ColorOrTexture,
+    #[serde(default = "one")]
+    specular: Color,
+    #[serde(default = "ior_default")]
+    ior: f32,
+    #[serde(default = "alpha_default")]
+    alpha: f32,
+    #[serde(default = "yes")]
+    layered: bool,
+    #[serde(default)]
+    nonlinear: bool,
+    #[serde(default = "yes")]
+    two_sided: bool,
 }
 
 #[derive(Deserialize)]
@@ -157,70 +194,103 @@ enum MaterialDesc {
 enum TransformOp {
     Translate([f32; 3]),
     Scale(Color),
-    Rotate { axis: [f32; 3], degrees: f32 },
+    Rotate {
+        axis: [f32; 3],
+        degrees: f32,
+    },
     /// 16 numbers, row-major, acting on column vectors.
     Matrix([f32; 16]),
 }
 
-#[derive(Deserialize)]
-#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 enum ShapeDesc {
-    Mesh {
-        file: String,
-        material: String,
-        #[serde(default)]
-        emission: Option<Color>,
-        #[serde(default)]
-        transform: Vec<TransformOp>,
-    },
-    Triangles {
-        positions: Vec<[f32; 3]>,
-        indices: Vec<[u32; 3]>,
-        #[serde(default)]
-        normals: Vec<[f32; 3]>,
-        #[serde(default)]
-        uvs: Vec<[f32; 2]>,
-        material: String,
-        #[serde(default)]
-        emission: Option<Color>,
-        #[serde(default)]
-        transform: Vec<TransformOp>,
-    },
-    /// Parallelogram corner, corner + edge1, corner + edge1 + edge2, corner + edge2; it faces
-    /// (and emits toward) edge1 x edge2.
-    Quad {
-        corner: [f32; 3],
-        edge1: [f32; 3],
-        edge2: [f32; 3],
-        material: String,
-        #[serde(default)]
-        emission: Option<Color>,
-        #[serde(default)]
-        transform: Vec<TransformOp>,
-    },
-    Sphere {
-        center: [f32; 3],
-        radius: f32,
-        material: String,
-        #[serde(default)]
-        emission: Option<Color>,
-        #[serde(default)]
-        inward: bool,
-    },
+    Mesh(MeshShape),
+    Triangles(TrianglesShape),
+    Quad(QuadShape),
+    Sphere(SphereShape),
 }
 
 #[derive(Deserialize)]
-#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+#[serde(deny_unknown_fields)]
+struct MeshShape {
+    #[serde(rename = "type")]
+    _type: String,
+    file: String,
+    material: String,
+    #[serde(default)]
+    emission: Option<Color>,
+    #[serde(default)]
+    transform: Vec<TransformOp>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TrianglesShape {
+    #[serde(rename = "type")]
+    _type: String,
+    positions: Vec<[f32; 3]>,
+    indices: Vec<[u32; 3]>,
+    #[serde(default)]
+    normals: Vec<[f32; 3]>,
+    #[serde(default)]
+    uvs: Vec<[f32; 2]>,
+    material: String,
+    #[serde(default)]
+    emission: Option<Color>,
+    #[serde(default)]
+    transform: Vec<TransformOp>,
+}
+
+/// Parallelogram corner, corner + edge1, corner + edge1 + edge2, corner + edge2; it faces
+/// (and emits toward) edge1 x edge2.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct QuadShape {
+    #[serde(rename = "type")]
+    _type: String,
+    corner: [f32; 3],
+    edge1: [f32; 3],
+    edge2: [f32; 3],
+    material: String,
+    #[serde(default)]
+    emission: Option<Color>,
+    #[serde(default)]
+    transform: Vec<TransformOp>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SphereShape {
+    #[serde(rename = "type")]
+    _type: String,
+    center: [f32; 3],
+    radius: f32,
+    material: String,
+    #[serde(default)]
+    emission: Option<Color>,
+    #[serde(default)]
+    inward: bool,
+}
+
 enum LightDesc {
-    Point {
-        position: [f32; 3],
-        intensity: Color,
-    },
+    Point(PointLight),
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PointLight {
+    #[serde(rename = "type")]
+    _type: String,
+    position: [f32; 3],
+    intensity: Color,
 }
 
 /// Resolves `rel` against the scene's folder, refusing absolute paths and any path that leaves
 /// the folder (after following links), and missing files.
-pub fn resolve_in_folder(scene_file: &Path, rel: &str, location: &str) -> Result<PathBuf, SceneError> {
+pub fn resolve_in_folder(
+    scene_file: &Path,
+    rel: &str,
+    location: &str,
+) -> Result<PathBuf, SceneError> {
     let err = |m: String| SceneError::new(scene_file, location, m);
     let relp = Path::new(rel);
     if relp.is_absolute() {
@@ -315,7 +385,11 @@ fn check_color(file: &Path, loc: &str, c: Rgb) -> Result<(), SceneError> {
     if c.is_finite() && c.min_element() >= 0.0 {
         Ok(())
     } else {
-        Err(SceneError::new(file, loc, format!("must be finite and >= 0, got {c:?}")))
+        Err(SceneError::new(
+            file,
+            loc,
+            format!("must be finite and >= 0, got {c:?}"),
+        ))
     }
 }
 
@@ -327,31 +401,34 @@ fn check_positive(file: &Path, loc: &str, v: f32) -> Result<(), SceneError> {
     }
 }
 
-fn material(
-    loader: &mut Loader,
-    name: &str,
-    desc: &MaterialDesc,
-) -> Result<Material, SceneError> {
+fn material(loader: &mut Loader, name: &str, desc: &MaterialDesc) -> Result<Material, SceneError> {
     let file = loader.file;
     let loc = format!("materials.{name}");
     let at = |f: &str| format!("{loc}.{f}");
     let (kind, two_sided) = match desc {
-        MaterialDesc::Lambert { albedo, two_sided } => (
+        MaterialDesc::Lambert(LambertMaterial {
+            albedo, two_sided, ..
+        }) => (
             MaterialKind::Lambert {
                 albedo: loader.texture(albedo, &at("albedo"))?,
             },
             *two_sided,
         ),
-        MaterialDesc::Phong {
+        MaterialDesc::Phong(PhongMaterial {
             kd,
             ks,
             exponent,
             two_sided,
-        } => {
+            ..
+        }) => {
             check_color(file, &at("kd"), kd.rgb())?;
             check_color(file, &at("ks"), ks.rgb())?;
             if !(*exponent >= 0.0 && exponent.is_finite()) {
-                return Err(SceneError::new(file, at("exponent"), "must be finite and >= 0"));
+                return Err(SceneError::new(
+                    file,
+                    at("exponent"),
+                    "must be finite and >= 0",
+                ));
             }
             let sum = kd.rgb() + ks.rgb();
             if sum.max_element() > 1.0 {
@@ -370,10 +447,11 @@ fn material(
                 *two_sided,
             )
         }
-        MaterialDesc::Mirror {
+        MaterialDesc::Mirror(MirrorMaterial {
             reflectance,
             two_sided,
-        } => {
+            ..
+        }) => {
             check_color(file, &at("reflectance"), reflectance.rgb())?;
             (
                 MaterialKind::Mirror {
@@ -382,12 +460,13 @@ fn material(
                 *two_sided,
             )
         }
-        MaterialDesc::Dielectric {
+        MaterialDesc::Dielectric(DielectricMaterial {
             ior,
             ext_ior,
             reflectance,
             transmittance,
-        } => {
+            ..
+        }) => {
             check_positive(file, &at("ior"), *ior)?;
             check_positive(file, &at("ext_ior"), *ext_ior)?;
             check_color(file, &at("reflectance"), reflectance.rgb())?;
@@ -401,7 +480,7 @@ fn material(
                 true,
             )
         }
-        MaterialDesc::RoughConductor {
+        MaterialDesc::RoughConductor(RoughConductorMaterial {
             eta,
             k,
             alpha,
@@ -409,7 +488,8 @@ fn material(
             alpha_v,
             scale,
             two_sided,
-        } => {
+            ..
+        }) => {
             let au = alpha_u.or(*alpha).unwrap_or(0.1);
             let av = alpha_v.or(*alpha).unwrap_or(au);
             check_positive(file, &at("alpha"), au)?;
@@ -428,7 +508,7 @@ fn material(
                 *two_sided,
             )
         }
-        MaterialDesc::Plastic {
+        MaterialDesc::Plastic(PlasticMaterial {
             diffuse,
             specular,
             ior,
@@ -436,7 +516,8 @@ fn material(
             layered,
             nonlinear,
             two_sided,
-        } => {
+            ..
+        }) => {
             check_positive(file, &at("ior"), *ior)?;
             check_positive(file, &at("alpha"), *alpha)?;
             check_color(file, &at("specular"), specular.rgb())?;
@@ -454,6 +535,69 @@ fn material(
         }
     };
     Ok(Material::new(name, kind, two_sided))
+}
+
+/// Deserialises one JSON value, naming `loc` + the inner JSON path in errors.
+fn typed<T: DeserializeOwned>(file: &Path, loc: &str, v: &Value) -> Result<T, SceneError> {
+    serde_path_to_error::deserialize(v).map_err(|e| {
+        let inner = e.path().to_string();
+        let location = if inner == "." || inner.is_empty() {
+            loc.to_string()
+        } else {
+            format!("{loc}.{inner}")
+        };
+        SceneError::new(file, location, e.into_inner().to_string())
+    })
+}
+
+fn type_tag<'v>(file: &Path, loc: &str, v: &'v Value) -> Result<&'v str, SceneError> {
+    v.get("type")
+        .and_then(Value::as_str)
+        .ok_or_else(|| SceneError::new(file, format!("{loc}.type"), "missing \"type\""))
+}
+
+fn unknown_type(file: &Path, loc: &str, t: &str, known: &str) -> SceneError {
+    SceneError::new(
+        file,
+        format!("{loc}.type"),
+        format!("unknown type '{t}' (expected one of: {known})"),
+    )
+}
+
+fn material_desc(file: &Path, loc: &str, v: &Value) -> Result<MaterialDesc, SceneError> {
+    Ok(match type_tag(file, loc, v)? {
+        "lambert" => MaterialDesc::Lambert(typed(file, loc, v)?),
+        "phong" => MaterialDesc::Phong(typed(file, loc, v)?),
+        "mirror" => MaterialDesc::Mirror(typed(file, loc, v)?),
+        "dielectric" => MaterialDesc::Dielectric(typed(file, loc, v)?),
+        "rough_conductor" => MaterialDesc::RoughConductor(typed(file, loc, v)?),
+        "plastic" => MaterialDesc::Plastic(typed(file, loc, v)?),
+        t => {
+            return Err(unknown_type(
+                file,
+                loc,
+                t,
+                "lambert, phong, mirror, dielectric, rough_conductor, plastic",
+            ));
+        }
+    })
+}
+
+fn shape_desc(file: &Path, loc: &str, v: &Value) -> Result<ShapeDesc, SceneError> {
+    Ok(match type_tag(file, loc, v)? {
+        "mesh" => ShapeDesc::Mesh(typed(file, loc, v)?),
+        "triangles" => ShapeDesc::Triangles(typed(file, loc, v)?),
+        "quad" => ShapeDesc::Quad(typed(file, loc, v)?),
+        "sphere" => ShapeDesc::Sphere(typed(file, loc, v)?),
+        t => return Err(unknown_type(file, loc, t, "mesh, triangles, quad, sphere")),
+    })
+}
+
+fn light_desc(file: &Path, loc: &str, v: &Value) -> Result<LightDesc, SceneError> {
+    Ok(match type_tag(file, loc, v)? {
+        "point" => LightDesc::Point(typed(file, loc, v)?),
+        t => return Err(unknown_type(file, loc, t, "point")),
+    })
 }
 
 fn v3(a: [f32; 3]) -> Vec3 {
@@ -497,8 +641,9 @@ pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
         textures: HashMap::new(),
     };
     let mut ids: HashMap<&str, u32> = HashMap::new();
-    for (name, m) in &desc.materials {
-        let mat = material(&mut loader, name, m)?;
+    for (name, v) in &desc.materials {
+        let m = material_desc(file, &format!("materials.{name}"), v)?;
+        let mat = material(&mut loader, name, &m)?;
         ids.insert(name.as_str(), b.add_material(mat));
     }
     let lookup = |name: &str, loc: &str| -> Result<u32, SceneError> {
@@ -520,25 +665,30 @@ pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
         }
     };
 
-    for (i, shape) in desc.shapes.iter().enumerate() {
+    for (i, v) in desc.shapes.iter().enumerate() {
         let loc = format!("shapes[{i}]");
-        match shape {
-            ShapeDesc::Mesh {
+        match &shape_desc(file, &loc, v)? {
+            ShapeDesc::Mesh(MeshShape {
                 file: mesh_file,
                 material,
                 emission: e,
                 transform,
-            } => {
+                ..
+            }) => {
                 let m = lookup(material, &loc)?;
                 let path = resolve_in_folder(file, mesh_file, &format!("{loc}.file"))?;
                 let mesh = super::mesh::load_mesh(&path).map_err(|msg| {
-                    SceneError::new(file, format!("{loc}.file"), format!("{}: {msg}", path.display()))
+                    SceneError::new(
+                        file,
+                        format!("{loc}.file"),
+                        format!("{}: {msg}", path.display()),
+                    )
                 })?;
                 let t = build_transform(transform, file, &loc)?;
                 let e = emission(e, &loc)?;
                 b.add_mesh(&mesh, &t, m, e, &format!("{loc} ({})", path.display()))?;
             }
-            ShapeDesc::Triangles {
+            ShapeDesc::Triangles(TrianglesShape {
                 positions,
                 indices,
                 normals,
@@ -546,7 +696,8 @@ pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
                 material,
                 emission: e,
                 transform,
-            } => {
+                ..
+            }) => {
                 let m = lookup(material, &loc)?;
                 let mesh = MeshData {
                     positions: positions.iter().map(|p| v3(*p)).collect(),
@@ -558,18 +709,23 @@ pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
                 let e = emission(e, &loc)?;
                 b.add_mesh(&mesh, &t, m, e, &loc)?;
             }
-            ShapeDesc::Quad {
+            ShapeDesc::Quad(QuadShape {
                 corner,
                 edge1,
                 edge2,
                 material,
                 emission: e,
                 transform,
-            } => {
+                ..
+            }) => {
                 let m = lookup(material, &loc)?;
                 let (c, e1, e2) = (v3(*corner), v3(*edge1), v3(*edge2));
                 if !(e1.cross(e2).length_squared() > 0.0) {
-                    return Err(SceneError::new(file, loc, "quad edges are parallel or zero"));
+                    return Err(SceneError::new(
+                        file,
+                        loc,
+                        "quad edges are parallel or zero",
+                    ));
                 }
                 let mesh = MeshData {
                     positions: vec![c, c + e1, c + e1 + e2, c + e2],
@@ -586,13 +742,14 @@ pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
                 let e = emission(e, &loc)?;
                 b.add_mesh(&mesh, &t, m, e, &loc)?;
             }
-            ShapeDesc::Sphere {
+            ShapeDesc::Sphere(SphereShape {
                 center,
                 radius,
                 material,
                 emission: e,
                 inward,
-            } => {
+                ..
+            }) => {
                 let m = lookup(material, &loc)?;
                 if !(*radius > 0.0 && radius.is_finite()) {
                     return Err(SceneError::new(
@@ -606,13 +763,14 @@ pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
             }
         }
     }
-    for (i, l) in desc.lights.iter().enumerate() {
+    for (i, v) in desc.lights.iter().enumerate() {
         let loc = format!("lights[{i}]");
-        match l {
-            LightDesc::Point {
+        match &light_desc(file, &loc, v)? {
+            LightDesc::Point(PointLight {
                 position,
                 intensity,
-            } => b.add_point_light(v3(*position), intensity.rgb(), &loc)?,
+                ..
+            }) => b.add_point_light(v3(*position), intensity.rgb(), &loc)?,
         }
     }
     Ok(b)

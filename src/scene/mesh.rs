@@ -14,7 +14,9 @@ pub fn load_mesh(path: &Path) -> Result<MeshData, String> {
     match ext.as_str() {
         "obj" => load_obj(path),
         "ply" => load_ply(path),
-        other => Err(format!("unknown mesh format '.{other}' (expected .obj or .ply)")),
+        other => Err(format!(
+            "unknown mesh format '.{other}' (expected .obj or .ply)"
+        )),
     }
 }
 
@@ -24,7 +26,6 @@ pub fn load_obj(path: &Path) -> Result<MeshData, String> {
         single_index: true,
         ignore_points: true,
         ignore_lines: true,
-        ..Default::default()
     };
     let file = std::fs::File::open(path).map_err(|e| format!("cannot open: {e}"))?;
     let mut reader = std::io::BufReader::new(file);
@@ -54,8 +55,11 @@ pub fn load_obj(path: &Path) -> Result<MeshData, String> {
             );
         }
         if all_uvs {
-            out.uvs
-                .extend(mesh.texcoords.chunks_exact(2).map(|c| Vec2::new(c[0], c[1])));
+            out.uvs.extend(
+                mesh.texcoords
+                    .chunks_exact(2)
+                    .map(|c| Vec2::new(c[0], c[1])),
+            );
         }
         out.indices.extend(
             mesh.indices
@@ -96,8 +100,14 @@ pub fn load_ply(path: &Path) -> Result<MeshData, String> {
             .ok_or_else(|| format!("vertex {i} lacks x, y or z"))?;
         out.positions.push(p);
         if has_n {
-            let n = (|| Some(Vec3::new(scalar(v, "nx")?, scalar(v, "ny")?, scalar(v, "nz")?)))()
-                .ok_or_else(|| format!("vertex {i} lacks nx, ny or nz"))?;
+            let n = (|| {
+                Some(Vec3::new(
+                    scalar(v, "nx")?,
+                    scalar(v, "ny")?,
+                    scalar(v, "nz")?,
+                ))
+            })()
+            .ok_or_else(|| format!("vertex {i} lacks nx, ny or nz"))?;
             out.normals.push(n);
         }
         if let Some((ku, kv)) = uv_keys {

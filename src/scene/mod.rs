@@ -386,7 +386,10 @@ impl SceneBuilder {
     ) -> Result<(), SceneError> {
         let nv = mesh.positions.len();
         if let Some(i) = mesh.positions.iter().position(|p| !p.is_finite()) {
-            return Err(self.err(location, format!("vertex {i} is not finite: {:?}", mesh.positions[i])));
+            return Err(self.err(
+                location,
+                format!("vertex {i} is not finite: {:?}", mesh.positions[i]),
+            ));
         }
         let has_normals = !mesh.normals.is_empty();
         let has_uvs = !mesh.uvs.is_empty();
@@ -397,7 +400,10 @@ impl SceneBuilder {
             ));
         }
         if has_uvs && mesh.uvs.len() != nv {
-            return Err(self.err(location, format!("{} uvs for {} vertices", mesh.uvs.len(), nv)));
+            return Err(self.err(
+                location,
+                format!("{} uvs for {} vertices", mesh.uvs.len(), nv),
+            ));
         }
         if let Some(i) = mesh.normals.iter().position(|n| !n.is_finite()) {
             return Err(self.err(location, format!("normal {i} is not finite")));
@@ -413,13 +419,19 @@ impl SceneBuilder {
         {
             return Err(self.err(
                 location,
-                format!("face {f} has index {:?} out of range for {nv} vertices", idx),
+                format!(
+                    "face {f} has index {:?} out of range for {nv} vertices",
+                    idx
+                ),
             ));
         }
         if let Some(e) = emission
             && !(e.is_finite() && e.min_element() >= 0.0)
         {
-            return Err(self.err(location, format!("emission must be finite and >= 0, got {e:?}")));
+            return Err(self.err(
+                location,
+                format!("emission must be finite and >= 0, got {e:?}"),
+            ));
         }
         if material as usize >= self.materials.len() {
             return Err(self.err(location, "material index out of range"));
@@ -454,7 +466,9 @@ impl SceneBuilder {
             }
             let mut flip = false;
             if has_normals {
-                let ns = self.normals[v[0] as usize] + self.normals[v[1] as usize] + self.normals[v[2] as usize];
+                let ns = self.normals[v[0] as usize]
+                    + self.normals[v[1] as usize]
+                    + self.normals[v[2] as usize];
                 flip = ns.dot(ng) < 0.0;
             }
             self.triangles.push(Triangle {
@@ -488,7 +502,10 @@ impl SceneBuilder {
         if let Some(e) = emission
             && !(e.is_finite() && e.min_element() >= 0.0)
         {
-            return Err(self.err(location, format!("emission must be finite and >= 0, got {e:?}")));
+            return Err(self.err(
+                location,
+                format!("emission must be finite and >= 0, got {e:?}"),
+            ));
         }
         if material as usize >= self.materials.len() {
             return Err(self.err(location, "material index out of range"));
@@ -633,7 +650,8 @@ fn coplanar_triangle_lights(lights: &[Light], area: &[u32]) -> bool {
             Some((q, m)) => {
                 let scale = 1e-5 * (1.0 + q.abs().max_element() + p0.abs().max_element());
                 let pts = [*p0, *p0 + *e1, *p0 + *e2];
-                if n.dot(m).abs() < 1.0 - 1e-6 || pts.iter().any(|p| (*p - q).dot(m).abs() > scale) {
+                if n.dot(m).abs() < 1.0 - 1e-6 || pts.iter().any(|p| (*p - q).dot(m).abs() > scale)
+                {
                     return false;
                 }
             }

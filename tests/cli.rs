@@ -1,0 +1,223 @@
+//! The `omis` binary's command-line contract: render and diff, their JSON summaries, EXRs that
+//! OpenEXR's own tools read, and one-line errors with a non-zero exit.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn omis(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_omis"))
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("run omis")
+}
+
+fn folder(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("omis-cli-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("temp dir");
+    d
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+fn last_json(out: &Output) -> serde_json::Value {
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let line = stdout.lines().last().expect("some stdout");
+    serde_json::from_str(line).unwrap_or_else(|e| panic!("last line is not JSON ({e}): {line}"))
+}
+
+fn assert_one_line_error(out: &Output, needle: &str) {
+    assert!(!out.status.success(), "expected failure");
+    let err = String::from_utf8_lossy(&out.stderr);
+    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert_eq!(lines.len(), 1, "expected one line of error, got: {err}");
+    assert!(
+        lines[0].contains(needle),
+        "error '{}' should mention '{needle}'",
+        lines[0]
+    );
+}
+
+#[test]
+fn render_writes_exr_png_and_a_json_summary() {
+    let d = folder("render");
+    let exr = d.join("cb.exr");
+    let png = d.join("cb.png");
+    let out = omis(&[
+        "render",
+        "scenes/cornell-box.json",
+        "--spp",
+        "2",
+        "--resolution",
+        "32x24",
+        "--out",
+        s(&exr),
+        "--png",
+        s(&png),
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j = last_json(&out);
+    assert_eq!(j["spp"], 2);
+    assert_eq!(j["width"], 32);
+    assert_eq!(j["height"], 24);
+    assert!(j["seconds"].as_f64().expect("seconds") > 0.0);
+    assert!(j["pixel_samples_per_second"].as_f64().expect("rate") > 0.0);
+    let mean = j["mean_rgb"].as_array().expect("mean_rgb");
+    assert_eq!(mean.len(), 3);
+    assert!(mean.iter().all(|v| v.as_f64().expect("number") > 0.0));
+    assert!(j.get("relmse").is_none());
+    let img = omis::film::exr_io::read_exr(&exr).expect("EXR reads");
+    assert_eq!((img.width, img.height), (32, 24));
+    assert!(std::fs::metadata(&png).expect("png").len() > 0);
+
+    // The image against itself: relMSE 0, in render and in diff.
+    let out = omis(&[
+        "render",
+        "scenes/cornell-box.json",
+        "--spp",
+        "2",
+        "--resolution",
+        "32x24",
+        "--out",
+        s(&d.join("again.exr")),
+        "--reference",
+        s(&exr),
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(last_json(&out)["relmse"], 0.0);
+    let map = d.join("err.png");
+    let out = omis(&[
+        "diff",
+        s(&exr),
+        s(&d.join("again.exr")),
+        "--error-map",
+        s(&map),
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(last_json(&out)["relmse"], 0.0);
+    assert!(map.exists());
+}
+
+#[test]
+fn exr_opens_in_openexr_tools() {
+    let d = folder("openexr");
+    let exr = d.join("f.exr");
+    let out = omis(&[
+        "render",
+        "scenes/furnace.json",
+        "--spp",
+        "4",
+        "--resolution",
+        "20x10",
+        "--out",
+        s(&exr),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let tool = Command::new("exrmaketiled").arg("-h").output();
+    if tool.is_err() {
+        assert!(
+            std::env::var_os("OMIS_REQUIRE_OPENEXR").is_none(),
+            "OpenEXR tools are required (OMIS_REQUIRE_OPENEXR) but exrmaketiled is missing"
+        );
+        eprintln!("skipped: OpenEXR's tools (Debian package openexr) are not installed");
+        return;
+    }
+    let header = Command::new("exrheader")
+        .arg(&exr)
+        .output()
+        .expect("exrheader");
+    assert!(
+        header.status.success(),
+        "{}",
+        String::from_utf8_lossy(&header.stderr)
+    );
+    let text = String::from_utf8_lossy(&header.stdout);
+    assert!(
+        text.contains("variance.R") && text.contains("omis.spp"),
+        "{text}"
+    );
+    // OpenEXR reads every pixel and rewrites them tiled; we read its file back: same image.
+    let tiled = d.join("tiled.exr");
+    let t = Command::new("exrmaketiled")
+        .arg(&exr)
+        .arg(&tiled)
+        .output()
+        .expect("exrmaketiled");
+    assert!(t.status.success(), "{}", String::from_utf8_lossy(&t.stderr));
+    let a = omis::film::exr_io::read_exr(&exr).expect("ours");
+    let b = omis::film::exr_io::read_exr(&tiled).expect("OpenEXR's");
+    assert_eq!(a, b);
+}
+
+#[test]
+fn bad_input_exits_nonzero_with_one_line() {
+    let d = folder("bad");
+    assert_one_line_error(
+        &omis(&["render", "no/such/scene.json"]),
+        "no/such/scene.json",
+    );
+    assert_one_line_error(
+        &omis(&["render", "scenes/furnace.json", "--resolution", "0x5"]),
+        "resolution",
+    );
+    assert_one_line_error(
+        &omis(&["render", "scenes/furnace.json", "--spp", "0"]),
+        "spp",
+    );
+    let bad_scene = d.join("bad.json");
+    std::fs::write(&bad_scene, "{\"camera\": 3}").expect("write");
+    assert_one_line_error(&omis(&["render", s(&bad_scene)]), "camera");
+    let not_exr = d.join("x.exr");
+    std::fs::write(&not_exr, "not an exr").expect("write");
+    assert_one_line_error(
+        &omis(&["render", "scenes/furnace.json", "--reference", s(&not_exr)]),
+        "x.exr",
+    );
+    assert_one_line_error(&omis(&["diff", s(&not_exr), s(&not_exr)]), "x.exr");
+    // A reference of the wrong size is refused before rendering.
+    let small = d.join("small.exr");
+    let out = omis(&[
+        "render",
+        "scenes/furnace.json",
+        "--spp",
+        "1",
+        "--resolution",
+        "4x4",
+        "--out",
+        s(&small),
+    ]);
+    assert!(out.status.success());
+    assert_one_line_error(
+        &omis(&[
+            "render",
+            "scenes/furnace.json",
+            "--spp",
+            "1",
+            "--reference",
+            s(&small),
+        ]),
+        "4x4",
+    );
+}

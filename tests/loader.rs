@@ -1,0 +1,271 @@
+//! Scene loading: every bad input is a clear error naming the file and the place, never a panic;
+//! meshes load from OBJ and PLY (ASCII and binary).
+
+use omis::scene::Scene;
+use std::path::{Path, PathBuf};
+
+/// A fresh folder for one test's files.
+fn folder(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("omis-loader-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("temp dir");
+    d
+}
+
+const CAMERA: &str =
+    r#""camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "fov": 40, "resolution": [8, 8]}"#;
+const MATERIALS: &str = r#""materials": {"m": {"type": "lambert", "albedo": 0.5}}"#;
+
+fn scene_with_shapes(dir: &Path, shapes: &str) -> PathBuf {
+    let p = dir.join("scene.json");
+    std::fs::write(
+        &p,
+        format!("{{\n{CAMERA},\n{MATERIALS},\n\"shapes\": [{shapes}]\n}}\n"),
+    )
+    .expect("write scene");
+    p
+}
+
+fn load_err(path: &Path) -> String {
+    match Scene::load(path) {
+        Ok(_) => panic!("{} loaded but should not", path.display()),
+        Err(e) => e.to_string(),
+    }
+}
+
+fn assert_has(msg: &str, parts: &[&str]) {
+    for p in parts {
+        assert!(msg.contains(p), "error '{msg}' should mention '{p}'");
+    }
+}
+
+#[test]
+fn malformed_json_names_file_and_line() {
+    let d = folder("malformed");
+    let p = d.join("scene.json");
+    std::fs::write(&p, "{\n  \"camera\": {\"position\": [0, 0, 5],\n  oops\n}").unwrap();
+    let e = load_err(&p);
+    assert_has(&e, &["scene.json", "line 3"]);
+}
+
+#[test]
+fn unknown_field_and_wrong_type_name_the_json_path() {
+    let d = folder("unknown");
+    let p = d.join("scene.json");
+    std::fs::write(
+        &p,
+        r#"{"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "fovv": 40, "resolution": [8, 8]}}"#,
+    )
+    .unwrap();
+    assert_has(&load_err(&p), &["camera", "fovv"]);
+    let p = scene_with_shapes(
+        &d,
+        r#"{"type": "sphere", "center": [0, 0, "x"], "radius": 1, "material": "m"}"#,
+    );
+    assert_has(&load_err(&p), &["shapes[0].center"]);
+    let p = scene_with_shapes(&d, r#"{"type": "torus", "material": "m"}"#);
+    assert_has(&load_err(&p), &["shapes[0]", "torus"]);
+}
+
+#[test]
+fn missing_mesh_is_reported_with_its_field() {
+    let d = folder("missing");
+    let p = scene_with_shapes(
+        &d,
+        r#"{"type": "mesh", "file": "nowhere.obj", "material": "m"}"#,
+    );
+    assert_has(
+        &load_err(&p),
+        &["scene.json", "shapes[0].file", "nowhere.obj", "not found"],
+    );
+}
+
+#[test]
+fn negative_radius_is_refused() {
+    let d = folder("radius");
+    let p = scene_with_shapes(
+        &d,
+        r#"{"type": "sphere", "center": [0, 0, 0], "radius": -1, "material": "m"}"#,
+    );
+    assert_has(&load_err(&p), &["shapes[0].radius", "-1"]);
+}
+
+#[test]
+fn nan_vertex_in_a_mesh_file_is_refused() {
+    let d = folder("nan");
+    std::fs::write(d.join("bad.obj"), "v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n").unwrap();
+    let p = scene_with_shapes(
+        &d,
+        r#"{"type": "mesh", "file": "bad.obj", "material": "m"}"#,
+    );
+    assert_has(
+        &load_err(&p),
+        &["shapes[0]", "bad.obj", "vertex 2 is not finite"],
+    );
+    // Out-of-range JSON numbers cannot smuggle infinities in either.
+    let p = scene_with_shapes(
+        &d,
+        r#"{"type": "triangles", "positions": [[0,0,0],[1,0,0],[0,1e999,0]], "indices": [[0,1,2]], "material": "m"}"#,
+    );
+    assert_has(&load_err(&p), &["shapes[0].positions"]);
+}
+
+#[test]
+fn paths_outside_the_scene_folder_are_refused() {
+    let root = folder("outside");
+    let inner = root.join("inner");
+    std::fs::create_dir_all(&inner).unwrap();
+    std::fs::write(
+        root.join("secret.obj"),
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    )
+    .unwrap();
+    let p = scene_with_shapes(
+        &inner,
+        r#"{"type": "mesh", "file": "../secret.obj", "material": "m"}"#,
+    );
+    assert_has(
+        &load_err(&p),
+        &["shapes[0].file", "leaves the scene's folder"],
+    );
+    let abs = root.join("secret.obj");
+    let p = scene_with_shapes(
+        &inner,
+        &format!(
+            r#"{{"type": "mesh", "file": "{}", "material": "m"}}"#,
+            abs.display()
+        ),
+    );
+    assert_has(&load_err(&p), &["shapes[0].file", "absolute"]);
+}
+
+#[test]
+fn unknown_material_and_bad_values_are_named() {
+    let d = folder("values");
+    let p = scene_with_shapes(
+        &d,
+        r#"{"type": "sphere", "center": [0, 0, 0], "radius": 1, "material": "gold"}"#,
+    );
+    assert_has(&load_err(&p), &["shapes[0].material", "gold"]);
+    let p = scene_with_shapes(
+        &d,
+        r#"{"type": "sphere", "center": [0, 0, 0], "radius": 1, "material": "m", "emission": [1, -2, 0]}"#,
+    );
+    assert_has(&load_err(&p), &["shapes[0].emission"]);
+    let p = d.join("cam.json");
+    std::fs::write(
+        &p,
+        r#"{"camera": {"position": [0, 0, 5], "look_at": [0, 0, 5], "fov": 40, "resolution": [8, 8]}}"#,
+    )
+    .unwrap();
+    assert_has(&load_err(&p), &["camera", "look_at"]);
+}
+
+#[test]
+fn obj_and_ply_meshes_load() {
+    let d = folder("meshes");
+    // A unit quad as an OBJ polygon (triangulated), with normals and uvs.
+    std::fs::write(
+        d.join("quad.obj"),
+        "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nvn 0 0 1\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nf 1/1/1 2/2/1 3/3/1 4/4/1\n",
+    )
+    .unwrap();
+    // The same quad as ASCII PLY.
+    std::fs::write(
+        d.join("quad.ply"),
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n-1 -1 1\n1 -1 1\n1 1 1\n-1 1 1\n4 0 1 2 3\n",
+    )
+    .unwrap();
+    // And as binary little-endian PLY with normals.
+    let mut bin = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n".to_vec();
+    for v in [[0.0f32, 0.0, 2.0], [1.0, 0.0, 2.0], [0.0, 1.0, 2.0]] {
+        for c in v.iter().chain([0.0f32, 0.0, 1.0].iter()) {
+            bin.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    bin.push(3);
+    for i in [0i32, 1, 2] {
+        bin.extend_from_slice(&i.to_le_bytes());
+    }
+    std::fs::write(d.join("tri.ply"), bin).unwrap();
+    let p = scene_with_shapes(
+        &d,
+        r#"{"type": "mesh", "file": "quad.obj", "material": "m"},
+           {"type": "mesh", "file": "quad.ply", "material": "m", "transform": [{"translate": [0, 0, 0.5]}]},
+           {"type": "mesh", "file": "tri.ply", "material": "m", "emission": 2}"#,
+    );
+    let scene = Scene::load(&p).expect("meshes load");
+    assert_eq!(scene.triangles.len(), 2 + 2 + 1);
+    assert_eq!(scene.lights.len(), 1);
+    // The translated PLY quad sits at z = 1.5, in front of the OBJ quad at z = 0.
+    let hit = scene
+        .intersect(&omis::geometry::Ray::new(
+            omis::geometry::Vec3::new(0.2, -0.3, 5.0),
+            omis::geometry::Vec3::NEG_Z,
+        ))
+        .expect("hit");
+    assert!(
+        (hit.p.z - 2.0).abs() < 1e-5 || (hit.p.z - 1.5).abs() < 1e-5,
+        "{:?}",
+        hit.p
+    );
+    // A malformed PLY is an error naming the file.
+    std::fs::write(
+        d.join("broken.ply"),
+        "ply\nformat ascii 1.0\nelement vertex 2\nend_header\n1 2\n",
+    )
+    .unwrap();
+    let p = scene_with_shapes(
+        &d,
+        r#"{"type": "mesh", "file": "broken.ply", "material": "m"}"#,
+    );
+    assert_has(&load_err(&p), &["shapes[0].file", "broken.ply"]);
+}
+
+#[test]
+fn shipped_scenes_load() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes");
+    let mut n = 0;
+    for e in std::fs::read_dir(&dir).expect("scenes/") {
+        let p = e.expect("entry").path();
+        if p.extension().is_some_and(|x| x == "json") {
+            let s = Scene::load(&p).unwrap_or_else(|e| panic!("{e}"));
+            assert!(!s.lights.is_empty(), "{} has no light", p.display());
+            n += 1;
+        }
+    }
+    assert!(n >= 4, "expected the four shipped scenes, found {n}");
+}
+
+#[test]
+fn the_documented_example_scene_loads() {
+    // The complete example of scenes/README.md, with the files it names made up here.
+    let doc =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/README.md"))
+            .expect("scenes/README.md");
+    let start = doc.find("```json\n").expect("a json block") + "```json\n".len();
+    let end = start + doc[start..].find("```").expect("end of block");
+    let d = folder("doc-example");
+    std::fs::create_dir_all(d.join("models")).unwrap();
+    std::fs::create_dir_all(d.join("textures")).unwrap();
+    std::fs::write(
+        d.join("models/bunny.obj"),
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    )
+    .unwrap();
+    std::fs::write(
+        d.join("models/table.ply"),
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 0 1\n3 0 1 2\n",
+    )
+    .unwrap();
+    image::RgbImage::from_pixel(2, 2, image::Rgb([200, 150, 100]))
+        .save(d.join("textures/wood.jpg"))
+        .unwrap();
+    let p = d.join("example.json");
+    std::fs::write(&p, &doc[start..end]).unwrap();
+    let scene = Scene::load(&p).unwrap_or_else(|e| panic!("documented example: {e}"));
+    assert_eq!(scene.materials.len(), 9);
+    assert_eq!(scene.spheres.len(), 1);
+    // Two emitting triangles of the quad light and the point light.
+    assert_eq!(scene.lights.len(), 3);
+}
