@@ -59,6 +59,9 @@ pub struct RenderArgs {
 
 pub fn run(a: RenderArgs) -> Result<()> {
     let mut scene = Scene::load(&a.scene).map_err(anyhow::Error::msg)?;
+    for w in &scene.warnings {
+        eprintln!("omis: warning: {w}");
+    }
     if let Some(r) = &a.resolution {
         let (w, h) = super::parse_resolution(r).map_err(anyhow::Error::msg)?;
         scene.camera = scene

@@ -107,6 +107,8 @@ pub struct Scene {
     pub light_select: Option<Distribution1D>,
     pub defaults: SceneDefaults,
     pub stats: SceneStats,
+    /// What the loader could not represent exactly (each reported once, with its location).
+    pub warnings: Vec<String>,
     accel: Accel,
     /// BVH over the emitting primitives only, for summing light pdfs along a ray.
     emitter_accel: Option<Accel>,
@@ -334,6 +336,7 @@ pub struct SceneBuilder {
     sphere_emission: Vec<Rgb>,
     point_lights: Vec<Light>,
     pub defaults: SceneDefaults,
+    warnings: Vec<String>,
 }
 
 impl SceneBuilder {
@@ -351,6 +354,15 @@ impl SceneBuilder {
             sphere_emission: Vec::new(),
             point_lights: Vec::new(),
             defaults: SceneDefaults::default(),
+            warnings: Vec::new(),
+        }
+    }
+
+    /// Records a warning once (identical messages are kept once).
+    pub fn warn(&mut self, message: impl Into<String>) {
+        let m = message.into();
+        if !self.warnings.contains(&m) {
+            self.warnings.push(m);
         }
     }
 
@@ -629,6 +641,7 @@ impl SceneBuilder {
             light_select,
             defaults: self.defaults,
             stats,
+            warnings: self.warnings,
             accel,
             emitter_accel,
             area_lights,
