@@ -29,7 +29,7 @@ fn render(scene: &Scene, settings: &RenderSettings, threads: usize) -> PixelSums
         .num_threads(threads)
         .build()
         .expect("pool");
-    pool.install(|| integrator::render(scene, settings, 8, &|_| {}).sums)
+    pool.install(|| integrator::render(scene, settings, 8, &|_| {}).frame.sums)
 }
 
 /// Mean and standard error of the mean over a pixel region (pixels are independent estimates).

@@ -120,7 +120,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             max_depth: a.max_depth,
             seed: 1,
             sampler: SamplerKind::Sobol,
-            direct: Default::default(),
+            ..Default::default()
         };
         let out = pool.install(|| integrator::render(&scene, &settings, 16, &|_| {}));
         let st = out.stats;

@@ -2,7 +2,7 @@
 
 use crate::film::{exr_io, metrics, png};
 use crate::integrator::path::DirectStrategy;
-use crate::integrator::{self, IntegratorKind, RenderSettings};
+use crate::integrator::{self, IntegratorKind, MisKind, RenderSettings};
 use crate::sampler::SamplerKind;
 use crate::scene::Scene;
 use anyhow::{Context, Result, bail};
@@ -23,6 +23,13 @@ pub struct RenderArgs {
     pub max_depth: Option<u32>,
     #[arg(long, value_enum, default_value_t = IntegratorKind::Pt)]
     pub integrator: IntegratorKind,
+    /// BDPT technique weights.
+    #[arg(long, value_enum, default_value_t = MisKind::Balance)]
+    pub mis: MisKind,
+    /// BDPT: write the weighted contribution of every (s, t) up to depth 3 as EXR layers
+    /// `s<S>_t<T>`.
+    #[arg(long)]
+    pub strategies: bool,
     #[arg(long, value_enum, default_value_t = SamplerKind::Sobol)]
     pub sampler: SamplerKind,
     #[arg(long, default_value_t = 0)]
@@ -100,7 +107,18 @@ pub fn run(a: RenderArgs) -> Result<()> {
         seed: a.seed,
         sampler: a.sampler,
         direct: a.direct,
+        mis: a.mis,
+        strategies: a.strategies,
     };
+    if settings.max_depth > integrator::bdpt::MAX_DEPTH
+        && settings.integrator == IntegratorKind::Bdpt
+    {
+        bail!(
+            "--max-depth {} exceeds the BDPT limit of {}",
+            settings.max_depth,
+            integrator::bdpt::MAX_DEPTH
+        );
+    }
     let out = a.out.clone().unwrap_or_else(|| {
         let stem = a
             .scene
@@ -111,8 +129,13 @@ pub fn run(a: RenderArgs) -> Result<()> {
     });
 
     let pool = super::thread_pool(a.threads)?;
-    let tiles = integrator::make_tiles(scene.camera.width, scene.camera.height, a.tile_size);
-    let bar = ProgressBar::new(tiles.len() as u64);
+    let tasks = integrator::task_count(
+        scene.camera.width,
+        scene.camera.height,
+        a.tile_size,
+        settings.spp,
+    );
+    let bar = ProgressBar::new(tasks as u64);
     bar.set_style(
         ProgressStyle::with_template(
             "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} tiles {eta}",
@@ -123,8 +146,13 @@ pub fn run(a: RenderArgs) -> Result<()> {
         pool.install(|| integrator::render(&scene, &settings, a.tile_size, &|n| bar.inc(n as u64)));
     bar.finish_and_clear();
 
-    let image = output.sums.mean();
-    let variance = output.sums.variance_of_mean();
+    let image = output.image();
+    let mut layers: Vec<(String, crate::film::Image)> = Vec::new();
+    if settings.integrator == IntegratorKind::Pt {
+        // Per-pixel variance of the mean (BDPT's light-tracing splats have no per-pixel samples).
+        layers.push(("variance".into(), output.sums().variance_of_mean()));
+    }
+    layers.extend(output.frame.strategy_images());
     let attrs = [
         ("omis.scene", a.scene.display().to_string()),
         (
@@ -135,16 +163,14 @@ pub fn run(a: RenderArgs) -> Result<()> {
         ("omis.max_depth", settings.max_depth.to_string()),
         ("omis.seed", settings.seed.to_string()),
     ];
-    exr_io::write_exr(
-        &out,
-        &image,
-        &[exr_io::NamedLayer {
-            name: "variance".into(),
-            image: &variance,
-        }],
-        &attrs,
-    )
-    .map_err(anyhow::Error::msg)?;
+    let named: Vec<exr_io::NamedLayer> = layers
+        .iter()
+        .map(|(name, image)| exr_io::NamedLayer {
+            name: name.clone(),
+            image,
+        })
+        .collect();
+    exr_io::write_exr(&out, &image, &named, &attrs).map_err(anyhow::Error::msg)?;
     if let Some(p) = &a.png {
         png::write_png(p, &image, 0.0).map_err(anyhow::Error::msg)?;
     }
@@ -188,6 +214,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
             "width": scene.camera.width,
             "height": scene.camera.height,
             "integrator": settings.integrator,
+            "mis": settings.mis,
             "sampler": settings.sampler,
             "spp": settings.spp,
             "max_depth": settings.max_depth,

@@ -1,14 +1,16 @@
 //! Integrators and the tile loop that drives them.
 //!
 //! Work is cut into tiles; each tile renders its pixels' samples [s0, s1) into tile-local f64
-//! accumulators. Every random number comes from (seed, pixel, sample index), so the image does
-//! not depend on the number of threads or the order in which tiles finish.
+//! accumulators, plus light-tracing splat records for any pixel. Every random number comes from
+//! (seed, pixel, sample index), and results are merged in a fixed order (pass, tile, record), so
+//! the image does not depend on the number of threads or the order in which tiles finish.
 
+pub mod bdpt;
 pub mod path;
 
-use crate::film::PixelSums;
+use crate::film::{Image, PixelSums};
 use crate::geometry::{Rgb, Vec2};
-use crate::sampler::{SamplerKind, Stream};
+use crate::sampler::{Sampler, SamplerKind, Stream};
 use crate::scene::Scene;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -21,6 +23,23 @@ pub enum IntegratorKind {
     /// Unidirectional path tracing with NEE and MIS (power heuristic).
     #[default]
     Pt,
+    /// Bidirectional path tracing with every strategy.
+    Bdpt,
+}
+
+/// How BDPT weights its techniques.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum MisKind {
+    /// Balance heuristic (Veach 1997 eq. 9.6).
+    #[default]
+    Balance,
+    /// Power heuristic, beta = 2 (Veach 1997 eq. 9.13).
+    Power,
+    /// Validation: light tracing alone (every t = 1 technique, unweighted).
+    Lt,
+    /// Validation: next-event estimation alone (every (1, t >= 2), unweighted; depth 0 by (0, 2)).
+    Nee,
 }
 
 /// Everything besides the scene that determines the image.
@@ -34,6 +53,12 @@ pub struct RenderSettings {
     /// Path tracer only: how emitters are reached (MIS, or one strategy alone for validation).
     #[serde(default)]
     pub direct: path::DirectStrategy,
+    /// BDPT only: technique weights.
+    #[serde(default)]
+    pub mis: MisKind,
+    /// BDPT only: keep the weighted contribution of every (s, t) up to depth 3 as extra layers.
+    #[serde(default)]
+    pub strategies: bool,
 }
 
 impl Default for RenderSettings {
@@ -45,6 +70,8 @@ impl Default for RenderSettings {
             seed: 0,
             sampler: SamplerKind::Sobol,
             direct: path::DirectStrategy::Mis,
+            mis: MisKind::Balance,
+            strategies: false,
         }
     }
 }
@@ -117,21 +144,130 @@ pub fn make_tiles(width: u32, height: u32, size: u32) -> Vec<Tile> {
     tiles
 }
 
-/// Renders samples `samples` of every pixel of `tile` into `sums` (tile-sized, row-major).
+/// (s, t) techniques kept as strategy layers: every technique of depth 0 ..= STRATEGY_DEPTH.
+pub const STRATEGY_DEPTH: u32 = 3;
+
+/// Number of strategy layers: sum over d <= 3 of (d + 2) = 14.
+pub const STRATEGY_LAYERS: usize = 14;
+
+/// Layer index of technique (s, depth) for depth <= STRATEGY_DEPTH.
+#[inline]
+pub fn strategy_layer(depth: u32, s: u32) -> Option<usize> {
+    (depth <= STRATEGY_DEPTH).then(|| (depth * (depth + 3) / 2 + s) as usize)
+}
+
+/// Name of strategy layer `i`, e.g. "s1_t2" (depth s + t - 2).
+pub fn strategy_layer_name(i: usize) -> String {
+    let mut d = 0u32;
+    let mut base = 0usize;
+    while base + (d as usize + 2) <= i {
+        base += d as usize + 2;
+        d += 1;
+    }
+    let s = (i - base) as u32;
+    format!("s{}_t{}", s, d + 2 - s)
+}
+
+/// A light-tracing contribution to any pixel of the frame.
+#[derive(Clone, Copy, Debug)]
+pub struct Splat {
+    /// Pixel index y * width + x in the frame.
+    pub pixel: u32,
+    /// Strategy layer, or u8::MAX when the technique's depth is not kept as a layer.
+    pub layer: u8,
+    pub value: [f32; 3],
+}
+
+/// What a tile task produces: camera-side sums of its own pixels, splats anywhere.
+pub struct TileFilm {
+    pub tile: Tile,
+    /// Per pixel of the tile, the sum over its samples of the camera-side estimate (for the path
+    /// tracer: the whole estimate).
+    pub sums: PixelSums,
+    pub splats: Vec<Splat>,
+    /// Strategy layers of the tile's pixels (pixel-major, STRATEGY_LAYERS each), when requested.
+    pub layers: Vec<[f64; 3]>,
+    pub stats: RayStats,
+}
+
+/// Balance- or power-weighted BDPT: sums weighted contributions, camera ones into the current
+/// pixel sample and light-tracing ones into splat records.
+struct HeuristicSink<'a> {
+    mis: MisKind,
+    frame_width: u32,
+    value: Rgb,
+    splats: &'a mut Vec<Splat>,
+    /// The current pixel's strategy layers, when kept.
+    layers: Option<&'a mut [[f64; 3]]>,
+}
+
+impl bdpt::SampleSink for HeuristicSink<'_> {
+    fn wants_zero_samples(&self) -> bool {
+        false
+    }
+
+    fn sample(&mut self, s: &bdpt::PathSample) {
+        let w = match self.mis {
+            MisKind::Balance => s.balance[s.s as usize],
+            MisKind::Power => {
+                let b = s.balance[s.s as usize];
+                let sq: f64 = s.balance.iter().map(|x| x * x).sum();
+                b * b / sq
+            }
+            MisKind::Lt => (s.t == 1) as u8 as f64,
+            MisKind::Nee => (s.s == 1 && s.t >= 2 || s.s == 0 && s.depth == 0) as u8 as f64,
+        };
+        if w == 0.0 {
+            return;
+        }
+        let v = s.contribution * w as f32;
+        let layer = strategy_layer(s.depth, s.s);
+        if s.t == 1 {
+            self.splats.push(Splat {
+                pixel: s.pixel.1 * self.frame_width + s.pixel.0,
+                layer: layer.map_or(u8::MAX, |l| l as u8),
+                value: v.to_array(),
+            });
+        } else {
+            self.value += v;
+            if let (Some(layers), Some(l)) = (self.layers.as_deref_mut(), layer) {
+                for c in 0..3 {
+                    layers[l][c] += v[c] as f64;
+                }
+            }
+        }
+    }
+
+    fn unsampled(&mut self, _pixel: (u32, u32), _depth: u32, _s: u32) {}
+}
+
+/// Renders samples `samples` of every pixel of `tile`.
 pub fn render_tile(
     scene: &Scene,
     settings: &RenderSettings,
     tile: Tile,
     samples: Range<u32>,
-    sums: &mut PixelSums,
-    stats: &mut RayStats,
-) {
+) -> TileFilm {
+    let mut film = TileFilm {
+        tile,
+        sums: PixelSums::new(tile.width(), tile.height()),
+        splats: Vec::new(),
+        layers: if settings.strategies && settings.integrator == IntegratorKind::Bdpt {
+            vec![[0.0; 3]; tile.pixels() * STRATEGY_LAYERS]
+        } else {
+            Vec::new()
+        },
+        stats: RayStats::default(),
+    };
+    let mut ws = bdpt::Workspace::default();
+    let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
     let cam = &scene.camera;
+    let stats = &mut film.stats;
     for y in tile.y0..tile.y1 {
         for x in tile.x0..tile.x1 {
             let idx = (y - tile.y0) as usize * tile.width() + (x - tile.x0) as usize;
             for i in samples.clone() {
-                let mut sampler = crate::sampler::Sampler::new(
+                let mut sampler = Sampler::new(
                     settings.sampler,
                     settings.seed,
                     x,
@@ -140,37 +276,190 @@ pub fn render_tile(
                     settings.spp,
                     Stream::Camera,
                 );
-                let film = sampler.next_2d();
-                let ray = cam.ray(Vec2::new(x as f32 + film.x, y as f32 + film.y));
                 let mut l = match settings.integrator {
-                    IntegratorKind::Pt => path::li(
-                        scene,
-                        ray,
-                        &mut sampler,
-                        settings.max_depth,
-                        settings.direct,
-                        stats,
-                    ),
+                    IntegratorKind::Pt => {
+                        let f = sampler.next_2d();
+                        let ray = cam.ray(Vec2::new(x as f32 + f.x, y as f32 + f.y));
+                        path::li(scene, ray, &mut sampler, max_depth, settings.direct, stats)
+                    }
+                    IntegratorKind::Bdpt => {
+                        let mut light_sampler = Sampler::new(
+                            settings.sampler,
+                            settings.seed,
+                            x,
+                            y,
+                            i,
+                            settings.spp,
+                            Stream::Light,
+                        );
+                        let layers = if film.layers.is_empty() {
+                            None
+                        } else {
+                            Some(
+                                &mut film.layers
+                                    [idx * STRATEGY_LAYERS..(idx + 1) * STRATEGY_LAYERS],
+                            )
+                        };
+                        let mut sink = HeuristicSink {
+                            mis: settings.mis,
+                            frame_width: cam.width,
+                            value: Rgb::ZERO,
+                            splats: &mut film.splats,
+                            layers,
+                        };
+                        bdpt::pixel_sample(
+                            scene,
+                            bdpt::PixelSample {
+                                pixel: (x, y),
+                                max_depth,
+                                cam_sampler: &mut sampler,
+                                light_sampler: &mut light_sampler,
+                            },
+                            &mut ws,
+                            &mut sink,
+                            stats,
+                        );
+                        sink.value
+                    }
                 };
                 if !l.is_finite() {
                     stats.non_finite += 1;
                     l = Rgb::ZERO;
                 }
                 stats.samples += 1;
-                sums.add(idx, l);
+                film.sums.add(idx, l);
             }
         }
+    }
+    film.splats.retain(|s| {
+        let ok = s.value.iter().all(|v| v.is_finite());
+        if !ok {
+            stats.non_finite += 1;
+        }
+        ok
+    });
+    film
+}
+
+/// Whole-frame accumulators: camera-side sums, light-tracing splats, strategy layers.
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    pub sums: PixelSums,
+    pub splat: Vec<[f64; 3]>,
+    /// STRATEGY_LAYERS per pixel when kept (camera and light-tracing parts together).
+    pub layers: Vec<[f64; 3]>,
+}
+
+impl Frame {
+    pub fn new(width: u32, height: u32, strategies: bool) -> Frame {
+        let n = (width * height) as usize;
+        Frame {
+            width,
+            height,
+            sums: PixelSums::new(width as usize, height as usize),
+            splat: vec![[0.0; 3]; n],
+            layers: if strategies {
+                vec![[0.0; 3]; n * STRATEGY_LAYERS]
+            } else {
+                Vec::new()
+            },
+        }
+    }
+
+    /// Adds a tile's results (order matters only for the last bits of the f64 sums).
+    pub fn merge(&mut self, t: &TileFilm) {
+        let w = self.width as usize;
+        for ty in 0..t.tile.height() {
+            for tx in 0..t.tile.width() {
+                let src = ty * t.tile.width() + tx;
+                let dst = (t.tile.y0 as usize + ty) * w + t.tile.x0 as usize + tx;
+                for c in 0..3 {
+                    self.sums.sum[dst][c] += t.sums.sum[src][c];
+                    self.sums.sum_sq[dst][c] += t.sums.sum_sq[src][c];
+                }
+                self.sums.count[dst] += t.sums.count[src];
+                if !self.layers.is_empty() && !t.layers.is_empty() {
+                    for l in 0..STRATEGY_LAYERS {
+                        for c in 0..3 {
+                            self.layers[dst * STRATEGY_LAYERS + l][c] +=
+                                t.layers[src * STRATEGY_LAYERS + l][c];
+                        }
+                    }
+                }
+            }
+        }
+        for s in &t.splats {
+            let p = s.pixel as usize;
+            for c in 0..3 {
+                self.splat[p][c] += s.value[c] as f64;
+            }
+            if !self.layers.is_empty() && (s.layer as usize) < STRATEGY_LAYERS {
+                for c in 0..3 {
+                    self.layers[p * STRATEGY_LAYERS + s.layer as usize][c] += s.value[c] as f64;
+                }
+            }
+        }
+    }
+
+    /// The image: (camera sums + splats) / samples per pixel.
+    pub fn image(&self) -> Image {
+        let mut img = Image::new(self.width as usize, self.height as usize);
+        for (i, p) in img.pixels.iter_mut().enumerate() {
+            let n = self.sums.count[i].max(1) as f64;
+            let s = self.sums.sum[i];
+            let l = self.splat[i];
+            *p = Rgb::new(
+                ((s[0] + l[0]) / n) as f32,
+                ((s[1] + l[1]) / n) as f32,
+                ((s[2] + l[2]) / n) as f32,
+            );
+        }
+        img
+    }
+
+    /// The strategy layers as (name, image) pairs.
+    pub fn strategy_images(&self) -> Vec<(String, Image)> {
+        if self.layers.is_empty() {
+            return Vec::new();
+        }
+        (0..STRATEGY_LAYERS)
+            .map(|l| {
+                let mut img = Image::new(self.width as usize, self.height as usize);
+                for (i, p) in img.pixels.iter_mut().enumerate() {
+                    let n = self.sums.count[i].max(1) as f64;
+                    let v = self.layers[i * STRATEGY_LAYERS + l];
+                    *p = Rgb::new((v[0] / n) as f32, (v[1] / n) as f32, (v[2] / n) as f32);
+                }
+                (strategy_layer_name(l), img)
+            })
+            .collect()
     }
 }
 
 /// The result of a whole-frame render.
 pub struct RenderOutput {
-    pub sums: PixelSums,
+    pub frame: Frame,
     pub stats: RayStats,
     pub seconds: f64,
 }
 
-/// Renders the whole frame on the current rayon pool, reporting each finished tile.
+impl RenderOutput {
+    /// Camera-side sums (the whole estimate for the path tracer).
+    pub fn sums(&self) -> &PixelSums {
+        &self.frame.sums
+    }
+
+    pub fn image(&self) -> Image {
+        self.frame.image()
+    }
+}
+
+/// Samples per tile task: bounds the memory of splat records between merges.
+pub const PASS_SIZE: u32 = 64;
+
+/// Renders the whole frame on the current rayon pool, reporting each finished tile task.
+/// Tasks are (pass, tile) pairs; results are merged in task order, a wave at a time.
 pub fn render(
     scene: &Scene,
     settings: &RenderSettings,
@@ -180,40 +469,42 @@ pub fn render(
     let start = Instant::now();
     let (w, h) = (scene.camera.width, scene.camera.height);
     let tiles = make_tiles(w, h, tile_size);
-    let results: Vec<(Tile, PixelSums, RayStats)> = tiles
-        .par_iter()
-        .map(|&tile| {
-            let mut sums = PixelSums::new(tile.width(), tile.height());
-            let mut stats = RayStats::default();
-            render_tile(
-                scene,
-                settings,
-                tile,
-                0..settings.spp,
-                &mut sums,
-                &mut stats,
-            );
-            progress(1);
-            (tile, sums, stats)
-        })
-        .collect();
-    let mut frame = PixelSums::new(w as usize, h as usize);
+    let mut frame = Frame::new(
+        w,
+        h,
+        settings.strategies && settings.integrator == IntegratorKind::Bdpt,
+    );
     let mut stats = RayStats::default();
-    for (tile, sums, s) in results {
-        stats.add(&s);
-        for ty in 0..tile.height() {
-            for tx in 0..tile.width() {
-                let src = ty * tile.width() + tx;
-                let dst = (tile.y0 as usize + ty) * w as usize + tile.x0 as usize + tx;
-                frame.sum[dst] = sums.sum[src];
-                frame.sum_sq[dst] = sums.sum_sq[src];
-                frame.count[dst] = sums.count[src];
-            }
+    let mut tasks = Vec::new();
+    let mut s0 = 0;
+    while s0 < settings.spp {
+        let s1 = (s0 + PASS_SIZE).min(settings.spp);
+        tasks.extend(tiles.iter().map(|&t| (t, s0..s1)));
+        s0 = s1;
+    }
+    let wave = (rayon::current_num_threads() * 4).max(1);
+    for chunk in tasks.chunks(wave) {
+        let results: Vec<TileFilm> = chunk
+            .par_iter()
+            .map(|(tile, range)| {
+                let f = render_tile(scene, settings, *tile, range.clone());
+                progress(1);
+                f
+            })
+            .collect();
+        for r in &results {
+            stats.add(&r.stats);
+            frame.merge(r);
         }
     }
     RenderOutput {
-        sums: frame,
+        frame,
         stats,
         seconds: start.elapsed().as_secs_f64(),
     }
+}
+
+/// Number of tile tasks `render` runs (for progress bars).
+pub fn task_count(width: u32, height: u32, tile_size: u32, spp: u32) -> usize {
+    make_tiles(width, height, tile_size).len() * spp.div_ceil(PASS_SIZE) as usize
 }

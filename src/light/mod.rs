@@ -96,6 +96,16 @@ impl Light {
         }
     }
 
+    /// What leaves a light point toward `w`: radiance for area lights (one-sided), the intensity
+    /// for point lights.
+    #[inline]
+    pub fn emitted(&self, n: Vec3, w: Vec3) -> Rgb {
+        match self {
+            Light::Point { intensity, .. } => *intensity,
+            _ => self.le(n, w),
+        }
+    }
+
     /// Samples a direction toward the light from `p_ref` (seed 003: sphere lights by uniform cone
     /// sampling from outside, uniform area sampling from inside; triangles by uniform area).
     pub fn sample_li(&self, p_ref: Vec3, u: Vec2) -> Option<LightSample> {
@@ -277,7 +287,9 @@ impl Light {
                     let cos_max = (1.0 - sin2_max).max(0.0).sqrt();
                     1.0 / (2.0 * PI * (sin2_max / (1.0 + cos_max)))
                 } else {
-                    let t = if t0 > 0.0 { t0 } else { t1 };
+                    // From inside (or on) the sphere the ray leaves through one point; skip the
+                    // root at the reference point itself when it lies on the surface.
+                    let t = if t0 > 1e-4 * radius { t0 } else { t1 };
                     if !(t > 0.0) {
                         return 0.0;
                     }
@@ -292,6 +304,100 @@ impl Light {
                 }
             }
             Light::Point { .. } => 0.0,
+        }
+    }
+}
+
+/// A ray leaving a light (BDPT light subpaths), with the densities that produced it.
+#[derive(Clone, Copy, Debug)]
+pub struct EmissionSample {
+    pub p: Vec3,
+    /// Oriented normal on the emitting side (zero for point lights).
+    pub n: Vec3,
+    pub dir: Vec3,
+    /// Radiance (area lights) or intensity (point lights) along `dir`.
+    pub le: Rgb,
+    /// Area density of `p` (1 for point lights: a delta in position).
+    pub pdf_pos: f32,
+    /// Solid-angle density of `dir` given `p`.
+    pub pdf_dir: f32,
+}
+
+impl Light {
+    /// Samples an emitted ray: a point uniformly by area, a direction cosine-weighted about the
+    /// emitting normal (area lights) or uniformly (point lights) (Veach 1997 §10.2; PBR 3rd ed.
+    /// §14.2 / §16.3).
+    pub fn sample_le(&self, u_pos: Vec2, u_dir: Vec2) -> Option<EmissionSample> {
+        let (p, n, pdf_pos) = match *self {
+            Light::Triangle {
+                p0,
+                e1,
+                e2,
+                n,
+                area,
+                ..
+            } => {
+                let (b1, b2) = crate::geometry::warp::uniform_triangle(u_pos);
+                (p0 + e1 * b1 + e2 * b2, n, 1.0 / area)
+            }
+            Light::Sphere {
+                center,
+                radius,
+                inward,
+                ..
+            } => {
+                let n_out = uniform_sphere(u_pos);
+                let n = if inward { -n_out } else { n_out };
+                (
+                    center + n_out * radius,
+                    n,
+                    1.0 / (4.0 * PI * radius * radius),
+                )
+            }
+            Light::Point {
+                position,
+                intensity,
+            } => {
+                let dir = uniform_sphere(u_dir);
+                return Some(EmissionSample {
+                    p: position,
+                    n: Vec3::ZERO,
+                    dir,
+                    le: intensity,
+                    pdf_pos: 1.0,
+                    pdf_dir: crate::geometry::warp::UNIFORM_SPHERE_PDF,
+                });
+            }
+        };
+        let local = crate::geometry::warp::cosine_hemisphere(u_dir);
+        let dir = Frame::from_normal(n).to_world(local);
+        let pdf_dir = crate::geometry::warp::cosine_hemisphere_pdf(local.z);
+        if !(pdf_dir > 0.0) || !(pdf_pos > 0.0) || !pdf_pos.is_finite() {
+            return None;
+        }
+        Some(EmissionSample {
+            p,
+            n,
+            dir,
+            le: self.le(n, dir),
+            pdf_pos,
+            pdf_dir,
+        })
+    }
+
+    /// Densities with which `sample_le` produces point `p` (oriented normal `n`) and direction
+    /// `dir` from it: (area density, solid-angle density).
+    pub fn pdf_le(&self, n: Vec3, dir: Vec3) -> (f32, f32) {
+        match *self {
+            Light::Triangle { area, .. } => (
+                1.0 / area,
+                crate::geometry::warp::cosine_hemisphere_pdf(n.dot(dir)),
+            ),
+            Light::Sphere { radius, .. } => (
+                1.0 / (4.0 * PI * radius * radius),
+                crate::geometry::warp::cosine_hemisphere_pdf(n.dot(dir)),
+            ),
+            Light::Point { .. } => (1.0, crate::geometry::warp::UNIFORM_SPHERE_PDF),
         }
     }
 }

@@ -11,7 +11,7 @@ use super::microfacet::Ggx;
 use crate::geometry::warp::{
     cosine_hemisphere, cosine_hemisphere_pdf, power_cosine, power_cosine_pdf,
 };
-use crate::geometry::{Frame, INV_2PI, INV_PI, Rgb, Vec2, Vec3, luminance};
+use crate::geometry::{Frame, INV_2PI, INV_PI, Rgb, Vec2, Vec3, luminance, max_component};
 
 #[derive(Clone, Copy, Debug)]
 pub enum Lobe {
@@ -77,6 +77,18 @@ impl Lobe {
 
     pub fn is_black(&self) -> bool {
         matches!(self, Lobe::Black)
+    }
+
+    /// Rough upper estimate of the directional albedo (largest channel), for Russian roulette.
+    pub fn albedo_estimate(&self) -> f32 {
+        match *self {
+            Lobe::Black => 0.0,
+            Lobe::Lambert { r } | Lobe::Mirror { r } => max_component(r),
+            Lobe::Phong { kd, ks, .. } => max_component(kd + ks),
+            Lobe::Dielectric { r, t, .. } => max_component(r.max(t)),
+            Lobe::Conductor { scale, .. } => max_component(scale),
+            Lobe::Plastic { kd, ks, .. } => max_component(kd + ks * 0.1).min(1.0),
+        }
     }
 
     /// Transmissive lobes see both sides of the surface; the others are reflection-only.

@@ -204,6 +204,16 @@ impl Bsdf {
         }
     }
 
+    /// A BSDF that absorbs everything (for path endpoints that are not surfaces).
+    pub fn new_black() -> Bsdf {
+        Bsdf {
+            lobe: Lobe::Black,
+            frame: Frame::from_normal(Vec3::Z),
+            ng: Vec3::Z,
+            two_sided: false,
+        }
+    }
+
     pub fn is_delta(&self) -> bool {
         self.lobe.is_delta()
     }
@@ -256,10 +266,17 @@ impl Bsdf {
         if den == 0.0 { 0.0 } else { num / den }
     }
 
-    /// f(wo, wi) without the cosine. Zero for delta lobes.
+    /// f(wo, wi) without the cosine. Zero for delta lobes; never negative, NaN or infinite.
     pub fn eval(&self, wo: Vec3, wi: Vec3, mode: Mode) -> Rgb {
         match self.localize(wo, wi) {
-            Some((lo, li)) => self.lobe.eval(lo, li, mode) * self.shading_correction(wo, wi, mode),
+            Some((lo, li)) => {
+                // Cosines at the edge of f32 overflow the shading correction (|wo.ng| |wi.ns|
+                // below ~1e-38 gives inf, and 0 * inf = NaN) or underflow a microfacet
+                // denominator (4 wo.z wi.z = 0 with G2 = 0 gives 0 / 0). `sample` drops such
+                // values and `pdf` maps them to zero; eval must agree.
+                let f = self.lobe.eval(lo, li, mode) * self.shading_correction(wo, wi, mode);
+                if f.is_finite() { f } else { Rgb::ZERO }
+            }
             None => Rgb::ZERO,
         }
     }

@@ -1,0 +1,1091 @@
+//! Bidirectional path tracing with every strategy (Veach 1997 ch. 10; seed 000 §IV-D).
+//!
+//! For each pixel sample a camera subpath z_0 (the pinhole) .. z_{nC-1} and a light subpath
+//! y_0 (on a light) .. y_{nL-1} are traced; every pair (s, t) with s light and t camera vertices
+//! and depth d = s + t - 2 <= max depth is a sample of technique (s, t):
+//! - s = 0: the camera subpath hits an emitter;
+//! - s = 1, t >= 2: next-event estimation (a fresh light sample connected to z_{t-1});
+//! - t = 1: light tracing, y_{s-1} connected to the camera and splatted where it lands;
+//! - otherwise y_{s-1} is connected to z_{t-1}.
+//!
+//! Each sample is handed to a [`SampleSink`] with its unweighted contribution f / p_s and the
+//! vector of *balance* weights over all d + 2 techniques of its depth (zero for those that cannot
+//! make it). Balance- and power-weighted BDPT and the optimal-MIS accumulators are sinks.
+//!
+//! Densities are stored per vertex in area measure, in both directions (pbrt-v3 convention:
+//! `pdf_fwd` from the vertex's predecessor in its own subpath, `pdf_rev` from its successor),
+//! without Russian-roulette factors, which are applied per technique when weights are formed:
+//! a subpath continues past its vertex j (j >= RR_START) with a survival probability that
+//! depends only on that vertex, so every technique's exact density is known.
+
+use super::RayStats;
+use crate::camera::Camera;
+use crate::geometry::{Ray, Rgb, Vec2, Vec3};
+use crate::material::{Bsdf, Lobe, Mode};
+use crate::sampler::Sampler;
+use crate::scene::{NO_LIGHT, Scene};
+
+/// Subpath vertices with index >= this are subject to Russian roulette (the path tracer's depth 3).
+pub const RR_START: usize = super::path::RR_START_DEPTH as usize;
+
+/// Longest supported max depth (subpaths have at most max_depth + 2 vertices).
+pub const MAX_DEPTH: u32 = 64;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Kind {
+    Camera,
+    Light,
+    Surface,
+}
+
+/// A subpath vertex.
+#[derive(Clone, Copy, Debug)]
+pub struct Vertex {
+    kind: Kind,
+    p: Vec3,
+    /// Geometric normal (oriented emitting side for light vertices; zero for points).
+    ng: Vec3,
+    /// Shading normal.
+    ns: Vec3,
+    bsdf: Bsdf,
+    /// Light index (light vertices and emissive surfaces), else NO_LIGHT.
+    light: u32,
+    /// Throughput up to and including this vertex's generation (f / p of the subpath so far).
+    /// For a light vertex: 1 / (pmf * pdf_pos).
+    beta: Rgb,
+    /// Area density of this vertex from its predecessor in its subpath (no RR factor).
+    pdf_fwd: f32,
+    /// Area density of this vertex from its successor (no RR factor).
+    pdf_rev: f32,
+    /// Specular (delta) BSDF: no connection can be made here.
+    delta: bool,
+    /// Point light: a delta in position, never hit.
+    delta_pos: bool,
+    /// Survival probability of Russian roulette when a subpath continues past this vertex.
+    rr_q: f32,
+}
+
+impl Vertex {
+    fn endpoint(kind: Kind, p: Vec3, n: Vec3, beta: Rgb, pdf_fwd: f32) -> Vertex {
+        Vertex {
+            kind,
+            p,
+            ng: n,
+            ns: n,
+            bsdf: Bsdf::new_black(),
+            light: NO_LIGHT,
+            beta,
+            pdf_fwd,
+            pdf_rev: 0.0,
+            delta: false,
+            delta_pos: false,
+            rr_q: 1.0,
+        }
+    }
+
+    /// |cos| between `w` and the geometric normal, 1 for points (camera, point lights).
+    #[inline]
+    fn abs_cos_ng(&self, w: Vec3) -> f32 {
+        if self.ng == Vec3::ZERO {
+            1.0
+        } else {
+            self.ng.dot(w).abs()
+        }
+    }
+
+    /// Converts a solid-angle density at `self` toward `next` into an area density at `next`.
+    #[inline]
+    fn area_density(self, pdf_dir: f32, next: &Vertex) -> f32 {
+        let d = next.p - self.p;
+        let dist2 = d.length_squared();
+        if !(dist2 > 0.0) {
+            return 0.0;
+        }
+        if next.delta_pos {
+            return 0.0; // a point cannot be hit
+        }
+        let w = d / dist2.sqrt();
+        pdf_dir * next.abs_cos_ng(w) / dist2
+    }
+}
+
+/// Russian-roulette survival probability at a surface: its rough albedo, within [0.05, 0.95].
+fn survival(lobe: &Lobe) -> f32 {
+    lobe.albedo_estimate().clamp(0.05, 0.95)
+}
+
+/// One BDPT sample as the sinks see it.
+#[derive(Debug)]
+pub struct PathSample<'a> {
+    pub depth: u32,
+    pub s: u32,
+    pub t: u32,
+    /// The pixel: the camera pixel for t >= 2, the pixel the light path lands in for t = 1.
+    pub pixel: (u32, u32),
+    /// Unweighted contribution f / p_s(x) (zero for occluded or zero-BSDF connections).
+    /// Camera and light-tracing samples share one normalisation: divide pixel sums by spp.
+    pub contribution: Rgb,
+    /// Balance weights over techniques s' = 0 ..= depth + 1 (t' = depth + 2 - s'); zero where a
+    /// technique cannot produce the path. Sums to 1.
+    pub balance: &'a [f64],
+}
+
+/// Receives the samples of one pixel sample.
+pub trait SampleSink {
+    /// Whether samples with zero contribution, and techniques that produced no path, must be
+    /// reported (optimal MIS needs them; the heuristics do not).
+    fn wants_zero_samples(&self) -> bool;
+    fn sample(&mut self, s: &PathSample);
+    /// Technique (s, t >= 2) of depth `depth` produced no path for the camera pixel this time
+    /// (its subpath ended early, or the connection vertex is specular).
+    fn unsampled(&mut self, pixel: (u32, u32), depth: u32, s: u32);
+}
+
+/// Per-thread buffers, reused from sample to sample.
+pub struct Workspace {
+    cam: Vec<Vertex>,
+    light: Vec<Vertex>,
+    pl: Vec<f64>,
+    pe: Vec<f64>,
+    weights: Vec<f64>,
+    /// The light vertex of the latest next-event sample (for tests of the weights).
+    last_nee: Option<Vertex>,
+}
+
+impl Default for Workspace {
+    fn default() -> Self {
+        let n = MAX_DEPTH as usize + 3;
+        Workspace {
+            cam: Vec::with_capacity(n),
+            light: Vec::with_capacity(n),
+            pl: vec![0.0; 2 * n],
+            pe: vec![0.0; 2 * n],
+            weights: vec![0.0; 2 * n],
+            last_nee: None,
+        }
+    }
+}
+
+/// Extends `path` by a random walk from `ray`. `pdf_dir` is the solid-angle density with which
+/// the last vertex of `path` sampled `ray.d` (`via_delta` when that was a specular event).
+#[allow(clippy::too_many_arguments)]
+fn random_walk(
+    scene: &Scene,
+    mut ray: Ray,
+    mut beta: Rgb,
+    mut pdf_dir: f32,
+    mut via_delta: bool,
+    sampler: &mut Sampler,
+    mode: Mode,
+    max_vertices: usize,
+    path: &mut Vec<Vertex>,
+    stats: &mut RayStats,
+) {
+    while path.len() < max_vertices {
+        stats.closest += 1;
+        let Some(hit) = scene.intersect(&ray) else {
+            break;
+        };
+        let prev = path.len() - 1;
+        let bsdf = Bsdf::new(
+            &scene.materials[hit.material as usize],
+            hit.ng,
+            hit.ns,
+            hit.uv,
+        );
+        let mut v = Vertex {
+            kind: Kind::Surface,
+            p: hit.p,
+            ng: hit.ng,
+            ns: hit.ns,
+            bsdf,
+            light: hit.light,
+            beta,
+            pdf_fwd: 0.0,
+            pdf_rev: 0.0,
+            delta: bsdf.is_delta(),
+            delta_pos: false,
+            rr_q: survival(&bsdf.lobe),
+        };
+        v.pdf_fwd = if via_delta {
+            1.0
+        } else {
+            path[prev].area_density(pdf_dir, &v)
+        };
+        path.push(v);
+        if bsdf.is_black() {
+            break;
+        }
+        let wo = -ray.d;
+        let u_lobe = sampler.next_1d();
+        let u = sampler.next_2d();
+        let Some(s) = bsdf.sample(wo, u_lobe, u, mode) else {
+            break;
+        };
+        let cur = path.len() - 1;
+        // Density of the previous vertex when this one samples toward it.
+        path[prev].pdf_rev = if s.delta {
+            1.0
+        } else {
+            let back = bsdf.pdf(s.wi, wo);
+            path[cur].area_density(back, &path[prev])
+        };
+        beta *= s.f * (s.wi.dot(hit.ns).abs() / s.pdf);
+        if cur >= RR_START {
+            let q = path[cur].rr_q;
+            if !(sampler.next_1d() < q) {
+                break;
+            }
+            beta /= q;
+        }
+        if beta == Rgb::ZERO {
+            break;
+        }
+        pdf_dir = s.pdf;
+        via_delta = s.delta;
+        ray = Scene::spawn_ray(hit.p, hit.ng, s.wi);
+    }
+}
+
+/// Traces the camera subpath of a primary ray through raster position `raster`.
+pub fn camera_subpath(
+    scene: &Scene,
+    raster: Vec2,
+    sampler: &mut Sampler,
+    max_depth: u32,
+    ws: &mut Workspace,
+    stats: &mut RayStats,
+) {
+    let cam = &scene.camera;
+    let ray = cam.ray(raster);
+    ws.cam.clear();
+    ws.cam.push(Vertex::endpoint(
+        Kind::Camera,
+        cam.position,
+        Vec3::ZERO,
+        Rgb::ONE,
+        1.0,
+    ));
+    let pdf_dir = cam.pdf_dir(ray.d);
+    random_walk(
+        scene,
+        ray,
+        Rgb::ONE,
+        pdf_dir,
+        false,
+        sampler,
+        Mode::Radiance,
+        max_depth as usize + 2,
+        &mut ws.cam,
+        stats,
+    );
+}
+
+/// Traces a light subpath: a light chosen by power, an emitted ray, a random walk.
+pub fn light_subpath(
+    scene: &Scene,
+    sampler: &mut Sampler,
+    max_depth: u32,
+    ws: &mut Workspace,
+    stats: &mut RayStats,
+) {
+    ws.light.clear();
+    let u_light = sampler.next_1d();
+    let u_pos = sampler.next_2d();
+    let u_dir = sampler.next_2d();
+    let Some((li, pmf)) = scene.sample_light(u_light) else {
+        return;
+    };
+    let light = &scene.lights[li as usize];
+    let Some(e) = light.sample_le(u_pos, u_dir) else {
+        return;
+    };
+    let mut y0 = Vertex::endpoint(
+        Kind::Light,
+        e.p,
+        e.n,
+        Rgb::splat(1.0 / (pmf * e.pdf_pos)),
+        pmf * e.pdf_pos,
+    );
+    y0.light = li;
+    y0.delta_pos = light.is_delta();
+    ws.light.push(y0);
+    let beta = e.le * (y0.abs_cos_ng(e.dir) / (pmf * e.pdf_pos * e.pdf_dir));
+    if beta == Rgb::ZERO {
+        return;
+    }
+    let ray = Scene::spawn_ray(e.p, e.n, e.dir);
+    random_walk(
+        scene,
+        ray,
+        beta,
+        e.pdf_dir,
+        false,
+        sampler,
+        Mode::Importance,
+        max_depth as usize + 1,
+        &mut ws.light,
+        stats,
+    );
+}
+
+/// Unit direction and squared distance from `a` to `b`.
+#[inline]
+fn dir_to(a: Vec3, b: Vec3) -> (Vec3, f32) {
+    let d = b - a;
+    let d2 = d.length_squared();
+    (d / d2.sqrt(), d2)
+}
+
+/// The densities of a full path v_0 (light) .. v_{k-1} (camera) that a connection changes: the
+/// pdf_rev of the light-side connection vertex and its predecessor, the pdf_fwd (from the light
+/// side) of the camera-side connection vertex and its predecessor, and q1: the density with
+/// which next-event estimation from v_1 picks v_0 (technique s' = 1 when k >= 3).
+#[derive(Clone, Copy, Default)]
+struct Connection {
+    pe_y1: f32,
+    pe_y2: f32,
+    pl_z1: f32,
+    pl_z2: f32,
+    q1: f32,
+}
+
+/// Russian-roulette factor for continuing past `v` at subpath index `idx`.
+#[inline]
+fn rr_factor(v: &Vertex, idx: usize) -> f64 {
+    if idx >= RR_START && v.kind == Kind::Surface {
+        v.rr_q as f64
+    } else {
+        1.0
+    }
+}
+
+/// Computes into `ws.weights[0..k]` the balance weights of every technique s' = 0 .. k-1 for the
+/// full path made of `light[0..s]` (or `nee` as v_0 when s = 1 and t >= 2), and `cam[0..t]`.
+/// Returns false if the densities are degenerate (the caller then weights the sample 1 alone).
+///
+/// Ratio recurrence (Veach 1997 §10.2): p_{s'+1} / p_{s'} = pL(v_{s'}) / pE(v_{s'}), where pL is
+/// the density of a vertex generated from the light side and pE from the camera side, RR
+/// survival included.
+fn balance_weights(
+    ws: &mut Workspace,
+    nee: Option<&Vertex>,
+    s: usize,
+    t: usize,
+    c: &Connection,
+) -> bool {
+    let k = s + t;
+    let Workspace {
+        cam,
+        light,
+        pl,
+        pe,
+        weights,
+        ..
+    } = ws;
+    let vert = |i: usize| -> &Vertex {
+        if i < s {
+            if i == 0 && s == 1 && t >= 2 {
+                nee.expect("NEE vertex")
+            } else {
+                &light[i]
+            }
+        } else {
+            &cam[k - 1 - i]
+        }
+    };
+    for i in 0..k {
+        let v = vert(i);
+        let (mut l, mut e) = if i < s {
+            (v.pdf_fwd as f64, v.pdf_rev as f64)
+        } else {
+            (v.pdf_rev as f64, v.pdf_fwd as f64)
+        };
+        // Densities the connection changes.
+        if i + 1 == s {
+            e = c.pe_y1 as f64;
+        } else if i + 2 == s {
+            e = c.pe_y2 as f64;
+        } else if i == s {
+            l = c.pl_z1 as f64;
+        } else if i == s + 1 {
+            l = c.pl_z2 as f64;
+        }
+        if i >= 1 {
+            l *= rr_factor(vert(i - 1), i - 1);
+        }
+        if i + 1 < k {
+            e *= rr_factor(vert(i + 1), k - 2 - i);
+        }
+        pl[i] = l;
+        pe[i] = e;
+    }
+    pe[k - 1] = 1.0;
+    let r = &mut weights[..k];
+    r[s] = 1.0;
+    for sp in s..k - 1 {
+        r[sp + 1] = r[sp] * pl[sp] / pe[sp];
+    }
+    for sp in (1..=s).rev() {
+        r[sp - 1] = r[sp] * pe[sp - 1] / pl[sp - 1];
+    }
+    // Next-event estimation picks v_0 with its own density q1 rather than by emission.
+    if k >= 3 && pl[0] > 0.0 {
+        r[1] *= c.q1 as f64 / pl[0];
+    }
+    // Techniques that cannot make this path: connections at a specular vertex, or hitting a
+    // point light.
+    let v0 = vert(0);
+    if v0.delta_pos || v0.kind != Kind::Light && v0.light == NO_LIGHT {
+        r[0] = 0.0;
+    }
+    for (sp, x) in r.iter_mut().enumerate().skip(1) {
+        if vert(sp - 1).delta || vert(sp).delta {
+            *x = 0.0;
+        }
+    }
+    let sum: f64 = r.iter().sum();
+    if !(sum > 0.0) || !sum.is_finite() || r.iter().any(|x| !x.is_finite()) {
+        r.fill(0.0);
+        r[s] = 1.0;
+        return false;
+    }
+    for x in r.iter_mut() {
+        *x /= sum;
+    }
+    true
+}
+
+/// Everything a pixel sample needs besides the scene.
+pub struct PixelSample<'a> {
+    pub pixel: (u32, u32),
+    pub max_depth: u32,
+    pub cam_sampler: &'a mut Sampler,
+    pub light_sampler: &'a mut Sampler,
+}
+
+/// Renders one pixel sample: both subpaths, then every technique, reported to `sink`.
+pub fn pixel_sample(
+    scene: &Scene,
+    ps: PixelSample,
+    ws: &mut Workspace,
+    sink: &mut dyn SampleSink,
+    stats: &mut RayStats,
+) {
+    let film = ps.cam_sampler.next_2d();
+    let raster = Vec2::new(ps.pixel.0 as f32 + film.x, ps.pixel.1 as f32 + film.y);
+    camera_subpath(scene, raster, ps.cam_sampler, ps.max_depth, ws, stats);
+    light_subpath(scene, ps.light_sampler, ps.max_depth, ws, stats);
+    let zero = sink.wants_zero_samples();
+    let n_c = ws.cam.len();
+    let n_l = ws.light.len();
+    let max_d = ps.max_depth as usize;
+    for t in 1..=max_d + 2 {
+        for s in 0..=max_d + 2 - t {
+            if s + t < 2 {
+                continue;
+            }
+            let depth = (s + t - 2) as u32;
+            if t == 1 {
+                if s <= n_l {
+                    connect_to_camera(scene, ws, s, depth, zero, sink, stats);
+                }
+                continue;
+            }
+            if t > n_c {
+                if zero {
+                    sink.unsampled(ps.pixel, depth, s as u32);
+                }
+                continue;
+            }
+            let produced = match s {
+                0 => hit_emitter(scene, ws, t, depth, ps.pixel, zero, sink),
+                1 => next_event(
+                    scene,
+                    ws,
+                    t,
+                    depth,
+                    ps.pixel,
+                    ps.cam_sampler,
+                    zero,
+                    sink,
+                    stats,
+                ),
+                _ => s <= n_l && connect(scene, ws, s, t, depth, ps.pixel, zero, sink, stats),
+            };
+            if !produced && zero {
+                sink.unsampled(ps.pixel, depth, s as u32);
+            }
+        }
+    }
+}
+
+/// Technique (0, t): z_{t-1} lies on an emitter. Returns whether the technique produced a path
+/// (a camera subpath ending on a non-emitter is a zero-contribution sample only this technique
+/// could make).
+fn hit_emitter(
+    scene: &Scene,
+    ws: &mut Workspace,
+    t: usize,
+    depth: u32,
+    pixel: (u32, u32),
+    zero: bool,
+    sink: &mut dyn SampleSink,
+) -> bool {
+    let z = ws.cam[t - 1];
+    let zp = ws.cam[t - 2];
+    if z.light == NO_LIGHT {
+        if zero {
+            let w = &mut ws.weights[..t];
+            w.fill(0.0);
+            w[0] = 1.0;
+            sink.sample(&PathSample {
+                depth,
+                s: 0,
+                t: t as u32,
+                pixel,
+                contribution: Rgb::ZERO,
+                balance: &ws.weights[..t],
+            });
+        }
+        return true;
+    }
+    let light = &scene.lights[z.light as usize];
+    let (w_out, _) = dir_to(z.p, zp.p);
+    let contribution = z.beta * light.le(z.ng, w_out);
+    if contribution == Rgb::ZERO && !zero {
+        return true;
+    }
+    let pmf = scene.light_pmf(z.light) as f64;
+    let (pdf_pos, pdf_dir) = light.pdf_le(z.ng, w_out);
+    // The camera-side vertex treated as a light vertex: emission densities from the light side.
+    let mut v0 = z;
+    v0.kind = Kind::Light;
+    v0.pdf_fwd = (pmf * pdf_pos as f64) as f32;
+    let c = Connection {
+        pe_y1: 0.0,
+        pe_y2: 0.0,
+        pl_z1: v0.pdf_fwd,
+        pl_z2: v0.area_density(pdf_dir, &zp),
+        q1: if t >= 3 {
+            let (wi, _) = dir_to(zp.p, z.p);
+            (pmf as f32) * zp.area_density(light.pdf_li(zp.p, wi), &z)
+        } else {
+            0.0
+        },
+    };
+    // v_0 is cam[t-1]; its own light-side density is pl_z1 (set above), pe is its pdf_fwd.
+    balance_weights(ws, None, 0, t, &c);
+    sink.sample(&PathSample {
+        depth,
+        s: 0,
+        t: t as u32,
+        pixel,
+        contribution,
+        balance: &ws.weights[..t],
+    });
+    true
+}
+
+/// Technique (1, t >= 2): next-event estimation at z_{t-1}.
+#[allow(clippy::too_many_arguments)]
+fn next_event(
+    scene: &Scene,
+    ws: &mut Workspace,
+    t: usize,
+    depth: u32,
+    pixel: (u32, u32),
+    sampler: &mut Sampler,
+    zero: bool,
+    sink: &mut dyn SampleSink,
+    stats: &mut RayStats,
+) -> bool {
+    let z = ws.cam[t - 1];
+    if z.delta || z.bsdf.is_black() {
+        return false;
+    }
+    let u_light = sampler.next_1d();
+    let u = sampler.next_2d();
+    let Some((li, pmf)) = scene.sample_light(u_light) else {
+        return false;
+    };
+    let light = &scene.lights[li as usize];
+    let Some(ls) = light.sample_li(z.p, u) else {
+        return false;
+    };
+    let zp = ws.cam[t - 2];
+    let (wo, _) = dir_to(z.p, zp.p);
+    let f = z.bsdf.eval(wo, ls.wi, Mode::Radiance);
+    let mut contribution = z.beta * f * ls.le * (ls.wi.dot(z.ns).abs() / (pmf * ls.pdf));
+    if contribution != Rgb::ZERO {
+        stats.shadow += 1;
+        if scene.occluded(z.p, z.ng, ls.p, ls.n) {
+            contribution = Rgb::ZERO;
+        }
+    }
+    if contribution == Rgb::ZERO && !zero {
+        return true;
+    }
+    let mut v0 = Vertex::endpoint(Kind::Light, ls.p, ls.n, Rgb::ONE, 0.0);
+    v0.light = li;
+    v0.delta_pos = ls.delta;
+    let (pdf_pos, pdf_dir) = light.pdf_le(ls.n, -ls.wi);
+    v0.pdf_fwd = pmf * pdf_pos;
+    let c = Connection {
+        pe_y1: if ls.delta {
+            0.0
+        } else {
+            z.area_density(z.bsdf.pdf(wo, ls.wi), &v0)
+        },
+        pe_y2: 0.0,
+        pl_z1: v0.area_density(pdf_dir, &z),
+        pl_z2: z.area_density(z.bsdf.pdf(ls.wi, wo), &zp),
+        q1: if ls.delta {
+            pmf
+        } else {
+            z.area_density(pmf * ls.pdf, &v0)
+        },
+    };
+    ws.last_nee = Some(v0);
+    balance_weights(ws, Some(&v0), 1, t, &c);
+    sink.sample(&PathSample {
+        depth,
+        s: 1,
+        t: t as u32,
+        pixel,
+        contribution,
+        balance: &ws.weights[..t + 1],
+    });
+    true
+}
+
+/// Technique (s >= 2, t >= 2): connect y_{s-1} and z_{t-1}.
+#[allow(clippy::too_many_arguments)]
+fn connect(
+    scene: &Scene,
+    ws: &mut Workspace,
+    s: usize,
+    t: usize,
+    depth: u32,
+    pixel: (u32, u32),
+    zero: bool,
+    sink: &mut dyn SampleSink,
+    stats: &mut RayStats,
+) -> bool {
+    let y = ws.light[s - 1];
+    let z = ws.cam[t - 1];
+    if y.delta || z.delta || y.bsdf.is_black() || z.bsdf.is_black() {
+        return false;
+    }
+    let yp = ws.light[s - 2];
+    let zp = ws.cam[t - 2];
+    let (w_yz, d2) = dir_to(y.p, z.p);
+    if !(d2 > 0.0) {
+        return false;
+    }
+    let (wo_y, _) = dir_to(y.p, yp.p);
+    let (wo_z, _) = dir_to(z.p, zp.p);
+    let fy = y.bsdf.eval(wo_y, w_yz, Mode::Importance);
+    let fz = z.bsdf.eval(wo_z, -w_yz, Mode::Radiance);
+    let g = w_yz.dot(y.ns).abs() * w_yz.dot(z.ns).abs() / d2;
+    let mut contribution = y.beta * fy * fz * z.beta * g;
+    if contribution != Rgb::ZERO {
+        stats.shadow += 1;
+        if scene.occluded(y.p, y.ng, z.p, z.ng) {
+            contribution = Rgb::ZERO;
+        }
+    }
+    if contribution == Rgb::ZERO && !zero {
+        return true;
+    }
+    let c = Connection {
+        pe_y1: z.area_density(z.bsdf.pdf(wo_z, -w_yz), &y),
+        pe_y2: y.area_density(y.bsdf.pdf(w_yz, wo_y), &yp),
+        pl_z1: y.area_density(y.bsdf.pdf(wo_y, w_yz), &z),
+        pl_z2: z.area_density(z.bsdf.pdf(-w_yz, wo_z), &zp),
+        q1: nee_density(scene, &ws.light[0], &ws.light[1]),
+    };
+    balance_weights(ws, None, s, t, &c);
+    sink.sample(&PathSample {
+        depth,
+        s: s as u32,
+        t: t as u32,
+        pixel,
+        contribution,
+        balance: &ws.weights[..s + t],
+    });
+    true
+}
+
+/// Area density with which next-event estimation from `v1` would pick the light point `v0`.
+fn nee_density(scene: &Scene, v0: &Vertex, v1: &Vertex) -> f32 {
+    let pmf = scene.light_pmf(v0.light);
+    if v0.delta_pos {
+        return pmf;
+    }
+    let (wi, _) = dir_to(v1.p, v0.p);
+    v1.area_density(pmf * scene.lights[v0.light as usize].pdf_li(v1.p, wi), v0)
+}
+
+/// Technique (s >= 1, 1): connect y_{s-1} to the camera and report it for the pixel it lands in.
+fn connect_to_camera(
+    scene: &Scene,
+    ws: &mut Workspace,
+    s: usize,
+    depth: u32,
+    zero: bool,
+    sink: &mut dyn SampleSink,
+    stats: &mut RayStats,
+) {
+    let y = ws.light[s - 1];
+    if y.delta || (s >= 2 && y.bsdf.is_black()) {
+        return;
+    }
+    let cam: &Camera = &scene.camera;
+    let (w_cy, d2) = dir_to(cam.position, y.p);
+    let Some(raster) = cam.raster_of(w_cy) else {
+        return;
+    };
+    let pixel = (
+        (raster.x as u32).min(cam.width - 1),
+        (raster.y as u32).min(cam.height - 1),
+    );
+    let we = cam.we(w_cy);
+    let cos_cam = w_cy.dot(cam.forward());
+    let w_yc = -w_cy;
+    let (f, cos_y, wo_y) = if s == 1 {
+        let light = &scene.lights[y.light as usize];
+        (light.emitted(y.ng, w_yc), y.abs_cos_ng(w_yc), Vec3::ZERO)
+    } else {
+        let yp = ws.light[s - 2];
+        let (wo_y, _) = dir_to(y.p, yp.p);
+        (
+            y.bsdf.eval(wo_y, w_yc, Mode::Importance),
+            w_yc.dot(y.ns).abs(),
+            wo_y,
+        )
+    };
+    let mut contribution = y.beta * f * (cos_y * we * cos_cam / d2);
+    if contribution != Rgb::ZERO {
+        stats.shadow += 1;
+        if scene.occluded(y.p, y.ng, cam.position, Vec3::ZERO) {
+            contribution = Rgb::ZERO;
+        }
+    }
+    if contribution == Rgb::ZERO && !zero {
+        return;
+    }
+    let z0 = ws.cam[0];
+    let pe_y1 = z0.area_density(cam.pdf_dir(w_cy), &y);
+    let pe_y2 = if s >= 2 {
+        let yp = ws.light[s - 2];
+        y.area_density(y.bsdf.pdf(w_yc, wo_y), &yp)
+    } else {
+        0.0
+    };
+    let q1 = if s >= 2 {
+        nee_density(scene, &ws.light[0], &ws.light[1])
+    } else {
+        0.0
+    };
+    let c = Connection {
+        pe_y1,
+        pe_y2,
+        pl_z1: 0.0,
+        pl_z2: 0.0,
+        q1,
+    };
+    balance_weights(ws, None, s, 1, &c);
+    sink.sample(&PathSample {
+        depth,
+        s: s as u32,
+        t: 1,
+        pixel,
+        contribution,
+        balance: &ws.weights[..s + 1],
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sampler::{SamplerKind, Stream};
+    use proptest::prelude::*;
+    use std::path::Path;
+
+    struct Capture {
+        samples: Vec<(u32, u32, Vec<f64>, Rgb)>,
+    }
+
+    impl SampleSink for Capture {
+        fn wants_zero_samples(&self) -> bool {
+            true
+        }
+        fn sample(&mut self, s: &PathSample) {
+            self.samples
+                .push((s.s, s.t, s.balance.to_vec(), s.contribution));
+        }
+        fn unsampled(&mut self, _: (u32, u32), _: u32, _: u32) {}
+    }
+
+    fn area(from: &Vertex, pdf_dir: f64, to: &Vertex) -> f64 {
+        from.area_density(pdf_dir as f32, to) as f64
+    }
+
+    fn dir(a: &Vertex, b: &Vertex) -> Vec3 {
+        dir_to(a.p, b.p).0
+    }
+
+    /// Technique densities p_{s'} of a full path, computed directly as products (an independent
+    /// restatement of the conventions in the module documentation).
+    fn reference_weights(scene: &Scene, v: &[Vertex]) -> Vec<f64> {
+        let k = v.len();
+        let light = &scene.lights[v[0].light as usize];
+        let pmf = scene.light_pmf(v[0].light) as f64;
+        let rr = |x: &Vertex, idx: usize| rr_factor(x, idx);
+        let mut p = vec![0.0f64; k];
+        for sp in 0..k {
+            let valid = if sp == 0 {
+                !v[0].delta_pos
+            } else {
+                !v[sp - 1].delta && !v[sp].delta
+            };
+            if !valid {
+                continue;
+            }
+            let mut d = 1.0f64;
+            for i in 0..sp {
+                d *= if i == 0 {
+                    if sp == 1 && k >= 3 {
+                        if v[0].delta_pos {
+                            pmf
+                        } else {
+                            pmf * area(&v[1], light.pdf_li(v[1].p, dir(&v[1], &v[0])) as f64, &v[0])
+                        }
+                    } else {
+                        pmf * light.pdf_le(v[0].ng, dir(&v[0], &v[1])).0 as f64
+                    }
+                } else if i == 1 {
+                    area(
+                        &v[0],
+                        light.pdf_le(v[0].ng, dir(&v[0], &v[1])).1 as f64,
+                        &v[1],
+                    )
+                } else {
+                    let b = &v[i - 1];
+                    let dens = if b.delta {
+                        1.0
+                    } else {
+                        area(
+                            b,
+                            b.bsdf.pdf(dir(b, &v[i - 2]), dir(b, &v[i])) as f64,
+                            &v[i],
+                        )
+                    };
+                    dens * rr(b, i - 1)
+                };
+            }
+            for i in sp..k {
+                let j = k - 1 - i;
+                d *= if j == 0 {
+                    1.0
+                } else if j == 1 {
+                    area(
+                        &v[k - 1],
+                        scene.camera.pdf_dir(dir(&v[k - 1], &v[i])) as f64,
+                        &v[i],
+                    )
+                } else {
+                    let b = &v[i + 1];
+                    let dens = if b.delta {
+                        1.0
+                    } else {
+                        area(
+                            b,
+                            b.bsdf.pdf(dir(b, &v[i + 2]), dir(b, &v[i])) as f64,
+                            &v[i],
+                        )
+                    };
+                    dens * rr(b, k - 2 - i)
+                };
+            }
+            p[sp] = d;
+        }
+        let sum: f64 = p.iter().sum();
+        p.iter().map(|x| x / sum).collect()
+    }
+
+    /// Paths with a grazing or very short edge (|cos| < 0.05 at a surface end, or shorter than
+    /// 0.02 scene units, as in a corner of the Cornell box) have densities that the ray-origin
+    /// offset and position rounding change by percents: the sampled directions stored with the
+    /// vertices and directions recomputed from positions then legitimately disagree.
+    fn ill_conditioned(v: &[Vertex]) -> bool {
+        v.windows(2).any(|e| {
+            let w = dir(&e[0], &e[1]);
+            e[0].p.distance(e[1].p) < 0.02
+                || e.iter()
+                    .any(|x| x.ng != Vec3::ZERO && x.ng.dot(w).abs() < 0.05)
+        })
+    }
+
+    fn scenes() -> Vec<Scene> {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes");
+        let mut out = Vec::new();
+        for name in [
+            "cornell-box.json",
+            "veach-mis.json",
+            "glass-caustic.json",
+            "furnace.json",
+        ] {
+            let mut s = Scene::load(&dir.join(name)).expect(name);
+            s.camera = s.camera.with_resolution(32, 32).expect("resolution");
+            out.push(s);
+        }
+        // Plastic, Phong and a point light next to an area light.
+        let text = r#"{
+          "camera": {"position": [0, 1, 3.5], "look_at": [0, 0.8, 0], "fov": 50, "resolution": [32, 32]},
+          "materials": {"plastic": {"type": "plastic", "diffuse": [0.5, 0.3, 0.2], "alpha": 0.2},
+                        "phong": {"type": "phong", "kd": 0.4, "ks": 0.4, "exponent": 30},
+                        "black": {"type": "lambert", "albedo": 0}},
+          "shapes": [
+            {"type": "quad", "corner": [-2, 0, -2], "edge1": [0, 0, 4], "edge2": [4, 0, 0], "material": "plastic"},
+            {"type": "quad", "corner": [-2, 0, -1], "edge1": [4, 0, 0], "edge2": [0, 2, 0], "material": "phong"},
+            {"type": "sphere", "center": [0.6, 1.6, 0], "radius": 0.2, "material": "black", "emission": 20}
+          ],
+          "lights": [{"type": "point", "position": [-0.5, 1.5, 0.5], "intensity": 3}]
+        }"#;
+        out.push(
+            crate::scene::json::parse(text, Path::new("inline.json"))
+                .expect("parse")
+                .build()
+                .expect("build"),
+        );
+        out
+    }
+
+    /// Every technique's sample of the pixel sample, with the full path it made.
+    fn techniques(
+        scene: &Scene,
+        x: u32,
+        y: u32,
+        i: u32,
+        seed: u64,
+    ) -> Vec<(Vec<Vertex>, u32, Vec<f64>)> {
+        let max_depth = 5u32;
+        let mut ws = Workspace::default();
+        let mut stats = RayStats::default();
+        let mut cs = Sampler::new(SamplerKind::Independent, seed, x, y, i, 16, Stream::Camera);
+        let mut ls = Sampler::new(SamplerKind::Independent, seed, x, y, i, 16, Stream::Light);
+        let f = cs.next_2d();
+        camera_subpath(
+            scene,
+            Vec2::new(x as f32 + f.x, y as f32 + f.y),
+            &mut cs,
+            max_depth,
+            &mut ws,
+            &mut stats,
+        );
+        light_subpath(scene, &mut ls, max_depth, &mut ws, &mut stats);
+        let mut out = Vec::new();
+        for t in 1..=ws.cam.len() {
+            for s in 0..=ws.light.len() {
+                if s + t < 2 || s + t - 2 > max_depth as usize {
+                    continue;
+                }
+                let depth = (s + t - 2) as u32;
+                let mut cap = Capture {
+                    samples: Vec::new(),
+                };
+                ws.last_nee = None;
+                match (s, t) {
+                    (_, 1) => {
+                        connect_to_camera(scene, &mut ws, s, depth, true, &mut cap, &mut stats)
+                    }
+                    (0, _) => {
+                        hit_emitter(scene, &mut ws, t, depth, (x, y), true, &mut cap);
+                    }
+                    (1, _) => {
+                        next_event(
+                            scene,
+                            &mut ws,
+                            t,
+                            depth,
+                            (x, y),
+                            &mut cs,
+                            true,
+                            &mut cap,
+                            &mut stats,
+                        );
+                    }
+                    _ => {
+                        connect(
+                            scene,
+                            &mut ws,
+                            s,
+                            t,
+                            depth,
+                            (x, y),
+                            true,
+                            &mut cap,
+                            &mut stats,
+                        );
+                    }
+                }
+                for (ss, tt, w, _) in cap.samples {
+                    let mut full: Vec<Vertex> = Vec::new();
+                    if s == 1 && t >= 2 {
+                        full.push(ws.last_nee.expect("NEE vertex"));
+                    } else {
+                        full.extend_from_slice(&ws.light[..s]);
+                    }
+                    full.extend(ws.cam[..t].iter().rev());
+                    if s == 0 && full[0].light == NO_LIGHT {
+                        continue; // no light at the end: weight 1 by definition
+                    }
+                    assert_eq!((ss as usize, tt as usize), (s, t));
+                    out.push((full, ss, w));
+                }
+            }
+        }
+        out
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 96, .. ProptestConfig::default() })]
+        /// The weights of a path do not depend on the technique that made it: the fast recurrence
+        /// agrees with densities computed directly, for every technique of random paths in every
+        /// test scene; weights sum to one; impossible techniques get zero.
+        #[test]
+        fn balance_weights_match_direct_densities(x in 0u32..32, y in 0u32..32, i in 0u32..16, seed in 0u64..1000) {
+            let mut checked = 0;
+            let mut multi = 0;
+            for (si, scene) in scenes().iter().enumerate() {
+                for (full, s, w) in techniques(scene, x, y, i, seed) {
+                    if ill_conditioned(&full) {
+                        continue;
+                    }
+                    let r = reference_weights(scene, &full);
+                    checked += 1;
+                    if w.iter().filter(|x| **x > 0.0).count() > 1 {
+                        multi += 1;
+                    }
+
+                    let sum: f64 = w.iter().sum();
+                    prop_assert!((sum - 1.0).abs() < 1e-9, "weights sum to {sum}");
+                    prop_assert!(w[s as usize] > 0.0);
+                    let pw: Vec<f64> = w.iter().map(|b| b * b).collect();
+                    let psum: f64 = pw.iter().sum();
+                    prop_assert!(((pw.iter().sum::<f64>() / psum) - 1.0).abs() < 1e-12);
+                    for (a, b) in w.iter().zip(&r) {
+                        if *b == 0.0 {
+                            prop_assert!(*a == 0.0, "technique with density 0 weighted {a}: {w:?} vs {r:?}");
+                        }
+                        prop_assert!((a - b).abs() < 2e-3 * (1.0 + b), "scene {si} s={s} k={} fast {w:?} reference {r:?}", full.len());
+                    }
+                }
+            }
+            // Each pixel sample yields many techniques, most of them shared by several.
+            prop_assert!(checked >= 10 && multi >= 5, "only {checked} paths ({multi} multi-technique)");
+        }
+    }
+}
