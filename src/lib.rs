@@ -14,5 +14,6 @@ pub mod geometry;
 pub mod integrator;
 pub mod light;
 pub mod material;
+pub mod mis;
 pub mod sampler;
 pub mod scene;

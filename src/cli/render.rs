@@ -30,6 +30,12 @@ pub struct RenderArgs {
     /// `s<S>_t<T>`.
     #[arg(long)]
     pub strategies: bool,
+    /// Optimal MIS: weight depths 1..=D optimally, balance above.
+    #[arg(long, default_value_t = 5)]
+    pub optimal_max_depth: u32,
+    /// Optimal MIS: regularisation toward the balance solution (0 = the seed's direct estimator).
+    #[arg(long, default_value_t = integrator::DEFAULT_KAPPA)]
+    pub kappa: f64,
     #[arg(long, value_enum, default_value_t = SamplerKind::Sobol)]
     pub sampler: SamplerKind,
     #[arg(long, default_value_t = 0)]
@@ -109,7 +115,22 @@ pub fn run(a: RenderArgs) -> Result<()> {
         direct: a.direct,
         mis: a.mis,
         strategies: a.strategies,
+        optimal_max_depth: a.optimal_max_depth,
+        optimal_kappa: a.kappa,
     };
+    if a.mis == MisKind::Optimal && settings.integrator != IntegratorKind::Bdpt {
+        bail!("--mis optimal needs --integrator bdpt");
+    }
+    if a.optimal_max_depth > crate::mis::optimal::MAX_OPTIMAL_DEPTH {
+        bail!(
+            "--optimal-max-depth {} exceeds {}",
+            a.optimal_max_depth,
+            crate::mis::optimal::MAX_OPTIMAL_DEPTH
+        );
+    }
+    if !(a.kappa >= 0.0 && a.kappa.is_finite()) {
+        bail!("--kappa must be a finite number >= 0");
+    }
     if settings.max_depth > integrator::bdpt::MAX_DEPTH
         && settings.integrator == IntegratorKind::Bdpt
     {

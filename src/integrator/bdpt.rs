@@ -132,9 +132,9 @@ pub struct PathSample<'a> {
 
 /// Receives the samples of one pixel sample.
 pub trait SampleSink {
-    /// Whether samples with zero contribution, and techniques that produced no path, must be
-    /// reported (optimal MIS needs them; the heuristics do not).
-    fn wants_zero_samples(&self) -> bool;
+    /// Whether samples of depth `depth` with zero contribution, and techniques that produced no
+    /// path, must be reported (optimal MIS needs them; the heuristics do not).
+    fn wants_zero_samples(&self, depth: u32) -> bool;
     fn sample(&mut self, s: &PathSample);
     /// Technique (s, t >= 2) of depth `depth` produced no path for the camera pixel this time
     /// (its subpath ended early, or the connection vertex is specular).
@@ -456,6 +456,14 @@ fn balance_weights(
     true
 }
 
+/// Weights of a path only technique `s` could have made (an occluded connection: every other
+/// technique would have traced that segment and stopped at the occluder), over `k` techniques.
+fn weights_alone(ws: &mut Workspace, s: usize, k: usize) {
+    let w = &mut ws.weights[..k];
+    w.fill(0.0);
+    w[s] = 1.0;
+}
+
 /// Everything a pixel sample needs besides the scene.
 pub struct PixelSample<'a> {
     pub pixel: (u32, u32),
@@ -476,7 +484,6 @@ pub fn pixel_sample(
     let raster = Vec2::new(ps.pixel.0 as f32 + film.x, ps.pixel.1 as f32 + film.y);
     camera_subpath(scene, raster, ps.cam_sampler, ps.max_depth, ws, stats);
     light_subpath(scene, ps.light_sampler, ps.max_depth, ws, stats);
-    let zero = sink.wants_zero_samples();
     let n_c = ws.cam.len();
     let n_l = ws.light.len();
     let max_d = ps.max_depth as usize;
@@ -486,6 +493,7 @@ pub fn pixel_sample(
                 continue;
             }
             let depth = (s + t - 2) as u32;
+            let zero = sink.wants_zero_samples(depth);
             if t == 1 {
                 if s <= n_l {
                     connect_to_camera(scene, ws, s, depth, zero, sink, stats);
@@ -617,13 +625,27 @@ fn next_event(
     let (wo, _) = dir_to(z.p, zp.p);
     let f = z.bsdf.eval(wo, ls.wi, Mode::Radiance);
     let mut contribution = z.beta * f * ls.le * (ls.wi.dot(z.ns).abs() / (pmf * ls.pdf));
-    if contribution != Rgb::ZERO {
+    let mut visible = true;
+    if contribution != Rgb::ZERO || zero {
         stats.shadow += 1;
-        if scene.occluded(z.p, z.ng, ls.p, ls.n) {
-            contribution = Rgb::ZERO;
-        }
+        visible = !scene.occluded(z.p, z.ng, ls.p, ls.n);
+    }
+    if !visible {
+        contribution = Rgb::ZERO;
     }
     if contribution == Rgb::ZERO && !zero {
+        return true;
+    }
+    if !visible {
+        weights_alone(ws, 1, t + 1);
+        sink.sample(&PathSample {
+            depth,
+            s: 1,
+            t: t as u32,
+            pixel,
+            contribution,
+            balance: &ws.weights[..t + 1],
+        });
         return true;
     }
     let mut v0 = Vertex::endpoint(Kind::Light, ls.p, ls.n, Rgb::ONE, 0.0);
@@ -689,13 +711,27 @@ fn connect(
     let fz = z.bsdf.eval(wo_z, -w_yz, Mode::Radiance);
     let g = w_yz.dot(y.ns).abs() * w_yz.dot(z.ns).abs() / d2;
     let mut contribution = y.beta * fy * fz * z.beta * g;
-    if contribution != Rgb::ZERO {
+    let mut visible = true;
+    if contribution != Rgb::ZERO || zero {
         stats.shadow += 1;
-        if scene.occluded(y.p, y.ng, z.p, z.ng) {
-            contribution = Rgb::ZERO;
-        }
+        visible = !scene.occluded(y.p, y.ng, z.p, z.ng);
+    }
+    if !visible {
+        contribution = Rgb::ZERO;
     }
     if contribution == Rgb::ZERO && !zero {
+        return true;
+    }
+    if !visible {
+        weights_alone(ws, s, s + t);
+        sink.sample(&PathSample {
+            depth,
+            s: s as u32,
+            t: t as u32,
+            pixel,
+            contribution,
+            balance: &ws.weights[..s + t],
+        });
         return true;
     }
     let c = Connection {
@@ -765,14 +801,14 @@ fn connect_to_camera(
             wo_y,
         )
     };
-    let mut contribution = y.beta * f * (cos_y * we * cos_cam / d2);
-    if contribution != Rgb::ZERO {
-        stats.shadow += 1;
-        if scene.occluded(y.p, y.ng, cam.position, Vec3::ZERO) {
-            contribution = Rgb::ZERO;
-        }
-    }
+    let contribution = y.beta * f * (cos_y * we * cos_cam / d2);
     if contribution == Rgb::ZERO && !zero {
+        return;
+    }
+    stats.shadow += 1;
+    if scene.occluded(y.p, y.ng, cam.position, Vec3::ZERO) {
+        // Only light tracing could make this path: for the pixel it is one of the N_L - h
+        // light paths that did not reach it, which the solver counts.
         return;
     }
     let z0 = ws.cam[0];
@@ -818,7 +854,7 @@ mod tests {
     }
 
     impl SampleSink for Capture {
-        fn wants_zero_samples(&self) -> bool {
+        fn wants_zero_samples(&self, _depth: u32) -> bool {
             true
         }
         fn sample(&mut self, s: &PathSample) {

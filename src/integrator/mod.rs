@@ -7,9 +7,11 @@
 
 pub mod bdpt;
 pub mod path;
+pub mod wire;
 
 use crate::film::{Image, PixelSums};
 use crate::geometry::{Rgb, Vec2};
+use crate::mis::{OptimalAccum, SolveScratch};
 use crate::sampler::{Sampler, SamplerKind, Stream};
 use crate::scene::Scene;
 use rayon::prelude::*;
@@ -40,6 +42,9 @@ pub enum MisKind {
     Lt,
     /// Validation: next-event estimation alone (every (1, t >= 2), unweighted; depth 0 by (0, 2)).
     Nee,
+    /// Optimal weights per pixel and depth for depths 1 ..= optimal_max_depth (seed 000), balance
+    /// for depth 0 and above.
+    Optimal,
 }
 
 /// Everything besides the scene that determines the image.
@@ -59,6 +64,34 @@ pub struct RenderSettings {
     /// BDPT only: keep the weighted contribution of every (s, t) up to depth 3 as extra layers.
     #[serde(default)]
     pub strategies: bool,
+    /// Optimal MIS: the largest depth weighted optimally (D_opt).
+    #[serde(default = "default_optimal_max_depth")]
+    pub optimal_max_depth: u32,
+    /// Optimal MIS: strength of the regularisation toward the balance solution (kappa; 0 = the
+    /// seed's plain direct estimator).
+    #[serde(default = "default_kappa")]
+    pub optimal_kappa: f64,
+}
+
+fn default_optimal_max_depth() -> u32 {
+    5
+}
+
+/// Default regularisation strength of the optimal estimator (see mis::optimal).
+pub const DEFAULT_KAPPA: f64 = 1.0;
+
+fn default_kappa() -> f64 {
+    DEFAULT_KAPPA
+}
+
+impl RenderSettings {
+    /// The optimal-MIS layout when this render accumulates optimal systems.
+    pub fn optimal_layout(&self) -> Option<crate::mis::Layout> {
+        (self.integrator == IntegratorKind::Bdpt
+            && self.mis == MisKind::Optimal
+            && self.optimal_max_depth >= 1)
+            .then(|| crate::mis::Layout::new(self.optimal_max_depth.min(self.max_depth)))
+    }
 }
 
 impl Default for RenderSettings {
@@ -72,6 +105,8 @@ impl Default for RenderSettings {
             direct: path::DirectStrategy::Mis,
             mis: MisKind::Balance,
             strategies: false,
+            optimal_max_depth: default_optimal_max_depth(),
+            optimal_kappa: DEFAULT_KAPPA,
         }
     }
 }
@@ -187,28 +222,138 @@ pub struct TileFilm {
     pub splats: Vec<Splat>,
     /// Strategy layers of the tile's pixels (pixel-major, STRATEGY_LAYERS each), when requested.
     pub layers: Vec<[f64; 3]>,
+    /// Optimal MIS: the systems of the tile's pixels.
+    pub optimal: Option<OptimalAccum>,
+    /// Optimal MIS: light-tracing samples that landed outside the tile.
+    pub records: LtRecords,
     pub stats: RayStats,
 }
 
-/// Balance- or power-weighted BDPT: sums weighted contributions, camera ones into the current
-/// pixel sample and light-tracing ones into splat records.
-struct HeuristicSink<'a> {
+/// Light-tracing samples for optimal MIS, for pixels of other tiles: pixel (frame index), depth,
+/// and d + 2 weights followed by C W_s (3 values), as f32.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LtRecords {
+    pub pixels: Vec<u32>,
+    pub depths: Vec<u8>,
+    pub values: Vec<f32>,
+}
+
+impl LtRecords {
+    pub fn len(&self) -> usize {
+        self.pixels.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.pixels.is_empty()
+    }
+
+    fn push(&mut self, pixel: u32, depth: u32, w: &[f32], c: [f32; 3]) {
+        self.pixels.push(pixel);
+        self.depths.push(depth as u8);
+        self.values.extend_from_slice(w);
+        self.values.extend_from_slice(&c);
+    }
+
+    /// Adds every record into `acc`, whose pixel i is frame pixel `map(i)`.
+    pub fn apply(&self, acc: &mut OptimalAccum, map: impl Fn(u32) -> Option<usize>) {
+        let mut w = [0.0f64; 64];
+        let mut off = 0;
+        for (k, &p) in self.pixels.iter().enumerate() {
+            let d = self.depths[k] as u32;
+            let n = d as usize + 2;
+            let vals = &self.values[off..off + n + 3];
+            off += n + 3;
+            if let Some(i) = map(p) {
+                for (dst, src) in w.iter_mut().zip(&vals[..n]) {
+                    *dst = *src as f64;
+                }
+                let c = [vals[n] as f64, vals[n + 1] as f64, vals[n + 2] as f64];
+                acc.add_sample(i, d, &w[..n], c);
+                acc.add_hit(i, d);
+            }
+        }
+    }
+}
+
+/// Turns BDPT samples into film: heuristic-weighted contributions (camera ones into the current
+/// pixel sample, light-tracing ones into splat records), and for optimal MIS the per-pixel,
+/// per-depth systems of depths 1 ..= D_opt.
+struct FilmSink<'a> {
     mis: MisKind,
     frame_width: u32,
+    tile: Tile,
     value: Rgb,
     splats: &'a mut Vec<Splat>,
     /// The current pixel's strategy layers, when kept.
     layers: Option<&'a mut [[f64; 3]]>,
+    optimal: Option<&'a mut OptimalAccum>,
+    records: &'a mut LtRecords,
+    /// Index of the current camera pixel in the tile.
+    pixel: usize,
 }
 
-impl bdpt::SampleSink for HeuristicSink<'_> {
-    fn wants_zero_samples(&self) -> bool {
-        false
+impl FilmSink<'_> {
+    fn d_opt(&self) -> u32 {
+        self.optimal.as_ref().map_or(0, |a| a.layout.d_opt)
+    }
+
+    fn tile_index(&self, x: u32, y: u32) -> Option<usize> {
+        let t = &self.tile;
+        (x >= t.x0 && x < t.x1 && y >= t.y0 && y < t.y1)
+            .then(|| (y - t.y0) as usize * t.width() + (x - t.x0) as usize)
+    }
+}
+
+impl bdpt::SampleSink for FilmSink<'_> {
+    fn wants_zero_samples(&self, depth: u32) -> bool {
+        depth >= 1 && depth <= self.d_opt()
     }
 
     fn sample(&mut self, s: &bdpt::PathSample) {
+        if s.depth >= 1 && s.depth <= self.d_opt() {
+            let ws = s.balance[s.s as usize];
+            let c = s.contribution;
+            if s.t == 1 {
+                // Light tracing: the same f32 values whichever tile the pixel belongs to, so that
+                // the image does not depend on the tiling.
+                let mut w32 = [0.0f32; 64];
+                for (d, w) in w32.iter_mut().zip(s.balance) {
+                    *d = *w as f32;
+                }
+                let n = s.balance.len();
+                let cw = [
+                    (c.x as f64 * ws) as f32,
+                    (c.y as f64 * ws) as f32,
+                    (c.z as f64 * ws) as f32,
+                ];
+                let frame_pixel = s.pixel.1 * self.frame_width + s.pixel.0;
+                match self.tile_index(s.pixel.0, s.pixel.1) {
+                    Some(i) => {
+                        let acc = self.optimal.as_deref_mut().expect("optimal");
+                        let mut w = [0.0f64; 64];
+                        for (d, v) in w.iter_mut().zip(&w32[..n]) {
+                            *d = *v as f64;
+                        }
+                        acc.add_sample(i, s.depth, &w[..n], cw.map(|v| v as f64));
+                        acc.add_hit(i, s.depth);
+                    }
+                    None => self.records.push(frame_pixel, s.depth, &w32[..n], cw),
+                }
+            } else {
+                let pixel = self.pixel;
+                let cw = [c.x as f64 * ws, c.y as f64 * ws, c.z as f64 * ws];
+                self.optimal
+                    .as_deref_mut()
+                    .expect("optimal")
+                    .add_sample(pixel, s.depth, s.balance, cw);
+            }
+            return;
+        }
+        if s.contribution == Rgb::ZERO {
+            return;
+        }
         let w = match self.mis {
-            MisKind::Balance => s.balance[s.s as usize],
+            MisKind::Balance | MisKind::Optimal => s.balance[s.s as usize],
             MisKind::Power => {
                 let b = s.balance[s.s as usize];
                 let sq: f64 = s.balance.iter().map(|x| x * x).sum();
@@ -238,7 +383,15 @@ impl bdpt::SampleSink for HeuristicSink<'_> {
         }
     }
 
-    fn unsampled(&mut self, _pixel: (u32, u32), _depth: u32, _s: u32) {}
+    fn unsampled(&mut self, _pixel: (u32, u32), depth: u32, s: u32) {
+        if depth >= 1 && depth <= self.d_opt() {
+            let pixel = self.pixel;
+            self.optimal
+                .as_deref_mut()
+                .expect("optimal")
+                .add_unsampled(pixel, depth, s);
+        }
+    }
 }
 
 /// Renders samples `samples` of every pixel of `tile`.
@@ -257,6 +410,10 @@ pub fn render_tile(
         } else {
             Vec::new()
         },
+        optimal: settings
+            .optimal_layout()
+            .map(|l| OptimalAccum::new(l, tile.pixels())),
+        records: LtRecords::default(),
         stats: RayStats::default(),
     };
     let mut ws = bdpt::Workspace::default();
@@ -300,12 +457,16 @@ pub fn render_tile(
                                     [idx * STRATEGY_LAYERS..(idx + 1) * STRATEGY_LAYERS],
                             )
                         };
-                        let mut sink = HeuristicSink {
+                        let mut sink = FilmSink {
                             mis: settings.mis,
                             frame_width: cam.width,
+                            tile,
                             value: Rgb::ZERO,
                             splats: &mut film.splats,
                             layers,
+                            optimal: film.optimal.as_mut(),
+                            records: &mut film.records,
+                            pixel: idx,
                         };
                         bdpt::pixel_sample(
                             scene,
@@ -349,11 +510,16 @@ pub struct Frame {
     pub splat: Vec<[f64; 3]>,
     /// STRATEGY_LAYERS per pixel when kept (camera and light-tracing parts together).
     pub layers: Vec<[f64; 3]>,
+    /// Optimal MIS systems of every pixel.
+    pub optimal: Option<OptimalAccum>,
+    /// Optimal MIS regularisation strength.
+    pub kappa: f64,
 }
 
 impl Frame {
-    pub fn new(width: u32, height: u32, strategies: bool) -> Frame {
+    pub fn new(width: u32, height: u32, settings: &RenderSettings) -> Frame {
         let n = (width * height) as usize;
+        let strategies = settings.strategies && settings.integrator == IntegratorKind::Bdpt;
         Frame {
             width,
             height,
@@ -364,7 +530,23 @@ impl Frame {
             } else {
                 Vec::new()
             },
+            optimal: settings.optimal_layout().map(|l| OptimalAccum::new(l, n)),
+            kappa: settings.optimal_kappa,
         }
+    }
+
+    /// Bytes of accumulator memory per pixel (camera sums, splats, optimal systems).
+    pub fn bytes_per_pixel(&self) -> usize {
+        let base = 2 * 24 + 4 + 24;
+        base + self
+            .optimal
+            .as_ref()
+            .map_or(0, |o| o.layout.bytes_per_pixel())
+            + if self.layers.is_empty() {
+                0
+            } else {
+                STRATEGY_LAYERS * 24
+            }
     }
 
     /// Adds a tile's results (order matters only for the last bits of the f64 sums).
@@ -379,6 +561,9 @@ impl Frame {
                     self.sums.sum_sq[dst][c] += t.sums.sum_sq[src][c];
                 }
                 self.sums.count[dst] += t.sums.count[src];
+                if let (Some(o), Some(to)) = (self.optimal.as_mut(), t.optimal.as_ref()) {
+                    o.add_pixel(dst, to, src);
+                }
                 if !self.layers.is_empty() && !t.layers.is_empty() {
                     for l in 0..STRATEGY_LAYERS {
                         for c in 0..3 {
@@ -402,18 +587,33 @@ impl Frame {
         }
     }
 
-    /// The image: (camera sums + splats) / samples per pixel.
+    /// Adds out-of-tile light-tracing records (frame pixel indices).
+    pub fn apply_records(&mut self, r: &LtRecords) {
+        if let Some(o) = self.optimal.as_mut() {
+            r.apply(o, |p| Some(p as usize));
+        }
+    }
+
+    /// The image: (camera sums + splats) / samples per pixel, plus the solved optimal depths.
     pub fn image(&self) -> Image {
         let mut img = Image::new(self.width as usize, self.height as usize);
+        let frame_pixels = self.width as u64 * self.height as u64;
+        let mut scratch = SolveScratch::default();
         for (i, p) in img.pixels.iter_mut().enumerate() {
-            let n = self.sums.count[i].max(1) as f64;
+            let spp = self.sums.count[i];
+            let n = spp.max(1) as f64;
             let s = self.sums.sum[i];
             let l = self.splat[i];
-            *p = Rgb::new(
-                ((s[0] + l[0]) / n) as f32,
-                ((s[1] + l[1]) / n) as f32,
-                ((s[2] + l[2]) / n) as f32,
-            );
+            let mut v = [(s[0] + l[0]) / n, (s[1] + l[1]) / n, (s[2] + l[2]) / n];
+            if let Some(o) = &self.optimal {
+                for d in 1..=o.layout.d_opt {
+                    let f = o.solve(i, d, spp, frame_pixels, self.kappa, &mut scratch);
+                    for c in 0..3 {
+                        v[c] += f[c];
+                    }
+                }
+            }
+            *p = Rgb::new(v[0] as f32, v[1] as f32, v[2] as f32);
         }
         img
     }
@@ -469,11 +669,7 @@ pub fn render(
     let start = Instant::now();
     let (w, h) = (scene.camera.width, scene.camera.height);
     let tiles = make_tiles(w, h, tile_size);
-    let mut frame = Frame::new(
-        w,
-        h,
-        settings.strategies && settings.integrator == IntegratorKind::Bdpt,
-    );
+    let mut frame = Frame::new(w, h, settings);
     let mut stats = RayStats::default();
     let mut tasks = Vec::new();
     let mut s0 = 0;
@@ -495,6 +691,7 @@ pub fn render(
         for r in &results {
             stats.add(&r.stats);
             frame.merge(r);
+            frame.apply_records(&r.records);
         }
     }
     RenderOutput {

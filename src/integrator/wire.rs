@@ -1,0 +1,306 @@
+//! Binary encoding of a tile task's result (what a worker uploads and a coordinator merges).
+//!
+//! Little-endian, versioned, self-describing enough to be validated before anything is merged:
+//!
+//! ```text
+//! magic "OMISTILE", version u32
+//! tile x0 y0 x1 y1 u32, samples s0 s1 u32
+//! stats closest shadow samples non_finite u64
+//! per tile pixel: count u32, sum 3 x f64, sum_sq 3 x f64
+//! splats: n u32, then n x (pixel u32, layer u8, value 3 x f32)
+//! layers: n u32 (0 or pixels x 14), then n x 3 x f64
+//! optimal: d_opt u32 (0 = none), then pixels x stride f64 (A, b), pixels x d_opt u32 (hits)
+//! records: n u32, pixels n x u32, depths n x u8, m u32, values m x f32
+//! ```
+//! All sums stay f64: the merged frame must equal a single-process render to 1e-6, and solving
+//! the optimal systems amplifies rounding.
+
+use super::{LtRecords, RayStats, Splat, Tile, TileFilm};
+use crate::film::PixelSums;
+use crate::mis::{Layout, OptimalAccum};
+
+const MAGIC: &[u8; 8] = b"OMISTILE";
+const VERSION: u32 = 1;
+
+/// A result that failed validation.
+#[derive(Debug, thiserror::Error)]
+#[error("invalid tile result: {0}")]
+pub struct WireError(pub String);
+
+struct W(Vec<u8>);
+
+impl W {
+    fn u8(&mut self, v: u8) {
+        self.0.push(v);
+    }
+    fn u32(&mut self, v: u32) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn u64(&mut self, v: u64) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn f32(&mut self, v: f32) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn f64(&mut self, v: f64) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+}
+
+struct R<'a> {
+    b: &'a [u8],
+    at: usize,
+}
+
+impl R<'_> {
+    fn take(&mut self, n: usize) -> Result<&[u8], WireError> {
+        if self.b.len() - self.at < n {
+            return Err(WireError(format!(
+                "truncated at byte {} (wanted {n} more)",
+                self.at
+            )));
+        }
+        let s = &self.b[self.at..self.at + n];
+        self.at += n;
+        Ok(s)
+    }
+    fn u8(&mut self) -> Result<u8, WireError> {
+        Ok(self.take(1)?[0])
+    }
+    fn u32(&mut self) -> Result<u32, WireError> {
+        Ok(u32::from_le_bytes(
+            self.take(4)?.try_into().expect("4 bytes"),
+        ))
+    }
+    fn u64(&mut self) -> Result<u64, WireError> {
+        Ok(u64::from_le_bytes(
+            self.take(8)?.try_into().expect("8 bytes"),
+        ))
+    }
+    fn f32(&mut self) -> Result<f32, WireError> {
+        Ok(f32::from_le_bytes(
+            self.take(4)?.try_into().expect("4 bytes"),
+        ))
+    }
+    fn f64(&mut self) -> Result<f64, WireError> {
+        Ok(f64::from_le_bytes(
+            self.take(8)?.try_into().expect("8 bytes"),
+        ))
+    }
+    /// A count that must fit in the remaining bytes at `unit` bytes per item.
+    fn count(&mut self, unit: usize, what: &str) -> Result<usize, WireError> {
+        let n = self.u32()? as usize;
+        if n.saturating_mul(unit) > self.b.len() - self.at {
+            return Err(WireError(format!("{what}: count {n} exceeds the payload")));
+        }
+        Ok(n)
+    }
+}
+
+impl TileFilm {
+    /// Serialises the result for upload.
+    pub fn encode(&self, samples: std::ops::Range<u32>) -> Vec<u8> {
+        let px = self.tile.pixels();
+        let mut w = W(Vec::with_capacity(64 + px * 52));
+        w.0.extend_from_slice(MAGIC);
+        w.u32(VERSION);
+        for v in [self.tile.x0, self.tile.y0, self.tile.x1, self.tile.y1] {
+            w.u32(v);
+        }
+        w.u32(samples.start);
+        w.u32(samples.end);
+        for v in [
+            self.stats.closest,
+            self.stats.shadow,
+            self.stats.samples,
+            self.stats.non_finite,
+        ] {
+            w.u64(v);
+        }
+        for i in 0..px {
+            w.u32(self.sums.count[i]);
+            for c in 0..3 {
+                w.f64(self.sums.sum[i][c]);
+            }
+            for c in 0..3 {
+                w.f64(self.sums.sum_sq[i][c]);
+            }
+        }
+        w.u32(self.splats.len() as u32);
+        for s in &self.splats {
+            w.u32(s.pixel);
+            w.u8(s.layer);
+            for v in s.value {
+                w.f32(v);
+            }
+        }
+        w.u32(self.layers.len() as u32);
+        for l in &self.layers {
+            for v in l {
+                w.f64(*v);
+            }
+        }
+        match &self.optimal {
+            None => w.u32(0),
+            Some(o) => {
+                w.u32(o.layout.d_opt);
+                for v in &o.data {
+                    w.f64(*v);
+                }
+                for v in &o.hits {
+                    w.u32(*v);
+                }
+            }
+        }
+        let r = &self.records;
+        w.u32(r.pixels.len() as u32);
+        for v in &r.pixels {
+            w.u32(*v);
+        }
+        w.0.extend_from_slice(&r.depths);
+        w.u32(r.values.len() as u32);
+        for v in &r.values {
+            w.f32(*v);
+        }
+        w.0
+    }
+
+    /// Parses and validates an uploaded result for a frame of `width` x `height` pixels whose
+    /// optimal systems (if any) have depth `d_opt`. Returns the film and its sample range.
+    pub fn decode(
+        bytes: &[u8],
+        width: u32,
+        height: u32,
+        d_opt: Option<u32>,
+    ) -> Result<(TileFilm, std::ops::Range<u32>), WireError> {
+        let mut r = R { b: bytes, at: 0 };
+        if r.take(8)? != MAGIC {
+            return Err(WireError("bad magic".into()));
+        }
+        let version = r.u32()?;
+        if version != VERSION {
+            return Err(WireError(format!("version {version}, expected {VERSION}")));
+        }
+        let tile = Tile {
+            x0: r.u32()?,
+            y0: r.u32()?,
+            x1: r.u32()?,
+            y1: r.u32()?,
+        };
+        if !(tile.x0 < tile.x1 && tile.y0 < tile.y1 && tile.x1 <= width && tile.y1 <= height) {
+            return Err(WireError(format!("tile {tile:?} outside {width}x{height}")));
+        }
+        let (s0, s1) = (r.u32()?, r.u32()?);
+        if s0 > s1 {
+            return Err(WireError(format!("sample range {s0}..{s1}")));
+        }
+        let stats = RayStats {
+            closest: r.u64()?,
+            shadow: r.u64()?,
+            samples: r.u64()?,
+            non_finite: r.u64()?,
+        };
+        let px = tile.pixels();
+        let mut sums = PixelSums::new(tile.width(), tile.height());
+        for i in 0..px {
+            sums.count[i] = r.u32()?;
+            for c in 0..3 {
+                sums.sum[i][c] = r.f64()?;
+            }
+            for c in 0..3 {
+                sums.sum_sq[i][c] = r.f64()?;
+            }
+        }
+        let frame_px = width as u64 * height as u64;
+        let n = r.count(17, "splats")?;
+        let mut splats = Vec::with_capacity(n);
+        for _ in 0..n {
+            let pixel = r.u32()?;
+            if pixel as u64 >= frame_px {
+                return Err(WireError(format!("splat pixel {pixel} outside the frame")));
+            }
+            let layer = r.u8()?;
+            let value = [r.f32()?, r.f32()?, r.f32()?];
+            splats.push(Splat {
+                pixel,
+                layer,
+                value,
+            });
+        }
+        let n = r.count(24, "layers")?;
+        if n != 0 && n != px * super::STRATEGY_LAYERS {
+            return Err(WireError(format!(
+                "{n} strategy layer values for {px} pixels"
+            )));
+        }
+        let mut layers = Vec::with_capacity(n);
+        for _ in 0..n {
+            layers.push([r.f64()?, r.f64()?, r.f64()?]);
+        }
+        let d = r.u32()?;
+        let optimal = match (d, d_opt) {
+            (0, None) => None,
+            (d, Some(e)) if d == e => {
+                let layout = Layout::new(d);
+                let mut acc = OptimalAccum::new(layout, px);
+                if acc.data.len() * 8 > bytes.len() - r.at {
+                    return Err(WireError("optimal systems truncated".into()));
+                }
+                for v in acc.data.iter_mut() {
+                    *v = r.f64()?;
+                }
+                for v in acc.hits.iter_mut() {
+                    *v = r.u32()?;
+                }
+                Some(acc)
+            }
+            (d, e) => {
+                return Err(WireError(format!(
+                    "optimal depth {d} does not match the job's {e:?}"
+                )));
+            }
+        };
+        let n = r.count(5, "records")?;
+        let mut records = LtRecords::default();
+        for _ in 0..n {
+            let p = r.u32()?;
+            if p as u64 >= frame_px {
+                return Err(WireError(format!("record pixel {p} outside the frame")));
+            }
+            records.pixels.push(p);
+        }
+        let mut need = 0usize;
+        for _ in 0..n {
+            let dd = r.u8()?;
+            if dd == 0 || Some(dd as u32) > d_opt {
+                return Err(WireError(format!(
+                    "record depth {dd} outside 1..={d_opt:?}"
+                )));
+            }
+            need += dd as usize + 2 + 3;
+            records.depths.push(dd);
+        }
+        let m = r.count(4, "record values")?;
+        if m != need {
+            return Err(WireError(format!("{m} record values, expected {need}")));
+        }
+        for _ in 0..m {
+            records.values.push(r.f32()?);
+        }
+        if r.at != bytes.len() {
+            return Err(WireError(format!("{} trailing bytes", bytes.len() - r.at)));
+        }
+        Ok((
+            TileFilm {
+                tile,
+                sums,
+                splats,
+                layers,
+                optimal,
+                records,
+                stats,
+            },
+            s0..s1,
+        ))
+    }
+}
