@@ -139,3 +139,150 @@ fn wire_decoding_rejects_damaged_results() {
     longer.push(0);
     assert!(TileFilm::decode(&longer, 16, 16, Some(3)).is_err());
 }
+
+#[test]
+fn balance_from_the_optimal_accumulators_equals_balance_weighted_bdpt() {
+    // Same seed, same random numbers: sum_i b_i / S of every optimal system plus the balance
+    // part of the other depths must reproduce balance-weighted BDPT. This checks the b
+    // bookkeeping (C W_s W, light-tracing routing, normalisation) end to end.
+    let scene = load("cornell-box-small-light.json", 24, 24);
+    let mut s = optimal(8, 5, 3);
+    let out = integrator::render(&scene, &s, 8, &|_| {});
+    s.mis = MisKind::Balance;
+    let bal = integrator::render(&scene, &s, 8, &|_| {}).image();
+    let f = &out.frame;
+    let o = f.optimal.as_ref().expect("optimal systems");
+    let mut worst: f64 = 0.0;
+    for i in 0..bal.pixels.len() {
+        let n = f.sums.count[i] as f64;
+        for c in 0..3 {
+            let mut v = (f.sums.sum[i][c] + f.splat[i][c]) / n;
+            for d in 1..=3 {
+                v += o.balance(i, d, f.sums.count[i])[c];
+            }
+            let b = bal.pixels[i][c] as f64;
+            worst = worst.max((v - b).abs() / b.abs().max(1e-3));
+        }
+    }
+    assert!(worst < 1e-4, "worst relative difference {worst}");
+}
+
+/// Mean and standard error over seeds of the mean of region `r` in channel `c`.
+fn region_stats(imgs: &[Image], r: (usize, usize, usize, usize), c: usize) -> (f64, f64) {
+    let v: Vec<f64> = imgs
+        .iter()
+        .map(|img| {
+            let mut s = 0.0;
+            for y in r.1..r.3 {
+                for x in r.0..r.2 {
+                    s += img.get(x, y)[c] as f64;
+                }
+            }
+            s / ((r.2 - r.0) * (r.3 - r.1)) as f64
+        })
+        .collect();
+    let n = v.len() as f64;
+    let m = v.iter().sum::<f64>() / n;
+    let var = v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / (n - 1.0);
+    (m, (var / n).sqrt())
+}
+
+fn seeds(scene: &Scene, s: &RenderSettings, n: u64) -> Vec<Image> {
+    (0..n)
+        .map(|k| {
+            integrator::render(
+                scene,
+                &RenderSettings {
+                    seed: 100 + k,
+                    ..s.clone()
+                },
+                8,
+                &|_| {},
+            )
+            .image()
+        })
+        .collect()
+}
+
+#[test]
+fn optimal_at_64_spp_is_unbiased_against_a_long_path_traced_reference() {
+    for (name, w, h) in [("cornell-box.json", 16, 16), ("veach-mis.json", 32, 18)] {
+        let scene = load(name, w, h);
+        let opt = seeds(&scene, &optimal(64, 5, 5), 24);
+        let pt = seeds(
+            &scene,
+            &RenderSettings {
+                spp: 256,
+                max_depth: 5,
+                sampler: SamplerKind::Independent,
+                ..Default::default()
+            },
+            24,
+        );
+        let g = 3;
+        let mut worst: f64 = 0.0;
+        for ry in 0..g {
+            for rx in 0..g {
+                let r = (
+                    rx * w as usize / g,
+                    ry * h as usize / g,
+                    (rx + 1) * w as usize / g,
+                    (ry + 1) * h as usize / g,
+                );
+                for c in 0..3 {
+                    let (mo, so) = region_stats(&opt, r, c);
+                    let (mp, sp) = region_stats(&pt, r, c);
+                    let se = (so * so + sp * sp).sqrt();
+                    assert!(
+                        (mo - mp).abs() <= 4.0 * se + 1e-7,
+                        "{name} region {r:?} channel {c}: optimal {mo} vs PT {mp} (se {se})"
+                    );
+                    if se > 0.0 {
+                        worst = worst.max((mo - mp).abs() / se);
+                    }
+                }
+            }
+        }
+        eprintln!("{name}: optimal vs PT, worst region deviation {worst:.2} standard errors");
+    }
+}
+
+#[test]
+fn optimal_beats_balance_at_equal_spp_and_is_never_worse_at_low_spp() {
+    for (name, w, h) in [
+        ("cornell-box-small-light.json", 24, 24),
+        ("veach-mis.json", 32, 18),
+    ] {
+        let scene = load(name, w, h);
+        // An unbiased long reference: balance-weighted BDPT at 4096 spp.
+        let mut rs = optimal(4096, 5, 5);
+        rs.mis = MisKind::Balance;
+        rs.seed = 999;
+        let reference = integrator::render(&scene, &rs, 8, &|_| {}).image();
+        for spp in [1u32, 2, 4, 16, 64] {
+            let mut rel = [0.0f64; 2];
+            for (k, mis) in [MisKind::Balance, MisKind::Optimal].into_iter().enumerate() {
+                let mut s = optimal(spp, 5, 5);
+                s.mis = mis;
+                for img in seeds(&scene, &s, 5) {
+                    rel[k] += omis::film::metrics::compare(&img, &reference, 0.01)
+                        .expect("same size")
+                        .relmse
+                        / 5.0;
+                }
+            }
+            eprintln!(
+                "{name} {spp:>3} spp: balance {:.4e}, optimal {:.4e} ({:.3}x)",
+                rel[0],
+                rel[1],
+                rel[1] / rel[0]
+            );
+            assert!(
+                rel[1] < rel[0],
+                "{name} at {spp} spp: optimal {} vs balance {}",
+                rel[1],
+                rel[0]
+            );
+        }
+    }
+}

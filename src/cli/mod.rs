@@ -1,6 +1,7 @@
 //! The `omis` command line: one binary, clap subcommands.
 
 mod bench;
+mod compare;
 mod diff;
 mod render;
 
@@ -25,6 +26,8 @@ enum Command {
     Diff(diff::DiffArgs),
     /// Measure BVH build time, ray rates and integrator throughput.
     Bench(bench::BenchArgs),
+    /// Compare MIS strategies at equal spp (and equal time) against a reference: table and plots.
+    Compare(compare::CompareArgs),
 }
 
 /// Runs the command line; returns the process exit code. Errors are printed as one line.
@@ -41,6 +44,7 @@ pub fn main() -> i32 {
         Command::Render(a) => render::run(a),
         Command::Diff(a) => diff::run(a),
         Command::Bench(a) => bench::run(a),
+        Command::Compare(a) => compare::run(a),
     };
     match result {
         Ok(()) => 0,

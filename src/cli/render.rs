@@ -117,6 +117,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         strategies: a.strategies,
         optimal_max_depth: a.optimal_max_depth,
         optimal_kappa: a.kappa,
+        ..Default::default()
     };
     if a.mis == MisKind::Optimal && settings.integrator != IntegratorKind::Bdpt {
         bail!("--mis optimal needs --integrator bdpt");

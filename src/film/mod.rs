@@ -2,6 +2,7 @@
 
 pub mod exr_io;
 pub mod metrics;
+pub mod plot;
 pub mod png;
 
 use crate::geometry::Rgb;

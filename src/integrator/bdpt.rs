@@ -496,7 +496,7 @@ pub fn pixel_sample(
             let zero = sink.wants_zero_samples(depth);
             if t == 1 {
                 if s <= n_l {
-                    connect_to_camera(scene, ws, s, depth, zero, sink, stats);
+                    connect_to_camera(scene, ws, s, depth, sink, stats);
                 }
                 continue;
             }
@@ -542,28 +542,29 @@ fn hit_emitter(
 ) -> bool {
     let z = ws.cam[t - 1];
     let zp = ws.cam[t - 2];
-    if z.light == NO_LIGHT {
+    let (w_out, _) = dir_to(z.p, zp.p);
+    let contribution = if z.light == NO_LIGHT {
+        Rgb::ZERO
+    } else {
+        z.beta * scene.lights[z.light as usize].le(z.ng, w_out)
+    };
+    if contribution == Rgb::ZERO {
+        // A camera subpath that does not end on (the front of) an emitter: a zero-contribution
+        // sample only this technique could make (seed 000 §V-C, Fig. 4 bottom left).
         if zero {
-            let w = &mut ws.weights[..t];
-            w.fill(0.0);
-            w[0] = 1.0;
+            weights_alone(ws, 0, t);
             sink.sample(&PathSample {
                 depth,
                 s: 0,
                 t: t as u32,
                 pixel,
-                contribution: Rgb::ZERO,
+                contribution,
                 balance: &ws.weights[..t],
             });
         }
         return true;
     }
     let light = &scene.lights[z.light as usize];
-    let (w_out, _) = dir_to(z.p, zp.p);
-    let contribution = z.beta * light.le(z.ng, w_out);
-    if contribution == Rgb::ZERO && !zero {
-        return true;
-    }
     let pmf = scene.light_pmf(z.light) as f64;
     let (pdf_pos, pdf_dir) = light.pdf_le(z.ng, w_out);
     // The camera-side vertex treated as a light vertex: emission densities from the light side.
@@ -624,16 +625,27 @@ fn next_event(
     let zp = ws.cam[t - 2];
     let (wo, _) = dir_to(z.p, zp.p);
     let f = z.bsdf.eval(wo, ls.wi, Mode::Radiance);
-    let mut contribution = z.beta * f * ls.le * (ls.wi.dot(z.ns).abs() / (pmf * ls.pdf));
-    let mut visible = true;
-    if contribution != Rgb::ZERO || zero {
+    let contribution = z.beta * f * ls.le * (ls.wi.dot(z.ns).abs() / (pmf * ls.pdf));
+    // Zero-contribution samples (occluded, or a zero BSDF / emission) are weighted as paths only
+    // this technique could make (W = e_s): exact for occluded connections (every other technique
+    // would have stopped at the occluder), and for the rest it keeps E[A] 1 = n, which is what
+    // the direct estimator's consistency needs, without a visibility ray or densities.
+    let visible = contribution != Rgb::ZERO && {
         stats.shadow += 1;
-        visible = !scene.occluded(z.p, z.ng, ls.p, ls.n);
-    }
+        !scene.occluded(z.p, z.ng, ls.p, ls.n)
+    };
     if !visible {
-        contribution = Rgb::ZERO;
-    }
-    if contribution == Rgb::ZERO && !zero {
+        if zero {
+            weights_alone(ws, 1, t + 1);
+            sink.sample(&PathSample {
+                depth,
+                s: 1,
+                t: t as u32,
+                pixel,
+                contribution: Rgb::ZERO,
+                balance: &ws.weights[..t + 1],
+            });
+        }
         return true;
     }
     if !visible {
@@ -710,16 +722,27 @@ fn connect(
     let fy = y.bsdf.eval(wo_y, w_yz, Mode::Importance);
     let fz = z.bsdf.eval(wo_z, -w_yz, Mode::Radiance);
     let g = w_yz.dot(y.ns).abs() * w_yz.dot(z.ns).abs() / d2;
-    let mut contribution = y.beta * fy * fz * z.beta * g;
-    let mut visible = true;
-    if contribution != Rgb::ZERO || zero {
+    let contribution = y.beta * fy * fz * z.beta * g;
+    // Zero-contribution samples (occluded, or a zero BSDF / emission) are weighted as paths only
+    // this technique could make (W = e_s): exact for occluded connections (every other technique
+    // would have stopped at the occluder), and for the rest it keeps E[A] 1 = n, which is what
+    // the direct estimator's consistency needs, without a visibility ray or densities.
+    let visible = contribution != Rgb::ZERO && {
         stats.shadow += 1;
-        visible = !scene.occluded(y.p, y.ng, z.p, z.ng);
-    }
+        !scene.occluded(y.p, y.ng, z.p, z.ng)
+    };
     if !visible {
-        contribution = Rgb::ZERO;
-    }
-    if contribution == Rgb::ZERO && !zero {
+        if zero {
+            weights_alone(ws, s, s + t);
+            sink.sample(&PathSample {
+                depth,
+                s: s as u32,
+                t: t as u32,
+                pixel,
+                contribution: Rgb::ZERO,
+                balance: &ws.weights[..s + t],
+            });
+        }
         return true;
     }
     if !visible {
@@ -769,7 +792,6 @@ fn connect_to_camera(
     ws: &mut Workspace,
     s: usize,
     depth: u32,
-    zero: bool,
     sink: &mut dyn SampleSink,
     stats: &mut RayStats,
 ) {
@@ -802,13 +824,14 @@ fn connect_to_camera(
         )
     };
     let contribution = y.beta * f * (cos_y * we * cos_cam / d2);
-    if contribution == Rgb::ZERO && !zero {
+    // A zero-contribution light-tracing sample (occluded, or a zero BSDF) is weighted as a path
+    // only light tracing could make (see `connect`): for the pixel it is one of the N_L - h light
+    // paths that did not reach it, which the solver counts.
+    if contribution == Rgb::ZERO {
         return;
     }
     stats.shadow += 1;
     if scene.occluded(y.p, y.ng, cam.position, Vec3::ZERO) {
-        // Only light tracing could make this path: for the pixel it is one of the N_L - h
-        // light paths that did not reach it, which the solver counts.
         return;
     }
     let z0 = ws.cam[0];
@@ -1034,9 +1057,7 @@ mod tests {
                 };
                 ws.last_nee = None;
                 match (s, t) {
-                    (_, 1) => {
-                        connect_to_camera(scene, &mut ws, s, depth, true, &mut cap, &mut stats)
-                    }
+                    (_, 1) => connect_to_camera(scene, &mut ws, s, depth, &mut cap, &mut stats),
                     (0, _) => {
                         hit_emitter(scene, &mut ws, t, depth, (x, y), true, &mut cap);
                     }
@@ -1067,7 +1088,12 @@ mod tests {
                         );
                     }
                 }
-                for (ss, tt, w, _) in cap.samples {
+                for (ss, tt, w, c) in cap.samples {
+                    if c == Rgb::ZERO {
+                        // Weighted e_s by design (see `connect`): checked by tests/optimal.rs.
+                        assert_eq!(w.iter().filter(|x| **x != 0.0).count(), 1);
+                        continue;
+                    }
                     let mut full: Vec<Vertex> = Vec::new();
                     if s == 1 && t >= 2 {
                         full.push(ws.last_nee.expect("NEE vertex"));
@@ -1075,9 +1101,6 @@ mod tests {
                         full.extend_from_slice(&ws.light[..s]);
                     }
                     full.extend(ws.cam[..t].iter().rev());
-                    if s == 0 && full[0].light == NO_LIGHT {
-                        continue; // no light at the end: weight 1 by definition
-                    }
                     assert_eq!((ss as usize, tt as usize), (s, t));
                     out.push((full, ss, w));
                 }

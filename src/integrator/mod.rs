@@ -71,6 +71,9 @@ pub struct RenderSettings {
     /// seed's plain direct estimator).
     #[serde(default = "default_kappa")]
     pub optimal_kappa: f64,
+    /// Keep the image of every path depth 0 ..= max_depth as extra layers.
+    #[serde(default)]
+    pub depth_layers: bool,
 }
 
 fn default_optimal_max_depth() -> u32 {
@@ -85,6 +88,15 @@ fn default_kappa() -> f64 {
 }
 
 impl RenderSettings {
+    /// Number of per-depth layers kept (0 when not requested).
+    pub fn depth_count(&self) -> usize {
+        if self.depth_layers {
+            self.max_depth.min(bdpt::MAX_DEPTH) as usize + 1
+        } else {
+            0
+        }
+    }
+
     /// The optimal-MIS layout when this render accumulates optimal systems.
     pub fn optimal_layout(&self) -> Option<crate::mis::Layout> {
         (self.integrator == IntegratorKind::Bdpt
@@ -107,6 +119,7 @@ impl Default for RenderSettings {
             strategies: false,
             optimal_max_depth: default_optimal_max_depth(),
             optimal_kappa: DEFAULT_KAPPA,
+            depth_layers: false,
         }
     }
 }
@@ -210,6 +223,8 @@ pub struct Splat {
     pub pixel: u32,
     /// Strategy layer, or u8::MAX when the technique's depth is not kept as a layer.
     pub layer: u8,
+    /// Path depth.
+    pub depth: u8,
     pub value: [f32; 3],
 }
 
@@ -222,6 +237,9 @@ pub struct TileFilm {
     pub splats: Vec<Splat>,
     /// Strategy layers of the tile's pixels (pixel-major, STRATEGY_LAYERS each), when requested.
     pub layers: Vec<[f64; 3]>,
+    /// Per-depth camera-side sums of the tile's pixels (pixel-major, depth_count each), when
+    /// requested.
+    pub depths: Vec<[f64; 3]>,
     /// Optimal MIS: the systems of the tile's pixels.
     pub optimal: Option<OptimalAccum>,
     /// Optimal MIS: light-tracing samples that landed outside the tile.
@@ -286,6 +304,8 @@ struct FilmSink<'a> {
     splats: &'a mut Vec<Splat>,
     /// The current pixel's strategy layers, when kept.
     layers: Option<&'a mut [[f64; 3]]>,
+    /// The current pixel's per-depth sums, when kept.
+    depths: Option<&'a mut [[f64; 3]]>,
     optimal: Option<&'a mut OptimalAccum>,
     records: &'a mut LtRecords,
     /// Index of the current camera pixel in the tile.
@@ -371,10 +391,16 @@ impl bdpt::SampleSink for FilmSink<'_> {
             self.splats.push(Splat {
                 pixel: s.pixel.1 * self.frame_width + s.pixel.0,
                 layer: layer.map_or(u8::MAX, |l| l as u8),
+                depth: s.depth as u8,
                 value: v.to_array(),
             });
         } else {
             self.value += v;
+            if let Some(d) = self.depths.as_deref_mut() {
+                for c in 0..3 {
+                    d[s.depth as usize][c] += v[c] as f64;
+                }
+            }
             if let (Some(layers), Some(l)) = (self.layers.as_deref_mut(), layer) {
                 for c in 0..3 {
                     layers[l][c] += v[c] as f64;
@@ -410,6 +436,7 @@ pub fn render_tile(
         } else {
             Vec::new()
         },
+        depths: vec![[0.0; 3]; tile.pixels() * settings.depth_count()],
         optimal: settings
             .optimal_layout()
             .map(|l| OptimalAccum::new(l, tile.pixels())),
@@ -418,6 +445,8 @@ pub fn render_tile(
     };
     let mut ws = bdpt::Workspace::default();
     let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
+    let nd = settings.depth_count();
+    let mut per_depth = vec![Rgb::ZERO; nd];
     let cam = &scene.camera;
     let stats = &mut film.stats;
     for y in tile.y0..tile.y1 {
@@ -437,7 +466,25 @@ pub fn render_tile(
                     IntegratorKind::Pt => {
                         let f = sampler.next_2d();
                         let ray = cam.ray(Vec2::new(x as f32 + f.x, y as f32 + f.y));
-                        path::li(scene, ray, &mut sampler, max_depth, settings.direct, stats)
+                        per_depth.fill(Rgb::ZERO);
+                        let pd = (nd > 0).then_some(&mut per_depth[..]);
+                        let l = path::li(
+                            scene,
+                            ray,
+                            &mut sampler,
+                            max_depth,
+                            settings.direct,
+                            pd,
+                            stats,
+                        );
+                        if l.is_finite() {
+                            for (k, v) in per_depth.iter().enumerate() {
+                                for c in 0..3 {
+                                    film.depths[idx * nd + k][c] += v[c] as f64;
+                                }
+                            }
+                        }
+                        l
                     }
                     IntegratorKind::Bdpt => {
                         let mut light_sampler = Sampler::new(
@@ -457,6 +504,7 @@ pub fn render_tile(
                                     [idx * STRATEGY_LAYERS..(idx + 1) * STRATEGY_LAYERS],
                             )
                         };
+                        let depths = (nd > 0).then(|| &mut film.depths[idx * nd..(idx + 1) * nd]);
                         let mut sink = FilmSink {
                             mis: settings.mis,
                             frame_width: cam.width,
@@ -464,6 +512,7 @@ pub fn render_tile(
                             value: Rgb::ZERO,
                             splats: &mut film.splats,
                             layers,
+                            depths,
                             optimal: film.optimal.as_mut(),
                             records: &mut film.records,
                             pixel: idx,
@@ -510,6 +559,9 @@ pub struct Frame {
     pub splat: Vec<[f64; 3]>,
     /// STRATEGY_LAYERS per pixel when kept (camera and light-tracing parts together).
     pub layers: Vec<[f64; 3]>,
+    /// Per-depth sums (camera side and splats together), depth_count per pixel, when kept.
+    pub depths: Vec<[f64; 3]>,
+    pub depth_count: usize,
     /// Optimal MIS systems of every pixel.
     pub optimal: Option<OptimalAccum>,
     /// Optimal MIS regularisation strength.
@@ -530,6 +582,8 @@ impl Frame {
             } else {
                 Vec::new()
             },
+            depths: vec![[0.0; 3]; n * settings.depth_count()],
+            depth_count: settings.depth_count(),
             optimal: settings.optimal_layout().map(|l| OptimalAccum::new(l, n)),
             kappa: settings.optimal_kappa,
         }
@@ -547,6 +601,36 @@ impl Frame {
             } else {
                 STRATEGY_LAYERS * 24
             }
+            + self.depth_count * 24
+    }
+
+    /// The image of each path depth 0 ..= max_depth (when depth layers are kept).
+    pub fn depth_images(&self) -> Vec<Image> {
+        let nd = self.depth_count;
+        let frame_pixels = self.width as u64 * self.height as u64;
+        let mut scratch = SolveScratch::default();
+        (0..nd)
+            .map(|d| {
+                let mut img = Image::new(self.width as usize, self.height as usize);
+                for (i, p) in img.pixels.iter_mut().enumerate() {
+                    let spp = self.sums.count[i];
+                    let n = spp.max(1) as f64;
+                    let s = self.depths[i * nd + d];
+                    let mut v = [s[0] / n, s[1] / n, s[2] / n];
+                    if let Some(o) = &self.optimal
+                        && d >= 1
+                        && d as u32 <= o.layout.d_opt
+                    {
+                        let f = o.solve(i, d as u32, spp, frame_pixels, self.kappa, &mut scratch);
+                        for c in 0..3 {
+                            v[c] += f[c];
+                        }
+                    }
+                    *p = Rgb::new(v[0] as f32, v[1] as f32, v[2] as f32);
+                }
+                img
+            })
+            .collect()
     }
 
     /// Adds a tile's results (order matters only for the last bits of the f64 sums).
@@ -564,6 +648,14 @@ impl Frame {
                 if let (Some(o), Some(to)) = (self.optimal.as_mut(), t.optimal.as_ref()) {
                     o.add_pixel(dst, to, src);
                 }
+                let nd = self.depth_count;
+                if nd > 0 && t.depths.len() == t.tile.pixels() * nd {
+                    for k in 0..nd {
+                        for c in 0..3 {
+                            self.depths[dst * nd + k][c] += t.depths[src * nd + k][c];
+                        }
+                    }
+                }
                 if !self.layers.is_empty() && !t.layers.is_empty() {
                     for l in 0..STRATEGY_LAYERS {
                         for c in 0..3 {
@@ -578,6 +670,12 @@ impl Frame {
             let p = s.pixel as usize;
             for c in 0..3 {
                 self.splat[p][c] += s.value[c] as f64;
+            }
+            if (s.depth as usize) < self.depth_count {
+                let nd = self.depth_count;
+                for c in 0..3 {
+                    self.depths[p * nd + s.depth as usize][c] += s.value[c] as f64;
+                }
             }
             if !self.layers.is_empty() && (s.layer as usize) < STRATEGY_LAYERS {
                 for c in 0..3 {
@@ -678,6 +776,23 @@ pub fn render(
         tasks.extend(tiles.iter().map(|&t| (t, s0..s1)));
         s0 = s1;
     }
+    run_tasks(scene, settings, &tasks, &mut frame, &mut stats, progress);
+    RenderOutput {
+        frame,
+        stats,
+        seconds: start.elapsed().as_secs_f64(),
+    }
+}
+
+/// Renders tasks on the current rayon pool, merging results in task order, a wave at a time.
+fn run_tasks(
+    scene: &Scene,
+    settings: &RenderSettings,
+    tasks: &[(Tile, Range<u32>)],
+    frame: &mut Frame,
+    stats: &mut RayStats,
+    progress: &(dyn Fn(usize) + Sync),
+) {
     let wave = (rayon::current_num_threads() * 4).max(1);
     for chunk in tasks.chunks(wave) {
         let results: Vec<TileFilm> = chunk
@@ -694,11 +809,45 @@ pub fn render(
             frame.apply_records(&r.records);
         }
     }
-    RenderOutput {
-        frame,
-        stats,
-        seconds: start.elapsed().as_secs_f64(),
+}
+
+/// Renders passes of `pass_spp` samples per pixel over the whole frame until `budget` has
+/// elapsed (at least one pass), as for equal-time comparisons. The samplers stratify over blocks
+/// of `pass_spp` samples. Returns the output and the samples per pixel reached.
+pub fn render_for(
+    scene: &Scene,
+    settings: &RenderSettings,
+    tile_size: u32,
+    pass_spp: u32,
+    budget: std::time::Duration,
+) -> (RenderOutput, u32) {
+    let start = Instant::now();
+    let pass_spp = pass_spp.max(1);
+    let s = RenderSettings {
+        spp: pass_spp,
+        ..settings.clone()
+    };
+    let (w, h) = (scene.camera.width, scene.camera.height);
+    let tiles = make_tiles(w, h, tile_size);
+    let mut frame = Frame::new(w, h, &s);
+    let mut stats = RayStats::default();
+    let mut done = 0u32;
+    loop {
+        let tasks: Vec<_> = tiles.iter().map(|&t| (t, done..done + pass_spp)).collect();
+        run_tasks(scene, &s, &tasks, &mut frame, &mut stats, &|_| {});
+        done += pass_spp;
+        if start.elapsed() >= budget {
+            break;
+        }
     }
+    (
+        RenderOutput {
+            frame,
+            stats,
+            seconds: start.elapsed().as_secs_f64(),
+        },
+        done,
+    )
 }
 
 /// Number of tile tasks `render` runs (for progress bars).

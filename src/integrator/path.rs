@@ -45,15 +45,23 @@ pub enum DirectStrategy {
     Bsdf,
 }
 
-/// Radiance along `ray` (one pixel sample).
+/// Radiance along `ray` (one pixel sample). When `per_depth` is given (max_depth + 1 entries),
+/// each contribution is also added to the entry of its path depth.
 pub fn li(
     scene: &Scene,
     ray: Ray,
     sampler: &mut Sampler,
     max_depth: u32,
     strategy: DirectStrategy,
+    mut per_depth: Option<&mut [Rgb]>,
     stats: &mut RayStats,
 ) -> Rgb {
+    let mut add = |l: &mut Rgb, d: u32, v: Rgb| {
+        *l += v;
+        if let Some(pd) = per_depth.as_deref_mut() {
+            pd[d as usize] += v;
+        }
+    };
     let mut l = Rgb::ZERO;
     let mut beta = Rgb::ONE;
     let mut ray = ray;
@@ -77,7 +85,7 @@ pub fn li(
                         power_heuristic(pdf_bsdf, scene.light_pdf_dir(p, ray.d))
                     }
                 };
-                l += beta * le * w;
+                add(&mut l, depth, beta * le * w);
             }
         }
         if depth >= max_depth {
@@ -93,7 +101,8 @@ pub fn li(
             break;
         }
         if !bsdf.is_delta() && strategy != DirectStrategy::Bsdf {
-            l += beta * direct(scene, &hit, &bsdf, wo, sampler, strategy, stats);
+            let v = beta * direct(scene, &hit, &bsdf, wo, sampler, strategy, stats);
+            add(&mut l, depth + 1, v);
         }
         let u_lobe = sampler.next_1d();
         let u = sampler.next_2d();

@@ -7,8 +7,9 @@
 //! tile x0 y0 x1 y1 u32, samples s0 s1 u32
 //! stats closest shadow samples non_finite u64
 //! per tile pixel: count u32, sum 3 x f64, sum_sq 3 x f64
-//! splats: n u32, then n x (pixel u32, layer u8, value 3 x f32)
+//! splats: n u32, then n x (pixel u32, layer u8, depth u8, value 3 x f32)
 //! layers: n u32 (0 or pixels x 14), then n x 3 x f64
+//! depths: n u32 (0 or pixels x depth layers), then n x 3 x f64
 //! optimal: d_opt u32 (0 = none), then pixels x stride f64 (A, b), pixels x d_opt u32 (hits)
 //! records: n u32, pixels n x u32, depths n x u8, m u32, values m x f32
 //! ```
@@ -20,7 +21,7 @@ use crate::film::PixelSums;
 use crate::mis::{Layout, OptimalAccum};
 
 const MAGIC: &[u8; 8] = b"OMISTILE";
-const VERSION: u32 = 1;
+const VERSION: u32 = 2;
 
 /// A result that failed validation.
 #[derive(Debug, thiserror::Error)]
@@ -130,14 +131,17 @@ impl TileFilm {
         for s in &self.splats {
             w.u32(s.pixel);
             w.u8(s.layer);
+            w.u8(s.depth);
             for v in s.value {
                 w.f32(v);
             }
         }
-        w.u32(self.layers.len() as u32);
-        for l in &self.layers {
-            for v in l {
-                w.f64(*v);
+        for list in [&self.layers, &self.depths] {
+            w.u32(list.len() as u32);
+            for l in list {
+                for v in l {
+                    w.f64(*v);
+                }
             }
         }
         match &self.optimal {
@@ -212,7 +216,7 @@ impl TileFilm {
             }
         }
         let frame_px = width as u64 * height as u64;
-        let n = r.count(17, "splats")?;
+        let n = r.count(18, "splats")?;
         let mut splats = Vec::with_capacity(n);
         for _ in 0..n {
             let pixel = r.u32()?;
@@ -220,10 +224,12 @@ impl TileFilm {
                 return Err(WireError(format!("splat pixel {pixel} outside the frame")));
             }
             let layer = r.u8()?;
+            let depth = r.u8()?;
             let value = [r.f32()?, r.f32()?, r.f32()?];
             splats.push(Splat {
                 pixel,
                 layer,
+                depth,
                 value,
             });
         }
@@ -236,6 +242,14 @@ impl TileFilm {
         let mut layers = Vec::with_capacity(n);
         for _ in 0..n {
             layers.push([r.f64()?, r.f64()?, r.f64()?]);
+        }
+        let n = r.count(24, "depth layers")?;
+        if n % px != 0 || n / px > super::bdpt::MAX_DEPTH as usize + 1 {
+            return Err(WireError(format!("{n} depth layer values for {px} pixels")));
+        }
+        let mut depths = Vec::with_capacity(n);
+        for _ in 0..n {
+            depths.push([r.f64()?, r.f64()?, r.f64()?]);
         }
         let d = r.u32()?;
         let optimal = match (d, d_opt) {
@@ -296,6 +310,7 @@ impl TileFilm {
                 sums,
                 splats,
                 layers,
+                depths,
                 optimal,
                 records,
                 stats,

@@ -1,0 +1,429 @@
+//! `omis compare`: MIS strategies at equal sample counts (and optionally equal time) against a
+//! reference: relMSE table, relMSE-vs-spp plot, gain per path depth, time and memory overhead
+//! (the experiments of seed 000, Figs. 5, 7, 8, 9, 10).
+
+use crate::film::{Image, exr_io, metrics, plot};
+use crate::integrator::{self, IntegratorKind, MisKind, RenderSettings};
+use crate::sampler::SamplerKind;
+use crate::scene::Scene;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use std::path::PathBuf;
+use std::time::Duration;
+
+#[derive(Args)]
+pub struct CompareArgs {
+    pub scene: PathBuf,
+    /// Sample counts, comma separated.
+    #[arg(long, default_value = "1,2,4,8,16,64,256", value_delimiter = ',')]
+    pub spp: Vec<u32>,
+    /// MIS strategies, comma separated (balance, power, optimal).
+    #[arg(long, default_value = "balance,power,optimal", value_delimiter = ',')]
+    pub mis: Vec<MisKind>,
+    /// Converged reference EXR (its resolution is the render's). Layers named depth0, depth1,
+    /// ... (from `omis render --depth-layers`) enable per-depth relMSE.
+    #[arg(long)]
+    pub reference: PathBuf,
+    /// Also run each strategy for this many seconds (per seed) and compare relMSE at equal time.
+    #[arg(long)]
+    pub equal_time: Option<f64>,
+    /// Output folder for plots and results.json.
+    #[arg(long, default_value = "compare-out")]
+    pub out: PathBuf,
+    /// Independent seeds averaged per point.
+    #[arg(long, default_value_t = 3)]
+    pub seeds: u64,
+    #[arg(long, default_value_t = 5)]
+    pub max_depth: u32,
+    #[arg(long, default_value_t = 5)]
+    pub optimal_max_depth: u32,
+    #[arg(long, default_value_t = integrator::DEFAULT_KAPPA)]
+    pub kappa: f64,
+    #[arg(long, value_enum, default_value_t = SamplerKind::Independent)]
+    pub sampler: SamplerKind,
+    #[arg(long, default_value_t = 0.01)]
+    pub eps: f64,
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Print the results as one JSON object (last line of stdout).
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(serde::Serialize, Clone)]
+struct Point {
+    mis: MisKind,
+    spp: u32,
+    /// relMSE averaged over seeds, and its standard deviation across seeds.
+    relmse: f64,
+    relmse_sd: f64,
+    seconds: f64,
+    bytes_per_pixel: usize,
+    /// relMSE of each depth 0 ..= max_depth (against reference depth layers, or the relative
+    /// variance across seeds when the reference has none).
+    relmse_per_depth: Vec<f64>,
+}
+
+fn mean_sd(v: &[f64]) -> (f64, f64) {
+    let n = v.len() as f64;
+    let m = v.iter().sum::<f64>() / n;
+    let var = if v.len() > 1 {
+        v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / (n - 1.0)
+    } else {
+        0.0
+    };
+    (m, var.sqrt())
+}
+
+/// Relative variance across renders of the same settings: mean over pixels and channels of
+/// var_k(I_k) / (mean_k(I_k)^2 + eps), the relMSE of an unbiased estimator when no reference
+/// exists.
+fn relative_variance(imgs: &[Image], eps: f64) -> f64 {
+    let n = imgs.len() as f64;
+    if imgs.len() < 2 {
+        return f64::NAN;
+    }
+    let mut acc = 0.0;
+    let count = imgs[0].pixels.len() * 3;
+    for i in 0..imgs[0].pixels.len() {
+        for c in 0..3 {
+            let vals: Vec<f64> = imgs.iter().map(|im| im.pixels[i][c] as f64).collect();
+            let m = vals.iter().sum::<f64>() / n;
+            let var = vals.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / (n - 1.0);
+            acc += var / (m * m + eps);
+        }
+    }
+    acc / count as f64
+}
+
+pub fn run(a: CompareArgs) -> Result<()> {
+    if a.seeds == 0 || a.spp.is_empty() || a.mis.is_empty() {
+        bail!("need at least one seed, one spp and one strategy");
+    }
+    if a.spp.contains(&0) {
+        bail!("--spp values must be >= 1");
+    }
+    let layers = exr_io::read_exr_layers(&a.reference).map_err(anyhow::Error::msg)?;
+    let reference = layers
+        .iter()
+        .find(|(n, _)| n.is_empty())
+        .map(|(_, i)| i.clone())
+        .unwrap_or_else(|| layers[0].1.clone());
+    let ref_depths: Vec<Option<Image>> = (0..=a.max_depth)
+        .map(|d| {
+            layers
+                .iter()
+                .find(|(n, _)| *n == format!("depth{d}"))
+                .map(|(_, i)| i.clone())
+        })
+        .collect();
+    let mut scene = Scene::load(&a.scene).map_err(anyhow::Error::msg)?;
+    scene.camera = scene
+        .camera
+        .with_resolution(reference.width as u32, reference.height as u32)
+        .map_err(anyhow::Error::msg)?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let pool = super::thread_pool(a.threads)?;
+    let settings = |mis: MisKind, spp: u32, seed: u64| RenderSettings {
+        integrator: IntegratorKind::Bdpt,
+        mis,
+        spp,
+        max_depth: a.max_depth,
+        seed,
+        sampler: a.sampler,
+        optimal_max_depth: a.optimal_max_depth,
+        optimal_kappa: a.kappa,
+        depth_layers: true,
+        ..Default::default()
+    };
+    let eval =
+        |mis: MisKind, spp: u32, outs: Vec<(integrator::RenderOutput, u32)>| -> Result<Point> {
+            let mut rel = Vec::new();
+            let mut secs = 0.0;
+            let mut depth_imgs: Vec<Vec<Image>> = vec![Vec::new(); a.max_depth as usize + 1];
+            let mut depth_rel: Vec<Vec<f64>> = vec![Vec::new(); a.max_depth as usize + 1];
+            let bytes = outs[0].0.frame.bytes_per_pixel();
+            for (out, _) in &outs {
+                let img = out.image();
+                rel.push(
+                    metrics::compare(&img, &reference, a.eps)
+                        .map_err(anyhow::Error::msg)?
+                        .relmse,
+                );
+                secs += out.seconds;
+                for (d, im) in out.frame.depth_images().into_iter().enumerate() {
+                    if let Some(Some(r)) = ref_depths.get(d) {
+                        depth_rel[d].push(
+                            metrics::compare(&im, r, a.eps)
+                                .map_err(anyhow::Error::msg)?
+                                .relmse,
+                        );
+                    }
+                    depth_imgs[d].push(im);
+                }
+            }
+            let (m, sd) = mean_sd(&rel);
+            let per_depth = (0..=a.max_depth as usize)
+                .map(|d| {
+                    if depth_rel[d].is_empty() {
+                        relative_variance(&depth_imgs[d], a.eps)
+                    } else {
+                        mean_sd(&depth_rel[d]).0
+                    }
+                })
+                .collect();
+            Ok(Point {
+                mis,
+                spp,
+                relmse: m,
+                relmse_sd: sd,
+                seconds: secs / outs.len() as f64,
+                bytes_per_pixel: bytes,
+                relmse_per_depth: per_depth,
+            })
+        };
+
+    let mut points = Vec::new();
+    for &spp in &a.spp {
+        for &mis in &a.mis {
+            let outs = (0..a.seeds)
+                .map(|seed| {
+                    let s = settings(mis, spp, seed);
+                    let o = pool.install(|| integrator::render(&scene, &s, 16, &|_| {}));
+                    (o, spp)
+                })
+                .collect();
+            let p = eval(mis, spp, outs)?;
+            eprintln!(
+                "{:>8} {:>5} spp: relMSE {:.4e} +- {:.1e}  {:.2} s",
+                format!("{:?}", p.mis).to_lowercase(),
+                spp,
+                p.relmse,
+                p.relmse_sd,
+                p.seconds
+            );
+            points.push(p);
+        }
+    }
+    let mut timed = Vec::new();
+    if let Some(t) = a.equal_time {
+        if !(t > 0.0 && t.is_finite()) {
+            bail!("--equal-time must be a positive number of seconds");
+        }
+        for &mis in &a.mis {
+            let outs: Vec<_> = (0..a.seeds)
+                .map(|seed| {
+                    let s = settings(mis, 1, seed);
+                    pool.install(|| {
+                        integrator::render_for(&scene, &s, 16, 1, Duration::from_secs_f64(t))
+                    })
+                })
+                .collect();
+            let spp = outs.iter().map(|o| o.1).min().unwrap_or(0);
+            let p = eval(mis, spp, outs)?;
+            eprintln!(
+                "{:>8} equal time {t} s: {} spp, relMSE {:.4e}",
+                format!("{:?}", p.mis).to_lowercase(),
+                p.spp,
+                p.relmse
+            );
+            timed.push(p);
+        }
+    }
+
+    print_table(&points, &timed, &a);
+    write_plots(&points, &a)?;
+    let result = serde_json::json!({
+        "scene": a.scene.display().to_string(),
+        "reference": a.reference.display().to_string(),
+        "width": reference.width, "height": reference.height,
+        "max_depth": a.max_depth, "optimal_max_depth": a.optimal_max_depth, "kappa": a.kappa,
+        "seeds": a.seeds, "eps": a.eps,
+        "equal_spp": points, "equal_time": timed,
+    });
+    std::fs::write(
+        a.out.join("results.json"),
+        serde_json::to_string_pretty(&result)?,
+    )
+    .context("writing results.json")?;
+    if a.json {
+        println!("{result}");
+    }
+    Ok(())
+}
+
+fn name(m: MisKind) -> String {
+    format!("{m:?}").to_lowercase()
+}
+
+fn print_table(points: &[Point], timed: &[Point], a: &CompareArgs) {
+    let out = &mut String::new();
+    use std::fmt::Write;
+    let _ = writeln!(
+        out,
+        "{:>9} {:>6} {:>12} {:>10} {:>9} {:>10} {:>8}",
+        "mis", "spp", "relMSE", "vs balance", "seconds", "vs balance", "B/pixel"
+    );
+    for p in points {
+        let bal = points
+            .iter()
+            .find(|q| q.spp == p.spp && q.mis == MisKind::Balance);
+        let (rr, tr) = match bal {
+            Some(b) => (
+                format!("{:.3}x", p.relmse / b.relmse),
+                format!("{:.3}x", p.seconds / b.seconds),
+            ),
+            None => ("-".into(), "-".into()),
+        };
+        let _ = writeln!(
+            out,
+            "{:>9} {:>6} {:>12.4e} {:>10} {:>9.3} {:>10} {:>8}",
+            name(p.mis),
+            p.spp,
+            p.relmse,
+            rr,
+            p.seconds,
+            tr,
+            p.bytes_per_pixel
+        );
+    }
+    if !timed.is_empty() {
+        let _ = writeln!(
+            out,
+            "equal time ({} s per render):",
+            a.equal_time.unwrap_or(0.0)
+        );
+        let bal = timed.iter().find(|q| q.mis == MisKind::Balance);
+        for p in timed {
+            let _ = writeln!(
+                out,
+                "{:>9} {:>6} spp {:>12.4e} {:>10}",
+                name(p.mis),
+                p.spp,
+                p.relmse,
+                bal.map_or("-".into(), |b| format!("{:.3}x", p.relmse / b.relmse))
+            );
+        }
+    }
+    if a.json {
+        eprint!("{out}");
+    } else {
+        print!("{out}");
+    }
+}
+
+fn write_plots(points: &[Point], a: &CompareArgs) -> Result<()> {
+    let mut kinds: Vec<MisKind> = Vec::new();
+    for p in points {
+        if !kinds.contains(&p.mis) {
+            kinds.push(p.mis);
+        }
+    }
+    let series: Vec<(String, Vec<(f64, f64)>)> = kinds
+        .iter()
+        .map(|&k| {
+            (
+                name(k),
+                points
+                    .iter()
+                    .filter(|p| p.mis == k)
+                    .map(|p| (p.spp as f64, p.relmse))
+                    .collect(),
+            )
+        })
+        .collect();
+    let svg = plot::line_chart(
+        "relMSE vs samples per pixel",
+        "spp",
+        "relMSE",
+        &series,
+        true,
+        true,
+    );
+    std::fs::write(a.out.join("relmse_vs_spp.svg"), svg)?;
+    // Gain per depth: balance relMSE / optimal relMSE for depths 1..=D_opt, one bar per spp.
+    if kinds.contains(&MisKind::Optimal) && kinds.contains(&MisKind::Balance) {
+        let depths: Vec<String> = (0..=a.max_depth).map(|d| format!("d={d}")).collect();
+        let mut gain = Vec::new();
+        for &spp in &a.spp {
+            let b = points
+                .iter()
+                .find(|p| p.spp == spp && p.mis == MisKind::Balance);
+            let o = points
+                .iter()
+                .find(|p| p.spp == spp && p.mis == MisKind::Optimal);
+            if let (Some(b), Some(o)) = (b, o) {
+                gain.push((
+                    format!("{spp} spp"),
+                    b.relmse_per_depth
+                        .iter()
+                        .zip(&o.relmse_per_depth)
+                        .map(|(x, y)| x / y)
+                        .collect(),
+                ));
+            }
+        }
+        let svg = plot::bar_chart(
+            "Gain per depth: balance relMSE / optimal relMSE",
+            "gain",
+            &depths,
+            &gain,
+            Some(1.0),
+        );
+        std::fs::write(a.out.join("gain_per_depth.svg"), svg)?;
+    }
+    // Overhead: time and memory relative to balance, per strategy, at each spp.
+    let cats: Vec<String> = a.spp.iter().map(|s| format!("{s} spp")).collect();
+    let time: Vec<(String, Vec<f64>)> = kinds
+        .iter()
+        .map(|&k| {
+            (
+                name(k),
+                a.spp
+                    .iter()
+                    .map(|&spp| {
+                        let p = points.iter().find(|p| p.spp == spp && p.mis == k);
+                        let b = points
+                            .iter()
+                            .find(|p| p.spp == spp && p.mis == MisKind::Balance);
+                        match (p, b) {
+                            (Some(p), Some(b)) => p.seconds / b.seconds,
+                            _ => f64::NAN,
+                        }
+                    })
+                    .collect(),
+            )
+        })
+        .collect();
+    std::fs::write(
+        a.out.join("time_overhead.svg"),
+        plot::bar_chart(
+            "Render time relative to balance",
+            "time / balance time",
+            &cats,
+            &time,
+            Some(1.0),
+        ),
+    )?;
+    let mem: Vec<(String, Vec<f64>)> = kinds
+        .iter()
+        .map(|&k| {
+            let p = points.iter().find(|p| p.mis == k);
+            (
+                name(k),
+                vec![p.map_or(f64::NAN, |p| p.bytes_per_pixel as f64)],
+            )
+        })
+        .collect();
+    std::fs::write(
+        a.out.join("memory.svg"),
+        plot::bar_chart(
+            "Accumulator memory",
+            "bytes per pixel",
+            &["".into()],
+            &mem,
+            None,
+        ),
+    )?;
+    Ok(())
+}
