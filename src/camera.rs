@@ -12,6 +12,8 @@ pub struct Camera {
     pub vfov_deg: f32,
     pub width: u32,
     pub height: u32,
+    /// Mirror the image horizontally (see [`Camera::with_flip_x`]).
+    flip_x: bool,
     forward: Vec3,
     right: Vec3,
     up: Vec3,
@@ -59,6 +61,7 @@ impl Camera {
             vfov_deg,
             width,
             height,
+            flip_x: false,
             forward,
             right,
             up,
@@ -68,16 +71,41 @@ impl Camera {
         })
     }
 
-    /// The same camera at another resolution, keeping the vertical field of view.
+    /// The same camera at another resolution, keeping the vertical field of view (and the
+    /// mirroring).
     pub fn with_resolution(&self, width: u32, height: u32) -> Result<Camera, String> {
-        Camera::new(
+        Ok(Camera::new(
             self.position,
             self.look_at,
             self.up_hint,
             self.vfov_deg,
             width,
             height,
-        )
+        )?
+        .with_flip_x(self.flip_x))
+    }
+
+    /// The same camera with the image mirrored horizontally (`flip`) or not. Mirroring negates
+    /// the right axis, so `ray` and `raster_of` stay inverse to each other and importance
+    /// (`we`, `pdf_dir`) is unchanged.
+    pub fn with_flip_x(mut self, flip: bool) -> Camera {
+        if flip != self.flip_x {
+            self.right = -self.right;
+            self.flip_x = flip;
+        }
+        self
+    }
+
+    /// True when the image is mirrored: raster x grows toward `up x forward` instead of
+    /// `forward x up`. Importers set it for files whose camera-to-world transform has the other
+    /// handedness (pbrt-v3's left-handed camera space under a proper rotation, e.g. `LookAt`).
+    pub fn flip_x(&self) -> bool {
+        self.flip_x
+    }
+
+    /// Unit vector toward increasing raster x.
+    pub fn right(&self) -> Vec3 {
+        self.right
     }
 
     pub fn forward(&self) -> Vec3 {
@@ -155,6 +183,32 @@ mod tests {
         assert!((cam.ray(Vec2::new(32.0, 24.0)).d - Vec3::NEG_Z).length() < 1e-5);
         assert!(cam.ray(Vec2::new(60.0, 24.0)).d.x > 0.0);
         assert!(cam.ray(Vec2::new(32.0, 2.0)).d.y > 0.0);
+    }
+
+    #[test]
+    fn flip_x_mirrors_raster_x_consistently() {
+        let cam = Camera::new(Vec3::ZERO, Vec3::NEG_Z, Vec3::Y, 40.0, 64, 48).unwrap();
+        let flipped = cam.clone().with_flip_x(true);
+        assert!(flipped.flip_x);
+        // Right-handed: looking down -z with +y up, +x is on the right; mirrored, on the left.
+        assert!(cam.ray(Vec2::new(60.0, 24.0)).d.x > 0.0);
+        assert!(flipped.ray(Vec2::new(60.0, 24.0)).d.x < 0.0);
+        for (x, y) in [(0.5, 0.5), (32.0, 24.0), (63.2, 47.9), (10.0, 40.0)] {
+            let a = cam.ray(Vec2::new(x, y)).d;
+            let b = flipped.ray(Vec2::new(64.0 - x, y)).d;
+            // The mirrored camera sees at (w - x, y) what the plain one sees at (x, y).
+            assert!((a - b).length() < 1e-5, "{a:?} vs {b:?}");
+            let back = flipped.raster_of(flipped.ray(Vec2::new(x, y)).d).unwrap();
+            assert!((back.x - x).abs() < 1e-3 && (back.y - y).abs() < 1e-3);
+            assert!((cam.we(a) - flipped.we(b)).abs() <= 1e-4 * cam.we(a));
+        }
+        // Flipping twice is the identity; a resolution change keeps the flip.
+        let twice = flipped.clone().with_flip_x(false);
+        assert!(
+            (twice.ray(Vec2::new(60.0, 24.0)).d - cam.ray(Vec2::new(60.0, 24.0)).d).length() < 1e-6
+        );
+        let resized = flipped.with_resolution(32, 24).unwrap();
+        assert!(resized.flip_x && resized.ray(Vec2::new(30.0, 12.0)).d.x < 0.0);
     }
 
     #[test]

@@ -45,14 +45,38 @@ pub struct CompareArgs {
     pub eps: f64,
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
+    /// Also run the path tracer (power-heuristic NEE) as a baseline.
+    #[arg(long)]
+    pub pt: bool,
     /// Print the results as one JSON object (last line of stdout).
     #[arg(long)]
     pub json: bool,
 }
 
+/// A rendering method: BDPT with a weighting, or the path tracer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+enum Method {
+    Bdpt(MisKind),
+    Pt,
+}
+
+impl Method {
+    fn name(&self) -> String {
+        match self {
+            Method::Bdpt(m) => format!("{m:?}").to_lowercase(),
+            Method::Pt => "pt".into(),
+        }
+    }
+}
+
+const BALANCE: Method = Method::Bdpt(MisKind::Balance);
+const OPTIMAL: Method = Method::Bdpt(MisKind::Optimal);
+
 #[derive(serde::Serialize, Clone)]
 struct Point {
-    mis: MisKind,
+    #[serde(serialize_with = "ser_method")]
+    method: Method,
     spp: u32,
     /// relMSE averaged over seeds, and its standard deviation across seeds.
     relmse: f64,
@@ -62,6 +86,10 @@ struct Point {
     /// relMSE of each depth 0 ..= max_depth (against reference depth layers, or the relative
     /// variance across seeds when the reference has none).
     relmse_per_depth: Vec<f64>,
+}
+
+fn ser_method<S: serde::Serializer>(m: &Method, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(&m.name())
 }
 
 fn mean_sd(v: &[f64]) -> (f64, f64) {
@@ -124,9 +152,19 @@ pub fn run(a: CompareArgs) -> Result<()> {
         .map_err(anyhow::Error::msg)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let pool = super::thread_pool(a.threads)?;
-    let settings = |mis: MisKind, spp: u32, seed: u64| RenderSettings {
-        integrator: IntegratorKind::Bdpt,
-        mis,
+    let mut methods: Vec<Method> = a.mis.iter().map(|&m| Method::Bdpt(m)).collect();
+    if a.pt {
+        methods.push(Method::Pt);
+    }
+    let settings = |method: Method, spp: u32, seed: u64| RenderSettings {
+        integrator: match method {
+            Method::Pt => IntegratorKind::Pt,
+            Method::Bdpt(_) => IntegratorKind::Bdpt,
+        },
+        mis: match method {
+            Method::Pt => MisKind::Balance,
+            Method::Bdpt(m) => m,
+        },
         spp,
         max_depth: a.max_depth,
         seed,
@@ -137,7 +175,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
         ..Default::default()
     };
     let eval =
-        |mis: MisKind, spp: u32, outs: Vec<(integrator::RenderOutput, u32)>| -> Result<Point> {
+        |method: Method, spp: u32, outs: Vec<(integrator::RenderOutput, u32)>| -> Result<Point> {
             let mut rel = Vec::new();
             let mut secs = 0.0;
             let mut depth_imgs: Vec<Vec<Image>> = vec![Vec::new(); a.max_depth as usize + 1];
@@ -173,7 +211,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
                 })
                 .collect();
             Ok(Point {
-                mis,
+                method,
                 spp,
                 relmse: m,
                 relmse_sd: sd,
@@ -185,7 +223,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
 
     let mut points = Vec::new();
     for &spp in &a.spp {
-        for &mis in &a.mis {
+        for &mis in &methods {
             let outs = (0..a.seeds)
                 .map(|seed| {
                     let s = settings(mis, spp, seed);
@@ -196,7 +234,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
             let p = eval(mis, spp, outs)?;
             eprintln!(
                 "{:>8} {:>5} spp: relMSE {:.4e} +- {:.1e}  {:.2} s",
-                format!("{:?}", p.mis).to_lowercase(),
+                p.method.name(),
                 spp,
                 p.relmse,
                 p.relmse_sd,
@@ -210,7 +248,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
         if !(t > 0.0 && t.is_finite()) {
             bail!("--equal-time must be a positive number of seconds");
         }
-        for &mis in &a.mis {
+        for &mis in &methods {
             let outs: Vec<_> = (0..a.seeds)
                 .map(|seed| {
                     let s = settings(mis, 1, seed);
@@ -223,7 +261,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
             let p = eval(mis, spp, outs)?;
             eprintln!(
                 "{:>8} equal time {t} s: {} spp, relMSE {:.4e}",
-                format!("{:?}", p.mis).to_lowercase(),
+                p.method.name(),
                 p.spp,
                 p.relmse
             );
@@ -252,10 +290,6 @@ pub fn run(a: CompareArgs) -> Result<()> {
     Ok(())
 }
 
-fn name(m: MisKind) -> String {
-    format!("{m:?}").to_lowercase()
-}
-
 fn print_table(points: &[Point], timed: &[Point], a: &CompareArgs) {
     let out = &mut String::new();
     use std::fmt::Write;
@@ -267,7 +301,7 @@ fn print_table(points: &[Point], timed: &[Point], a: &CompareArgs) {
     for p in points {
         let bal = points
             .iter()
-            .find(|q| q.spp == p.spp && q.mis == MisKind::Balance);
+            .find(|q| q.spp == p.spp && q.method == BALANCE);
         let (rr, tr) = match bal {
             Some(b) => (
                 format!("{:.3}x", p.relmse / b.relmse),
@@ -278,7 +312,7 @@ fn print_table(points: &[Point], timed: &[Point], a: &CompareArgs) {
         let _ = writeln!(
             out,
             "{:>9} {:>6} {:>12.4e} {:>10} {:>9.3} {:>10} {:>8}",
-            name(p.mis),
+            p.method.name(),
             p.spp,
             p.relmse,
             rr,
@@ -293,12 +327,12 @@ fn print_table(points: &[Point], timed: &[Point], a: &CompareArgs) {
             "equal time ({} s per render):",
             a.equal_time.unwrap_or(0.0)
         );
-        let bal = timed.iter().find(|q| q.mis == MisKind::Balance);
+        let bal = timed.iter().find(|q| q.method == BALANCE);
         for p in timed {
             let _ = writeln!(
                 out,
                 "{:>9} {:>6} spp {:>12.4e} {:>10}",
-                name(p.mis),
+                p.method.name(),
                 p.spp,
                 p.relmse,
                 bal.map_or("-".into(), |b| format!("{:.3}x", p.relmse / b.relmse))
@@ -313,20 +347,20 @@ fn print_table(points: &[Point], timed: &[Point], a: &CompareArgs) {
 }
 
 fn write_plots(points: &[Point], a: &CompareArgs) -> Result<()> {
-    let mut kinds: Vec<MisKind> = Vec::new();
+    let mut kinds: Vec<Method> = Vec::new();
     for p in points {
-        if !kinds.contains(&p.mis) {
-            kinds.push(p.mis);
+        if !kinds.contains(&p.method) {
+            kinds.push(p.method);
         }
     }
     let series: Vec<(String, Vec<(f64, f64)>)> = kinds
         .iter()
         .map(|&k| {
             (
-                name(k),
+                k.name(),
                 points
                     .iter()
-                    .filter(|p| p.mis == k)
+                    .filter(|p| p.method == k)
                     .map(|p| (p.spp as f64, p.relmse))
                     .collect(),
             )
@@ -342,16 +376,12 @@ fn write_plots(points: &[Point], a: &CompareArgs) -> Result<()> {
     );
     std::fs::write(a.out.join("relmse_vs_spp.svg"), svg)?;
     // Gain per depth: balance relMSE / optimal relMSE for depths 1..=D_opt, one bar per spp.
-    if kinds.contains(&MisKind::Optimal) && kinds.contains(&MisKind::Balance) {
+    if kinds.contains(&OPTIMAL) && kinds.contains(&BALANCE) {
         let depths: Vec<String> = (0..=a.max_depth).map(|d| format!("d={d}")).collect();
         let mut gain = Vec::new();
         for &spp in &a.spp {
-            let b = points
-                .iter()
-                .find(|p| p.spp == spp && p.mis == MisKind::Balance);
-            let o = points
-                .iter()
-                .find(|p| p.spp == spp && p.mis == MisKind::Optimal);
+            let b = points.iter().find(|p| p.spp == spp && p.method == BALANCE);
+            let o = points.iter().find(|p| p.spp == spp && p.method == OPTIMAL);
             if let (Some(b), Some(o)) = (b, o) {
                 gain.push((
                     format!("{spp} spp"),
@@ -378,14 +408,12 @@ fn write_plots(points: &[Point], a: &CompareArgs) -> Result<()> {
         .iter()
         .map(|&k| {
             (
-                name(k),
+                k.name(),
                 a.spp
                     .iter()
                     .map(|&spp| {
-                        let p = points.iter().find(|p| p.spp == spp && p.mis == k);
-                        let b = points
-                            .iter()
-                            .find(|p| p.spp == spp && p.mis == MisKind::Balance);
+                        let p = points.iter().find(|p| p.spp == spp && p.method == k);
+                        let b = points.iter().find(|p| p.spp == spp && p.method == BALANCE);
                         match (p, b) {
                             (Some(p), Some(b)) => p.seconds / b.seconds,
                             _ => f64::NAN,
@@ -408,9 +436,9 @@ fn write_plots(points: &[Point], a: &CompareArgs) -> Result<()> {
     let mem: Vec<(String, Vec<f64>)> = kinds
         .iter()
         .map(|&k| {
-            let p = points.iter().find(|p| p.mis == k);
+            let p = points.iter().find(|p| p.method == k);
             (
-                name(k),
+                k.name(),
                 vec![p.map_or(f64::NAN, |p| p.bytes_per_pixel as f64)],
             )
         })

@@ -1,10 +1,12 @@
 //! The scene model (world-space triangles, spheres, materials, lights, camera) and its loaders.
 //!
-//! Every loader (JSON, later pbrt-v3 and Mitsuba) feeds a [`SceneBuilder`]; [`SceneBuilder::build`]
+//! Every loader (JSON, pbrt-v3, Mitsuba 0.5) feeds a [`SceneBuilder`]; [`SceneBuilder::build`]
 //! validates, builds the BVHs and the light-selection distribution.
 
 pub mod json;
 pub mod mesh;
+pub mod mitsuba;
+pub mod pbrt;
 
 use crate::accel::{Accel, Prim, SphereGeom};
 use crate::camera::Camera;
@@ -130,10 +132,12 @@ impl Scene {
             .to_ascii_lowercase();
         match ext.as_str() {
             "json" => json::load(path),
+            "pbrt" => pbrt::load(path),
+            "xml" => mitsuba::load(path),
             other => Err(SceneError::new(
                 path,
                 "file",
-                format!("unknown scene format '.{other}' (expected .json)"),
+                format!("unknown scene format '.{other}' (expected .json, .pbrt or .xml)"),
             )),
         }
     }
