@@ -1,13 +1,16 @@
 //! `omis bench`: BVH build time, closest-hit and occlusion ray rates with random rays, and the
-//! path tracer's throughput compared with the bare BVH rate for the same mix of queries.
+//! path tracer's throughput compared with the bare BVH rate for the same mix of queries; peak
+//! memory (VmHWM) after loading and at the end; optionally the path tracer's relMSE against a
+//! reference (box-downsampled to the bench resolution when it is an integer multiple of it).
 
 use crate::accel::{Accel, SphereGeom};
+use crate::film::{Image, exr_io, metrics, png};
 use crate::geometry::warp::uniform_sphere;
 use crate::geometry::{Ray, Vec2, Vec3};
 use crate::integrator::{self, IntegratorKind, RenderSettings};
 use crate::sampler::{Pcg32, SamplerKind};
 use crate::scene::{Scene, mesh};
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::Args;
 use rayon::prelude::*;
 use std::path::PathBuf;
@@ -35,9 +38,69 @@ pub struct BenchArgs {
     pub resolution: String,
     #[arg(long, default_value_t = 5)]
     pub max_depth: u32,
+    /// Reference EXR for the path tracer's image (first --scene only): relMSE is reported. A
+    /// reference k times the bench resolution in both axes is box-downsampled to it first.
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
+    /// With --reference: write the signed relative error map (as `omis diff --error-map`).
+    #[arg(long)]
+    pub error_map: Option<PathBuf>,
+    /// With --reference: also write the reference as used (downsampled) to this EXR.
+    #[arg(long)]
+    pub reference_out: Option<PathBuf>,
+    /// Write the path tracer's image (first --scene only) to this EXR.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
     /// Print one JSON object per target.
     #[arg(long)]
     pub json: bool,
+}
+
+/// Peak resident memory of this process so far (VmHWM), in MiB; NaN where unavailable.
+fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+            line.split_whitespace().nth(1)?.parse::<f64>().ok()
+        })
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+/// Box-downsamples `img` to `w` x `h` (its size must be an integer multiple of it).
+fn downsample(img: &Image, w: usize, h: usize) -> Result<Image> {
+    if img.width == w && img.height == h {
+        return Ok(img.clone());
+    }
+    let (kx, ky) = (img.width / w, img.height / h);
+    if kx == 0 || kx != ky || kx * w != img.width || ky * h != img.height {
+        bail!(
+            "reference is {}x{}, not an integer multiple of the bench resolution {w}x{h}",
+            img.width,
+            img.height
+        );
+    }
+    let mut out = Image::new(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            let mut s = [0.0f64; 3];
+            for dy in 0..ky {
+                for dx in 0..kx {
+                    let p = img.get(x * kx + dx, y * ky + dy);
+                    for (c, v) in s.iter_mut().enumerate() {
+                        *v += p[c] as f64;
+                    }
+                }
+            }
+            let n = (kx * ky) as f64;
+            out.set(
+                x,
+                y,
+                crate::geometry::Rgb::new((s[0] / n) as f32, (s[1] / n) as f32, (s[2] / n) as f32),
+            );
+        }
+    }
+    Ok(out)
 }
 
 struct RayRates {
@@ -104,10 +167,11 @@ pub fn run(a: BenchArgs) -> Result<()> {
     if scenes.is_empty() && a.obj_dir.is_empty() {
         scenes.push(PathBuf::from("scenes/cornell-box.json"));
     }
-    for path in &scenes {
+    for (k, path) in scenes.iter().enumerate() {
         let t0 = Instant::now();
         let mut scene = Scene::load(path).map_err(anyhow::Error::msg)?;
         let load = t0.elapsed().as_secs_f64();
+        let rss_loaded = peak_rss_mib();
         scene.camera = scene
             .camera
             .with_resolution(w, h)
@@ -125,6 +189,11 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let out = pool.install(|| integrator::render(&scene, &settings, 16, &|_| {}));
         let st = out.stats;
         let secs = out.seconds;
+        let relmse = if k == 0 {
+            compare_reference(&a, &out.image())?
+        } else {
+            None
+        };
         // Time the bare BVH would need for the same numbers of closest and occlusion queries.
         let bare = st.closest as f64 / rates.closest_nt + st.shadow as f64 / rates.occlusion_nt;
         report(
@@ -135,11 +204,14 @@ pub fn run(a: BenchArgs) -> Result<()> {
             scene.stats.bvh_build_seconds,
             &rates,
             threads,
-            Some((
-                st.samples as f64 / secs,
-                st.rays() as f64 / secs,
-                bare / secs,
-            )),
+            Some(PtRun {
+                samples_per_second: st.samples as f64 / secs,
+                rays_per_second: st.rays() as f64 / secs,
+                fraction_of_bare: bare / secs,
+                seconds: secs,
+                relmse,
+            }),
+            (rss_loaded, peak_rss_mib()),
         );
     }
     for dir in &a.obj_dir {
@@ -155,9 +227,11 @@ pub fn run(a: BenchArgs) -> Result<()> {
             let m = mesh::load_obj(f).map_err(|e| anyhow::anyhow!("{}: {e}", f.display()))?;
             tris.extend(m.indices.iter().map(|t| t.map(|k| m.positions[k as usize])));
         }
-        let load = t0.elapsed().as_secs_f64();
         let ids: Vec<u32> = (0..tris.len() as u32).collect();
         let accel = Accel::build(&tris, &ids, &[] as &[SphereGeom], &[]);
+        // As for scenes: the load time includes the BVH build.
+        let load = t0.elapsed().as_secs_f64();
+        let rss_loaded = peak_rss_mib();
         let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
         for t in &tris {
             for v in t {
@@ -175,9 +249,41 @@ pub fn run(a: BenchArgs) -> Result<()> {
             &rates,
             threads,
             None,
+            (rss_loaded, peak_rss_mib()),
         );
     }
     Ok(())
+}
+
+/// The path tracer's run on a scene.
+struct PtRun {
+    samples_per_second: f64,
+    rays_per_second: f64,
+    fraction_of_bare: f64,
+    seconds: f64,
+    relmse: Option<f64>,
+}
+
+/// With --reference: relMSE (eps 0.01) of `img` against the (downsampled) reference, the error
+/// map and the optional EXR outputs.
+fn compare_reference(a: &BenchArgs, img: &Image) -> Result<Option<f64>> {
+    if let Some(p) = &a.out {
+        exr_io::write_exr(p, img, &[], &[]).map_err(anyhow::Error::msg)?;
+    }
+    let Some(rp) = &a.reference else {
+        return Ok(None);
+    };
+    let full = exr_io::read_exr(rp).map_err(anyhow::Error::msg)?;
+    let reference = downsample(&full, img.width, img.height)?;
+    if let Some(p) = &a.reference_out {
+        exr_io::write_exr(p, &reference, &[], &[]).map_err(anyhow::Error::msg)?;
+    }
+    let e = metrics::compare(img, &reference, 0.01).map_err(anyhow::Error::msg)?;
+    if let Some(p) = &a.error_map {
+        let map = metrics::error_map(img, &reference, 0.01, 1.0).map_err(anyhow::Error::msg)?;
+        png::write_rgb8(p, img.width, img.height, &map).map_err(anyhow::Error::msg)?;
+    }
+    Ok(Some(e.relmse))
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -189,7 +295,8 @@ fn report(
     build: f64,
     r: &RayRates,
     threads: usize,
-    pt: Option<(f64, f64, f64)>,
+    pt: Option<PtRun>,
+    (rss_loaded, rss_end): (f64, f64),
 ) {
     if a.json {
         let mut j = serde_json::json!({
@@ -197,35 +304,47 @@ fn report(
             "bvh_build_seconds": build, "threads": threads,
             "closest_mrays_1t": r.closest_1t / 1e6, "occlusion_mrays_1t": r.occlusion_1t / 1e6,
             "closest_mrays": r.closest_nt / 1e6, "occlusion_mrays": r.occlusion_nt / 1e6,
+            "peak_rss_mib_after_load": rss_loaded, "peak_rss_mib": rss_end,
         });
-        if let Some((sps, rps, frac)) = pt {
-            j["pt_pixel_samples_per_second"] = serde_json::json!(sps);
-            j["pt_mrays"] = serde_json::json!(rps / 1e6);
-            j["pt_fraction_of_bare_bvh"] = serde_json::json!(frac);
+        if let Some(p) = pt {
+            j["pt_pixel_samples_per_second"] = serde_json::json!(p.samples_per_second);
+            j["pt_mrays"] = serde_json::json!(p.rays_per_second / 1e6);
+            j["pt_fraction_of_bare_bvh"] = serde_json::json!(p.fraction_of_bare);
+            j["pt_seconds"] = serde_json::json!(p.seconds);
+            if let Some(e) = p.relmse {
+                j["pt_relmse"] = serde_json::json!(e);
+            }
         }
         println!("{j}");
         return;
     }
-    println!("{name}: {triangles} triangles, load {load:.3} s, BVH build {build:.3} s");
+    println!(
+        "{name}: {triangles} triangles, load {load:.3} s (BVH build {build:.3} s of it); peak memory (VmHWM) {rss_loaded:.0} MiB after load"
+    );
     println!(
         "  random rays, 1 thread : closest {:.2} Mrays/s, occlusion {:.2} Mrays/s",
         r.closest_1t / 1e6,
         r.occlusion_1t / 1e6
     );
     println!(
-        "  random rays, {threads} threads: closest {:.2} Mrays/s, occlusion {:.2} Mrays/s",
+        "  random rays, {threads} thread(s): closest {:.2} Mrays/s, occlusion {:.2} Mrays/s",
         r.closest_nt / 1e6,
         r.occlusion_nt / 1e6
     );
-    if let Some((sps, rps, frac)) = pt {
+    if let Some(p) = pt {
         println!(
-            "  path tracer ({} spp, {}, depth {}): {:.0} pixel samples/s, {:.2} Mrays/s = {:.0}% of the bare BVH rate for the same query mix",
+            "  path tracer ({} spp, {}, depth {}): {:.2} s, {:.0} pixel samples/s, {:.2} Mrays/s = {:.0}% of the bare BVH rate for the same query mix",
             a.spp,
             a.resolution,
             a.max_depth,
-            sps,
-            rps / 1e6,
-            frac * 100.0
+            p.seconds,
+            p.samples_per_second,
+            p.rays_per_second / 1e6,
+            p.fraction_of_bare * 100.0
         );
+        if let Some(e) = p.relmse {
+            println!("  relMSE against the reference (eps 0.01): {e:.6}");
+        }
     }
+    println!("  peak memory (VmHWM) so far: {rss_end:.0} MiB");
 }

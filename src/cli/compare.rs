@@ -295,30 +295,43 @@ fn print_table(points: &[Point], timed: &[Point], a: &CompareArgs) {
     use std::fmt::Write;
     let _ = writeln!(
         out,
-        "{:>9} {:>6} {:>12} {:>10} {:>9} {:>10} {:>8}",
-        "mis", "spp", "relMSE", "vs balance", "seconds", "vs balance", "B/pixel"
+        "{:>9} {:>6} {:>12} {:>10} {:>9} {:>10} {:>8} {:>12} {:>10}",
+        "mis",
+        "spp",
+        "relMSE",
+        "vs balance",
+        "seconds",
+        "vs balance",
+        "B/pixel",
+        "relMSE x s",
+        "vs balance"
     );
     for p in points {
         let bal = points
             .iter()
             .find(|q| q.spp == p.spp && q.method == BALANCE);
-        let (rr, tr) = match bal {
+        // relMSE x seconds: the inverse of the efficiency (lower is better).
+        let work = p.relmse * p.seconds;
+        let (rr, tr, wr) = match bal {
             Some(b) => (
                 format!("{:.3}x", p.relmse / b.relmse),
                 format!("{:.3}x", p.seconds / b.seconds),
+                format!("{:.3}x", work / (b.relmse * b.seconds)),
             ),
-            None => ("-".into(), "-".into()),
+            None => ("-".into(), "-".into(), "-".into()),
         };
         let _ = writeln!(
             out,
-            "{:>9} {:>6} {:>12.4e} {:>10} {:>9.3} {:>10} {:>8}",
+            "{:>9} {:>6} {:>12.4e} {:>10} {:>9.3} {:>10} {:>8} {:>12.4e} {:>10}",
             p.method.name(),
             p.spp,
             p.relmse,
             rr,
             p.seconds,
             tr,
-            p.bytes_per_pixel
+            p.bytes_per_pixel,
+            work,
+            wr
         );
     }
     if !timed.is_empty() {
@@ -331,11 +344,12 @@ fn print_table(points: &[Point], timed: &[Point], a: &CompareArgs) {
         for p in timed {
             let _ = writeln!(
                 out,
-                "{:>9} {:>6} spp {:>12.4e} {:>10}",
+                "{:>9} {:>6} spp {:>12.4e} {:>10} {:>8.2} s",
                 p.method.name(),
                 p.spp,
                 p.relmse,
-                bal.map_or("-".into(), |b| format!("{:.3}x", p.relmse / b.relmse))
+                bal.map_or("-".into(), |b| format!("{:.3}x", p.relmse / b.relmse)),
+                p.seconds
             );
         }
     }

@@ -1,9 +1,12 @@
 //! The `omis` command line: one binary, clap subcommands.
 
 mod bench;
+mod client;
 mod compare;
 mod diff;
+mod job_args;
 mod render;
+mod service_cmds;
 
 use clap::{Parser, Subcommand};
 
@@ -20,8 +23,21 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Render a scene to an EXR (and optionally a PNG preview).
+    /// Render a scene to an EXR (and optionally a PNG preview), through an embedded coordinator
+    /// and local worker processes (or --in-process).
     Render(render::RenderArgs),
+    /// Run the coordinator: REST API, job store, task leases (and optionally local workers).
+    Serve(service_cmds::ServeArgs),
+    /// Run a worker that renders tasks for a coordinator.
+    Worker(service_cmds::WorkerArgs),
+    /// Submit a job to a coordinator (optionally wait for it and download the EXR).
+    Submit(service_cmds::SubmitArgs),
+    /// Show a job's status.
+    Status(service_cmds::IdArgs),
+    /// Download a job's EXR (or preview, error map, convergence plot).
+    Download(service_cmds::DownloadArgs),
+    /// Cancel a job.
+    Cancel(service_cmds::IdArgs),
     /// Compare an image with a reference: relMSE, MSE, optional error map.
     Diff(diff::DiffArgs),
     /// Measure BVH build time, ray rates and integrator throughput.
@@ -42,6 +58,12 @@ pub fn main() -> i32 {
     };
     let result = match cli.command {
         Command::Render(a) => render::run(a),
+        Command::Serve(a) => service_cmds::serve(a),
+        Command::Worker(a) => service_cmds::worker(a),
+        Command::Submit(a) => service_cmds::submit(a),
+        Command::Status(a) => service_cmds::status(a),
+        Command::Download(a) => service_cmds::download(a),
+        Command::Cancel(a) => service_cmds::cancel(a),
         Command::Diff(a) => diff::run(a),
         Command::Bench(a) => bench::run(a),
         Command::Compare(a) => compare::run(a),

@@ -1,55 +1,37 @@
-//! `omis render`: load a scene, render it, write EXR / PNG, print a summary.
+//! `omis render`: render a scene to an EXR (and a PNG) and print a summary. By default through
+//! the render service: an embedded coordinator on a free loopback port with a temporary store
+//! and local worker processes; `--in-process` renders in this process with the same tasks and
+//! merge order (the same image).
 
-use crate::film::{exr_io, metrics, png};
-use crate::integrator::path::DirectStrategy;
-use crate::integrator::{self, IntegratorKind, MisKind, RenderSettings};
-use crate::sampler::SamplerKind;
+use super::client::Client;
+use super::job_args::JobArgs;
+use super::service_cmds::{init_logging, runtime, submit_job, wait_job};
+use crate::film::{Image, exr_io, metrics, png};
+use crate::integrator::RayStats;
+use crate::job::{Limits, Resolved};
 use crate::scene::Scene;
+use crate::service;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub struct RenderArgs {
-    /// Scene file (.json).
+    /// Scene file (.json, .pbrt or .xml).
     pub scene: PathBuf,
-    /// Samples per pixel (default: the scene's, else 16).
-    #[arg(long)]
-    pub spp: Option<u32>,
-    /// Maximum path depth in bounces: 0 = emitters seen directly, 1 = direct light (default: the
-    /// scene's, else 5).
-    #[arg(long)]
-    pub max_depth: Option<u32>,
-    #[arg(long, value_enum, default_value_t = IntegratorKind::Pt)]
-    pub integrator: IntegratorKind,
-    /// BDPT technique weights.
-    #[arg(long, value_enum, default_value_t = MisKind::Balance)]
-    pub mis: MisKind,
-    /// BDPT: write the weighted contribution of every (s, t) up to depth 3 as EXR layers
-    /// `s<S>_t<T>`.
-    #[arg(long)]
-    pub strategies: bool,
-    /// Optimal MIS: weight depths 1..=D optimally, balance above.
-    #[arg(long, default_value_t = 5)]
-    pub optimal_max_depth: u32,
-    /// Optimal MIS: regularisation toward the balance solution (0 = the seed's direct estimator).
-    #[arg(long, default_value_t = integrator::DEFAULT_KAPPA)]
-    pub kappa: f64,
-    #[arg(long, value_enum, default_value_t = SamplerKind::Sobol)]
-    pub sampler: SamplerKind,
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Path tracer: how emitters are reached. `light` / `bsdf` use one strategy alone (for
-    /// validation; both are unbiased, BSDF sampling cannot see point lights).
-    #[arg(long, value_enum, default_value_t = DirectStrategy::Mis)]
-    pub direct: DirectStrategy,
-    /// Worker threads (0 = all cores).
+    #[command(flatten)]
+    pub job: JobArgs,
+    /// Threads (0 = all cores): rayon threads in-process, else the number of local worker
+    /// processes unless --workers is given.
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
-    /// Override the scene's resolution, e.g. 256x256 (the vertical field of view is kept).
+    /// Local worker processes of the embedded service (default: --threads, else the cores).
     #[arg(long)]
-    pub resolution: Option<String>,
+    pub workers: Option<usize>,
+    /// Render in this process instead of through the embedded service.
+    #[arg(long)]
+    pub in_process: bool,
     /// Output EXR (default: <scene name>.exr in the current folder).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -59,88 +41,54 @@ pub struct RenderArgs {
     /// Reference EXR: report relMSE against it.
     #[arg(long)]
     pub reference: Option<PathBuf>,
-    /// eps of relMSE = mean (I - R)^2 / (R^2 + eps).
-    #[arg(long, default_value_t = 0.01)]
-    pub eps: f64,
-    /// Tile edge in pixels.
-    #[arg(long, default_value_t = 16)]
-    pub tile_size: u32,
     /// Print a JSON summary as the last line of stdout.
     #[arg(long)]
     pub json: bool,
 }
 
+/// What a render did, for the summary.
+struct Done {
+    image: Image,
+    stats: RayStats,
+    seconds: f64,
+    spp: u32,
+    threads: usize,
+    mode: String,
+    bytes_per_pixel: usize,
+}
+
+fn read_reference(p: &Path, r: &Resolved) -> Result<Image> {
+    let img = exr_io::read_exr(p).map_err(anyhow::Error::msg)?;
+    if img.width != r.width as usize || img.height != r.height as usize {
+        bail!(
+            "reference {} is {}x{}, the render is {}x{}",
+            p.display(),
+            img.width,
+            img.height,
+            r.width,
+            r.height
+        );
+    }
+    Ok(img)
+}
+
+fn cores() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}
+
 pub fn run(a: RenderArgs) -> Result<()> {
+    let settings = a.job.settings()?;
     let mut scene = Scene::load(&a.scene).map_err(anyhow::Error::msg)?;
     for w in &scene.warnings {
         eprintln!("omis: warning: {w}");
     }
-    if let Some(r) = &a.resolution {
-        let (w, h) = super::parse_resolution(r).map_err(anyhow::Error::msg)?;
-        scene.camera = scene
-            .camera
-            .with_resolution(w, h)
-            .map_err(anyhow::Error::msg)?;
-    }
-    let spp = a.spp.or(scene.defaults.spp).unwrap_or(16);
-    if spp == 0 {
-        bail!("--spp must be >= 1");
-    }
-    if a.tile_size == 0 {
-        bail!("--tile-size must be >= 1");
-    }
+    let resolved = settings
+        .resolve(&mut scene, &Limits::default())
+        .map_err(|e| anyhow::anyhow!("--{}: {}", e.field.replace('_', "-"), e.message))?;
     let reference = match &a.reference {
-        Some(p) => {
-            let r = exr_io::read_exr(p).map_err(anyhow::Error::msg)?;
-            if r.width != scene.camera.width as usize || r.height != scene.camera.height as usize {
-                bail!(
-                    "reference {} is {}x{}, the render is {}x{}",
-                    p.display(),
-                    r.width,
-                    r.height,
-                    scene.camera.width,
-                    scene.camera.height
-                );
-            }
-            Some(r)
-        }
+        Some(p) => Some(read_reference(p, &resolved)?),
         None => None,
     };
-    let settings = RenderSettings {
-        integrator: a.integrator,
-        spp,
-        max_depth: a.max_depth.or(scene.defaults.max_depth).unwrap_or(5),
-        seed: a.seed,
-        sampler: a.sampler,
-        direct: a.direct,
-        mis: a.mis,
-        strategies: a.strategies,
-        optimal_max_depth: a.optimal_max_depth,
-        optimal_kappa: a.kappa,
-        ..Default::default()
-    };
-    if a.mis == MisKind::Optimal && settings.integrator != IntegratorKind::Bdpt {
-        bail!("--mis optimal needs --integrator bdpt");
-    }
-    if a.optimal_max_depth > crate::mis::optimal::MAX_OPTIMAL_DEPTH {
-        bail!(
-            "--optimal-max-depth {} exceeds {}",
-            a.optimal_max_depth,
-            crate::mis::optimal::MAX_OPTIMAL_DEPTH
-        );
-    }
-    if !(a.kappa >= 0.0 && a.kappa.is_finite()) {
-        bail!("--kappa must be a finite number >= 0");
-    }
-    if settings.max_depth > integrator::bdpt::MAX_DEPTH
-        && settings.integrator == IntegratorKind::Bdpt
-    {
-        bail!(
-            "--max-depth {} exceeds the BDPT limit of {}",
-            settings.max_depth,
-            integrator::bdpt::MAX_DEPTH
-        );
-    }
     let out = a.out.clone().unwrap_or_else(|| {
         let stem = a
             .scene
@@ -149,42 +97,38 @@ pub fn run(a: RenderArgs) -> Result<()> {
             .unwrap_or_else(|| "render".into());
         PathBuf::from(format!("{stem}.exr"))
     });
+    let bytes_per_pixel = crate::integrator::Frame::new(1, 1, &resolved.render).bytes_per_pixel();
+    let done = if a.in_process {
+        in_process(&a, &scene, &resolved, &out, bytes_per_pixel)?
+    } else {
+        let (tar, main) =
+            service::bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
+        drop(scene);
+        through_service(&a, (tar, main), &out, bytes_per_pixel)?
+    };
+    summary(&a, &resolved, &out, &done, reference.as_ref())
+}
 
+fn in_process(
+    a: &RenderArgs,
+    scene: &Scene,
+    r: &Resolved,
+    out: &Path,
+    bytes_per_pixel: usize,
+) -> Result<Done> {
     let pool = super::thread_pool(a.threads)?;
-    let tasks = integrator::task_count(
-        scene.camera.width,
-        scene.camera.height,
-        a.tile_size,
-        settings.spp,
-    );
-    let bar = ProgressBar::new(tasks as u64);
+    let tiles = r.tiles().len() as u64;
+    let bar = ProgressBar::new(r.total_passes().map_or(0, |p| p as u64 * tiles));
     bar.set_style(
         ProgressStyle::with_template(
             "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} tiles {eta}",
         )
         .expect("valid template"),
     );
-    let output =
-        pool.install(|| integrator::render(&scene, &settings, a.tile_size, &|n| bar.inc(n as u64)));
+    let (output, spp) = pool.install(|| r.render_in_process(scene, &|n| bar.inc(n as u64)));
     bar.finish_and_clear();
-
     let image = output.image();
-    let mut layers: Vec<(String, crate::film::Image)> = Vec::new();
-    if settings.integrator == IntegratorKind::Pt {
-        // Per-pixel variance of the mean (BDPT's light-tracing splats have no per-pixel samples).
-        layers.push(("variance".into(), output.sums().variance_of_mean()));
-    }
-    layers.extend(output.frame.strategy_images());
-    let attrs = [
-        ("omis.scene", a.scene.display().to_string()),
-        (
-            "omis.integrator",
-            format!("{:?}", settings.integrator).to_lowercase(),
-        ),
-        ("omis.spp", settings.spp.to_string()),
-        ("omis.max_depth", settings.max_depth.to_string()),
-        ("omis.seed", settings.seed.to_string()),
-    ];
+    let layers = output.frame.extra_layers(r.render.integrator);
     let named: Vec<exr_io::NamedLayer> = layers
         .iter()
         .map(|(name, image)| exr_io::NamedLayer {
@@ -192,32 +136,122 @@ pub fn run(a: RenderArgs) -> Result<()> {
             image,
         })
         .collect();
-    exr_io::write_exr(&out, &image, &named, &attrs).map_err(anyhow::Error::msg)?;
+    let scene_name = a
+        .scene
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    exr_io::write_exr(out, &image, &named, &r.exr_attributes(&scene_name, spp))
+        .map_err(anyhow::Error::msg)?;
     if let Some(p) = &a.png {
         png::write_png(p, &image, 0.0).map_err(anyhow::Error::msg)?;
     }
+    Ok(Done {
+        image,
+        stats: output.stats,
+        seconds: output.seconds,
+        spp,
+        threads: pool.current_num_threads(),
+        mode: "in-process".into(),
+        bytes_per_pixel,
+    })
+}
 
-    let secs = output.seconds.max(1e-9);
-    let st = &output.stats;
-    let mean = image.mean();
-    let err = match &reference {
-        Some(r) => Some(metrics::compare(&image, r, a.eps).map_err(anyhow::Error::msg)?),
+fn through_service(
+    a: &RenderArgs,
+    (tar, main): (Vec<u8>, String),
+    out: &Path,
+    bytes_per_pixel: usize,
+) -> Result<Done> {
+    let workers = a
+        .workers
+        .unwrap_or(if a.threads > 0 { a.threads } else { cores() })
+        .max(1);
+    if std::env::var_os("OMIS_LOG").is_some() {
+        init_logging();
+    }
+    let data = std::env::temp_dir().join(format!("omis-render-{}", uuid::Uuid::new_v4()));
+    let result = runtime()?.block_on(async {
+        let mut cfg =
+            service::Config::new("127.0.0.1:0".parse().expect("valid address"), data.clone());
+        cfg.workers = workers;
+        cfg.worker_threads = 1;
+        cfg.lease_s = 30.0;
+        if std::env::var_os("OMIS_LOG").is_none() {
+            cfg.worker_log = Some("warn".into());
+        }
+        let running = service::start(cfg).await?;
+        let result = async {
+            let start = std::time::Instant::now();
+            let c = Client::new(&running.url, None)?;
+            let scene = serde_json::json!({ "bundle": c.upload_bundle(tar, main).await? });
+            let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), None).await?;
+            let id = st["id"].as_str().unwrap_or_default().to_string();
+            let state = wait_job(&c, &st, false).await?;
+            let st = c.status(&id).await?;
+            if state != "done" {
+                bail!(
+                    "the render {state}: {}",
+                    st["error"].as_str().unwrap_or("no error given")
+                );
+            }
+            c.download(&id, "image.exr", out).await?;
+            if let Some(p) = &a.png {
+                c.download(&id, "preview.png", p).await?;
+            }
+            Ok((st, start.elapsed().as_secs_f64()))
+        }
+        .await;
+        running.stop().await;
+        result
+    });
+    let _ = std::fs::remove_dir_all(&data);
+    let (st, seconds) = result?;
+    let image = exr_io::read_exr(out).map_err(anyhow::Error::msg)?;
+    let rays = st["rays"].as_u64().unwrap_or(0);
+    Ok(Done {
+        image,
+        stats: RayStats {
+            closest: rays,
+            shadow: 0,
+            samples: st["samples"].as_u64().unwrap_or(0),
+            non_finite: st["non_finite_samples"].as_u64().unwrap_or(0),
+        },
+        seconds,
+        spp: st["spp_done"].as_u64().unwrap_or(0) as u32,
+        threads: workers,
+        mode: format!("{workers} worker processes"),
+        bytes_per_pixel,
+    })
+}
+
+fn summary(
+    a: &RenderArgs,
+    r: &Resolved,
+    out: &Path,
+    d: &Done,
+    reference: Option<&Image>,
+) -> Result<()> {
+    let secs = d.seconds.max(1e-9);
+    let st = &d.stats;
+    let mean = d.image.mean();
+    let err = match reference {
+        Some(img) => Some(metrics::compare(&d.image, img, r.eps).map_err(anyhow::Error::msg)?),
         None => None,
     };
-    let threads = pool.current_num_threads();
     eprintln!(
-        "{}: {}x{} {} spp, max depth {}, {} threads: {:.3} s, {:.0} pixel samples/s, {:.2} Mrays/s ({} closest, {} shadow){}",
+        "{}: {}x{} {} spp, max depth {}, {}: {:.3} s, {:.0} pixel samples/s, {:.2} Mrays/s, \
+         accumulators {} bytes/pixel{}",
         out.display(),
-        scene.camera.width,
-        scene.camera.height,
-        settings.spp,
-        settings.max_depth,
-        threads,
+        r.width,
+        r.height,
+        d.spp,
+        r.render.max_depth,
+        d.mode,
         secs,
         st.samples as f64 / secs,
         st.rays() as f64 / secs / 1e6,
-        st.closest,
-        st.shadow,
+        d.bytes_per_pixel,
         match &err {
             Some(e) => format!(", relMSE {:.6e} (eps {})", e.relmse, e.eps),
             None => String::new(),
@@ -233,23 +267,28 @@ pub fn run(a: RenderArgs) -> Result<()> {
         let mut j = serde_json::json!({
             "scene": a.scene.display().to_string(),
             "out": out.display().to_string(),
-            "width": scene.camera.width,
-            "height": scene.camera.height,
-            "integrator": settings.integrator,
-            "mis": settings.mis,
-            "sampler": settings.sampler,
-            "spp": settings.spp,
-            "max_depth": settings.max_depth,
-            "seed": settings.seed,
-            "threads": threads,
+            "width": r.width,
+            "height": r.height,
+            "integrator": r.render.integrator,
+            "mis": r.render.mis,
+            "sampler": r.render.sampler,
+            "spp": d.spp,
+            "max_depth": r.render.max_depth,
+            "seed": r.render.seed,
+            "threads": d.threads,
+            "mode": d.mode,
             "seconds": secs,
             "pixel_samples_per_second": st.samples as f64 / secs,
             "rays_per_second": st.rays() as f64 / secs,
-            "closest_rays": st.closest,
-            "shadow_rays": st.shadow,
+            "rays": st.rays(),
+            "accumulator_bytes_per_pixel": d.bytes_per_pixel,
             "mean_rgb": mean,
             "non_finite_samples": st.non_finite,
         });
+        if a.in_process {
+            j["closest_rays"] = serde_json::json!(st.closest);
+            j["shadow_rays"] = serde_json::json!(st.shadow);
+        }
         if let Some(e) = err {
             j["relmse"] = serde_json::json!(e.relmse);
             j["mse"] = serde_json::json!(e.mse);

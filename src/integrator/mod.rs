@@ -685,6 +685,30 @@ impl Frame {
         }
     }
 
+    /// Adds a task's whole result: its tile and its out-of-tile light-tracing records.
+    pub fn merge_task(&mut self, t: &TileFilm) {
+        self.merge(t);
+        self.apply_records(&t.records);
+    }
+
+    /// The EXR layers besides the beauty: the per-pixel variance of the mean (path tracer; BDPT's
+    /// light-tracing splats have no per-pixel samples), strategy layers `s<S>_t<T>`, and depth
+    /// layers `depth<d>`.
+    pub fn extra_layers(&self, integrator: IntegratorKind) -> Vec<(String, Image)> {
+        let mut layers = Vec::new();
+        if integrator == IntegratorKind::Pt {
+            layers.push(("variance".to_string(), self.sums.variance_of_mean()));
+        }
+        layers.extend(self.strategy_images());
+        layers.extend(
+            self.depth_images()
+                .into_iter()
+                .enumerate()
+                .map(|(d, img)| (format!("depth{d}"), img)),
+        );
+        layers
+    }
+
     /// Adds out-of-tile light-tracing records (frame pixel indices).
     pub fn apply_records(&mut self, r: &LtRecords) {
         if let Some(o) = self.optimal.as_mut() {
@@ -753,15 +777,42 @@ impl RenderOutput {
     }
 }
 
-/// Samples per tile task: bounds the memory of splat records between merges.
+/// Samples per tile task of `render`: bounds the memory of splat records between merges.
 pub const PASS_SIZE: u32 = 64;
 
 /// Renders the whole frame on the current rayon pool, reporting each finished tile task.
-/// Tasks are (pass, tile) pairs; results are merged in task order, a wave at a time.
+/// Tasks are (pass, tile) pairs of `PASS_SIZE` samples; see `render_passes`.
 pub fn render(
     scene: &Scene,
     settings: &RenderSettings,
     tile_size: u32,
+    progress: &(dyn Fn(usize) + Sync),
+) -> RenderOutput {
+    render_passes(scene, settings, tile_size, PASS_SIZE, progress)
+}
+
+/// The tasks of a frame: pass by pass (`pass_size` samples each), tile by tile in `make_tiles`
+/// order. Merging results in this order makes every way of running them give the same bits.
+pub fn pass_tasks(tiles: &[Tile], spp: u32, pass_size: u32) -> Vec<(Tile, Range<u32>)> {
+    let pass_size = pass_size.max(1);
+    let mut tasks = Vec::new();
+    let mut s0 = 0;
+    while s0 < spp {
+        let s1 = s0.saturating_add(pass_size).min(spp);
+        tasks.extend(tiles.iter().map(|&t| (t, s0..s1)));
+        s0 = s1;
+    }
+    tasks
+}
+
+/// Renders the whole frame on the current rayon pool, reporting each finished tile task.
+/// Tasks are `pass_tasks`; results are merged in task order, a wave at a time (the render
+/// service merges in the same order, so its image has the same bits).
+pub fn render_passes(
+    scene: &Scene,
+    settings: &RenderSettings,
+    tile_size: u32,
+    pass_size: u32,
     progress: &(dyn Fn(usize) + Sync),
 ) -> RenderOutput {
     let start = Instant::now();
@@ -769,13 +820,7 @@ pub fn render(
     let tiles = make_tiles(w, h, tile_size);
     let mut frame = Frame::new(w, h, settings);
     let mut stats = RayStats::default();
-    let mut tasks = Vec::new();
-    let mut s0 = 0;
-    while s0 < settings.spp {
-        let s1 = (s0 + PASS_SIZE).min(settings.spp);
-        tasks.extend(tiles.iter().map(|&t| (t, s0..s1)));
-        s0 = s1;
-    }
+    let tasks = pass_tasks(&tiles, settings.spp, pass_size);
     run_tasks(scene, settings, &tasks, &mut frame, &mut stats, progress);
     RenderOutput {
         frame,
@@ -785,7 +830,7 @@ pub fn render(
 }
 
 /// Renders tasks on the current rayon pool, merging results in task order, a wave at a time.
-fn run_tasks(
+pub fn run_tasks(
     scene: &Scene,
     settings: &RenderSettings,
     tasks: &[(Tile, Range<u32>)],
@@ -805,8 +850,7 @@ fn run_tasks(
             .collect();
         for r in &results {
             stats.add(&r.stats);
-            frame.merge(r);
-            frame.apply_records(&r.records);
+            frame.merge_task(r);
         }
     }
 }
@@ -850,7 +894,7 @@ pub fn render_for(
     )
 }
 
-/// Number of tile tasks `render` runs (for progress bars).
-pub fn task_count(width: u32, height: u32, tile_size: u32, spp: u32) -> usize {
-    make_tiles(width, height, tile_size).len() * spp.div_ceil(PASS_SIZE) as usize
+/// Number of tile tasks `render_passes` runs (for progress bars).
+pub fn task_count(width: u32, height: u32, tile_size: u32, spp: u32, pass_size: u32) -> usize {
+    make_tiles(width, height, tile_size).len() * spp.div_ceil(pass_size.max(1)) as usize
 }

@@ -319,3 +319,166 @@ impl TileFilm {
         ))
     }
 }
+
+const FRAME_MAGIC: &[u8; 8] = b"OMISFRAM";
+const FRAME_VERSION: u32 = 1;
+
+/// A whole frame's accumulators with the number of merged passes and the work counters: the
+/// checkpoint a coordinator writes after every pass, so that a restart loses no finished pass.
+///
+/// ```text
+/// magic "OMISFRAM", version u32, width height u32, passes u32, stats 4 x u64
+/// per pixel: count u32, sum 3 x f64, sum_sq 3 x f64, splat 3 x f64
+/// layers: n u32, n x 3 x f64; depths: n u32, n x 3 x f64
+/// optimal: d_opt u32 (0 = none), then pixels x stride f64, pixels x d_opt u32
+/// ```
+pub struct Checkpoint {
+    pub frame: super::Frame,
+    pub passes: u32,
+    pub stats: RayStats,
+}
+
+impl Checkpoint {
+    pub fn encode(&self) -> Vec<u8> {
+        let f = &self.frame;
+        let n = (f.width * f.height) as usize;
+        let mut w = W(Vec::with_capacity(64 + n * 76));
+        w.0.extend_from_slice(FRAME_MAGIC);
+        w.u32(FRAME_VERSION);
+        w.u32(f.width);
+        w.u32(f.height);
+        w.u32(self.passes);
+        for v in [
+            self.stats.closest,
+            self.stats.shadow,
+            self.stats.samples,
+            self.stats.non_finite,
+        ] {
+            w.u64(v);
+        }
+        for i in 0..n {
+            w.u32(f.sums.count[i]);
+            for v in f.sums.sum[i]
+                .iter()
+                .chain(&f.sums.sum_sq[i])
+                .chain(&f.splat[i])
+            {
+                w.f64(*v);
+            }
+        }
+        for list in [&f.layers, &f.depths] {
+            w.u32(list.len() as u32);
+            for l in list {
+                for v in l {
+                    w.f64(*v);
+                }
+            }
+        }
+        match &f.optimal {
+            None => w.u32(0),
+            Some(o) => {
+                w.u32(o.layout.d_opt);
+                for v in &o.data {
+                    w.f64(*v);
+                }
+                for v in &o.hits {
+                    w.u32(*v);
+                }
+            }
+        }
+        w.0
+    }
+
+    /// Parses a checkpoint of a frame rendered with `settings` at `width` x `height`; anything
+    /// that does not match the layout those imply is an error.
+    pub fn decode(
+        bytes: &[u8],
+        width: u32,
+        height: u32,
+        settings: &super::RenderSettings,
+    ) -> Result<Checkpoint, WireError> {
+        let mut r = R { b: bytes, at: 0 };
+        if r.take(8)? != FRAME_MAGIC {
+            return Err(WireError("not a frame checkpoint (bad magic)".into()));
+        }
+        let version = r.u32()?;
+        if version != FRAME_VERSION {
+            return Err(WireError(format!(
+                "checkpoint version {version}, expected {FRAME_VERSION}"
+            )));
+        }
+        let (w, h) = (r.u32()?, r.u32()?);
+        if (w, h) != (width, height) {
+            return Err(WireError(format!(
+                "checkpoint is {w}x{h}, the job is {width}x{height}"
+            )));
+        }
+        let passes = r.u32()?;
+        let stats = RayStats {
+            closest: r.u64()?,
+            shadow: r.u64()?,
+            samples: r.u64()?,
+            non_finite: r.u64()?,
+        };
+        let mut frame = super::Frame::new(width, height, settings);
+        let n = (width * height) as usize;
+        if n.saturating_mul(76) > bytes.len() - r.at {
+            return Err(WireError("checkpoint pixels truncated".into()));
+        }
+        for i in 0..n {
+            frame.sums.count[i] = r.u32()?;
+            for c in 0..3 {
+                frame.sums.sum[i][c] = r.f64()?;
+            }
+            for c in 0..3 {
+                frame.sums.sum_sq[i][c] = r.f64()?;
+            }
+            for c in 0..3 {
+                frame.splat[i][c] = r.f64()?;
+            }
+        }
+        for (list, what) in [
+            (&mut frame.layers, "strategy layers"),
+            (&mut frame.depths, "depth layers"),
+        ] {
+            let m = r.count(24, what)?;
+            if m != list.len() {
+                return Err(WireError(format!(
+                    "{what}: {m} values, the job has {}",
+                    list.len()
+                )));
+            }
+            for v in list.iter_mut() {
+                *v = [r.f64()?, r.f64()?, r.f64()?];
+            }
+        }
+        let d = r.u32()?;
+        match frame.optimal.as_mut() {
+            None if d == 0 => {}
+            Some(o) if o.layout.d_opt == d => {
+                if o.data.len() * 8 > bytes.len() - r.at {
+                    return Err(WireError("optimal systems truncated".into()));
+                }
+                for v in o.data.iter_mut() {
+                    *v = r.f64()?;
+                }
+                for v in o.hits.iter_mut() {
+                    *v = r.u32()?;
+                }
+            }
+            _ => {
+                return Err(WireError(format!(
+                    "optimal depth {d} does not match the job's settings"
+                )));
+            }
+        }
+        if r.at != bytes.len() {
+            return Err(WireError(format!("{} trailing bytes", bytes.len() - r.at)));
+        }
+        Ok(Checkpoint {
+            frame,
+            passes,
+            stats,
+        })
+    }
+}

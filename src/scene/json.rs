@@ -284,6 +284,35 @@ struct PointLight {
     intensity: Color,
 }
 
+thread_local! {
+    static RESOLVED: std::cell::RefCell<Option<Vec<PathBuf>>> = const { std::cell::RefCell::new(None) };
+}
+
+/// Records every path `resolve_in_folder` hands out on this thread while it lives, so that
+/// `Scene::load` knows the files a scene consists of (the loaders resolve on the calling thread).
+pub(super) struct FileRecorder;
+
+impl FileRecorder {
+    pub(super) fn start() -> FileRecorder {
+        RESOLVED.with(|r| *r.borrow_mut() = Some(Vec::new()));
+        FileRecorder
+    }
+
+    /// The recorded paths, sorted and without repeats.
+    pub(super) fn take() -> Vec<PathBuf> {
+        let mut v = RESOLVED.with(|r| r.borrow_mut().take()).unwrap_or_default();
+        v.sort();
+        v.dedup();
+        v
+    }
+}
+
+impl Drop for FileRecorder {
+    fn drop(&mut self) {
+        RESOLVED.with(|r| *r.borrow_mut() = None);
+    }
+}
+
 /// Resolves `rel` against the scene's folder, refusing absolute paths and any path that leaves
 /// the folder (after following links), and missing files.
 pub fn resolve_in_folder(
@@ -314,6 +343,11 @@ pub fn resolve_in_folder(
     if !canon.starts_with(&base) {
         return Err(err(format!("'{rel}' leaves the scene's folder; refused")));
     }
+    RESOLVED.with(|r| {
+        if let Some(v) = r.borrow_mut().as_mut() {
+            v.push(canon.clone());
+        }
+    });
     Ok(canon)
 }
 

@@ -111,6 +111,9 @@ pub struct Scene {
     pub stats: SceneStats,
     /// What the loader could not represent exactly (each reported once, with its location).
     pub warnings: Vec<String>,
+    /// Every file besides the scene file that the loader read (meshes, textures, includes),
+    /// canonical paths inside the scene's folder: with the scene file, a complete bundle.
+    pub files: Vec<PathBuf>,
     accel: Accel,
     /// BVH over the emitting primitives only, for summing light pdfs along a ray.
     emitter_accel: Option<Accel>,
@@ -130,7 +133,8 @@ impl Scene {
             .and_then(|e| e.to_str())
             .unwrap_or("")
             .to_ascii_lowercase();
-        match ext.as_str() {
+        let _recording = json::FileRecorder::start();
+        let mut scene = match ext.as_str() {
             "json" => json::load(path),
             "pbrt" => pbrt::load(path),
             "xml" => mitsuba::load(path),
@@ -139,7 +143,9 @@ impl Scene {
                 "file",
                 format!("unknown scene format '.{other}' (expected .json, .pbrt or .xml)"),
             )),
-        }
+        }?;
+        scene.files = json::FileRecorder::take();
+        Ok(scene)
     }
 
     #[inline]
@@ -646,6 +652,7 @@ impl SceneBuilder {
             defaults: self.defaults,
             stats,
             warnings: self.warnings,
+            files: Vec::new(),
             accel,
             emitter_accel,
             area_lights,

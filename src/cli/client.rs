@@ -1,0 +1,232 @@
+//! HTTP client of the coordinator's API, for `submit`, `status`, `download`, `cancel` and the
+//! embedded service behind `omis render`.
+
+use crate::service::bundle;
+use anyhow::{Context, Result, bail};
+use serde_json::{Value, json};
+use std::path::Path;
+use std::time::Duration;
+
+pub struct Client {
+    base: String,
+    token: Option<String>,
+    http: reqwest::Client,
+}
+
+/// One Server-Sent Event.
+#[derive(Debug, Default)]
+pub struct SseEvent {
+    pub kind: String,
+    pub data: Value,
+}
+
+impl Client {
+    pub fn new(base: &str, token: Option<String>) -> Result<Client> {
+        let base = base.trim_end_matches('/').to_string();
+        if !(base.starts_with("http://") || base.starts_with("https://")) {
+            bail!("--server '{base}' is not an http:// URL");
+        }
+        let http = reqwest::Client::builder()
+            .connect_timeout(Duration::from_secs(5))
+            .build()
+            .context("cannot create the HTTP client")?;
+        Ok(Client { base, token, http })
+    }
+
+    fn req(&self, method: reqwest::Method, path: &str) -> reqwest::RequestBuilder {
+        let r = self.http.request(method, format!("{}{path}", self.base));
+        match &self.token {
+            Some(t) => r.bearer_auth(t),
+            None => r,
+        }
+    }
+
+    /// Sends and turns a non-2xx answer into the server's error message.
+    async fn send(&self, r: reqwest::RequestBuilder, what: &str) -> Result<reqwest::Response> {
+        let r = r
+            .send()
+            .await
+            .with_context(|| format!("{what}: cannot reach {}", self.base))?;
+        if r.status().is_success() {
+            return Ok(r);
+        }
+        let status = r.status();
+        let text = r.text().await.unwrap_or_default();
+        let msg = match serde_json::from_str::<Value>(&text) {
+            Ok(v) if v["error"].is_string() => match v["field"].as_str() {
+                Some(f) => format!("{} ({f})", v["error"].as_str().unwrap_or_default()),
+                None => v["error"].as_str().unwrap_or_default().to_string(),
+            },
+            _ => text,
+        };
+        bail!("{what}: HTTP {}: {msg}", status.as_u16())
+    }
+
+    async fn json(&self, r: reqwest::RequestBuilder, what: &str) -> Result<Value> {
+        self.send(r, what)
+            .await?
+            .json()
+            .await
+            .with_context(|| format!("{what}: bad JSON answer"))
+    }
+
+    /// Uploads a scene file and everything it reads as a bundle; returns the bundle id.
+    pub async fn upload_scene(&self, scene: &Path) -> Result<String> {
+        let s = scene.to_path_buf();
+        let (tar, main) = tokio::task::spawn_blocking(move || bundle::pack(&s))
+            .await?
+            .map_err(anyhow::Error::msg)?;
+        self.upload_bundle(tar, main).await
+    }
+
+    /// Uploads a bundle made by `bundle::pack`; returns its id.
+    pub async fn upload_bundle(&self, tar: Vec<u8>, main: String) -> Result<String> {
+        let v = self
+            .json(
+                self.req(reqwest::Method::POST, "/v1/scenes")
+                    .query(&[("main", main)])
+                    .header("content-type", "application/x-tar")
+                    .body(tar),
+                "uploading the scene",
+            )
+            .await?;
+        v["id"]
+            .as_str()
+            .map(str::to_string)
+            .context("uploading the scene: no id in the answer")
+    }
+
+    pub async fn upload_reference(&self, exr: &Path) -> Result<String> {
+        let bytes = tokio::fs::read(exr)
+            .await
+            .with_context(|| format!("{}", exr.display()))?;
+        let v = self
+            .json(
+                self.req(reqwest::Method::POST, "/v1/references")
+                    .header("content-type", "image/x-exr")
+                    .body(bytes),
+                "uploading the reference",
+            )
+            .await?;
+        v["id"]
+            .as_str()
+            .map(str::to_string)
+            .context("uploading the reference: no id in the answer")
+    }
+
+    pub async fn submit(&self, request: &Value) -> Result<Value> {
+        self.json(
+            self.req(reqwest::Method::POST, "/v1/jobs").json(request),
+            "submitting the job",
+        )
+        .await
+    }
+
+    pub async fn status(&self, id: &str) -> Result<Value> {
+        self.json(
+            self.req(reqwest::Method::GET, &format!("/v1/jobs/{id}")),
+            "job status",
+        )
+        .await
+    }
+
+    pub async fn cancel(&self, id: &str) -> Result<Value> {
+        self.json(
+            self.req(reqwest::Method::POST, &format!("/v1/jobs/{id}/cancel")),
+            "cancelling",
+        )
+        .await
+    }
+
+    /// Downloads a job's file (image.exr, preview.png, ...) to `out`.
+    pub async fn download(&self, id: &str, file: &str, out: &Path) -> Result<usize> {
+        let r = self
+            .send(
+                self.req(reqwest::Method::GET, &format!("/v1/jobs/{id}/{file}")),
+                "downloading",
+            )
+            .await?;
+        let bytes = r.bytes().await.context("downloading")?;
+        tokio::fs::write(out, &bytes)
+            .await
+            .with_context(|| format!("{}", out.display()))?;
+        Ok(bytes.len())
+    }
+
+    /// Follows a job's events until it ends; calls `on_event` for each. Reconnects (with
+    /// Last-Event-ID) when the stream breaks.
+    pub async fn follow(&self, id: &str, mut on_event: impl FnMut(&SseEvent)) -> Result<String> {
+        let mut last_id: Option<String> = None;
+        let mut failures = 0;
+        loop {
+            let mut r = self.req(reqwest::Method::GET, &format!("/v1/jobs/{id}/events"));
+            if let Some(l) = &last_id {
+                r = r.header("last-event-id", l);
+            }
+            let resp = match self.send(r, "following the job").await {
+                Ok(resp) => resp,
+                Err(e) if failures < 30 => {
+                    failures += 1;
+                    tracing::warn!("{e:#}; retrying");
+                    tokio::time::sleep(Duration::from_secs(1)).await;
+                    continue;
+                }
+                Err(e) => return Err(e),
+            };
+            let mut resp = resp;
+            let mut buf = String::new();
+            let mut ev = SseEvent::default();
+            let mut data = String::new();
+            loop {
+                let chunk = match resp.chunk().await {
+                    Ok(Some(c)) => c,
+                    Ok(None) | Err(_) => break,
+                };
+                failures = 0;
+                buf.push_str(&String::from_utf8_lossy(&chunk));
+                while let Some(nl) = buf.find('\n') {
+                    let line = buf[..nl].trim_end_matches('\r').to_string();
+                    buf.drain(..=nl);
+                    if line.is_empty() {
+                        if !ev.kind.is_empty() {
+                            ev.data = serde_json::from_str(&data).unwrap_or(Value::Null);
+                            on_event(&ev);
+                            if matches!(ev.kind.as_str(), "done" | "failed" | "cancelled") {
+                                return Ok(ev.kind.clone());
+                            }
+                        }
+                        ev = SseEvent::default();
+                        data.clear();
+                    } else if let Some(v) = line.strip_prefix("event:") {
+                        ev.kind = v.trim().to_string();
+                    } else if let Some(v) = line.strip_prefix("data:") {
+                        data.push_str(v.trim_start());
+                    } else if let Some(v) = line.strip_prefix("id:") {
+                        last_id = Some(v.trim().to_string());
+                    }
+                }
+            }
+            // The stream ended without a final event: ask for the state, then reconnect.
+            let st = self.status(id).await?;
+            if let Some(s) = st["state"].as_str()
+                && matches!(s, "done" | "failed" | "cancelled")
+            {
+                return Ok(s.to_string());
+            }
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+}
+
+/// The job request for a scene argument: an existing file is uploaded as a bundle, anything
+/// else names a scene of the server's library.
+pub async fn scene_source(client: &Client, scene: &str) -> Result<Value> {
+    let p = Path::new(scene);
+    if p.is_file() {
+        Ok(json!({ "bundle": client.upload_scene(p).await? }))
+    } else if p.components().count() == 1 && !scene.contains('.') || scene.starts_with("library:") {
+        Ok(json!({ "library": scene.trim_start_matches("library:") }))
+    } else {
+        bail!("{scene}: no such scene file (a bare name is looked up in the server's library)")
+    }
+}

@@ -1,0 +1,98 @@
+//! The render settings flags shared by `omis render` and `omis submit`.
+
+use crate::integrator::path::DirectStrategy;
+use crate::integrator::{self, IntegratorKind, MisKind};
+use crate::job::{self, JobSettings};
+use crate::sampler::SamplerKind;
+use clap::Args;
+
+#[derive(Args, Clone, Debug)]
+pub struct JobArgs {
+    /// Samples per pixel (default: the scene's, else 16).
+    #[arg(long)]
+    pub spp: Option<u32>,
+    /// Render passes for this many seconds instead (with --spp: whichever ends first).
+    #[arg(long)]
+    pub time_budget: Option<f64>,
+    /// Maximum path depth in bounces: 0 = emitters seen directly, 1 = direct light (default: the
+    /// scene's, else 5).
+    #[arg(long)]
+    pub max_depth: Option<u32>,
+    #[arg(long, value_enum, default_value_t = IntegratorKind::Pt)]
+    pub integrator: IntegratorKind,
+    /// BDPT technique weights.
+    #[arg(long, value_enum, default_value_t = MisKind::Balance)]
+    pub mis: MisKind,
+    /// BDPT: write the weighted contribution of every (s, t) up to depth 3 as EXR layers
+    /// `s<S>_t<T>`.
+    #[arg(long)]
+    pub strategies: bool,
+    /// Write the image of every path depth as EXR layers `depth<d>`.
+    #[arg(long)]
+    pub depth_layers: bool,
+    /// Optimal MIS: weight depths 1..=D optimally, balance above.
+    #[arg(long, default_value_t = 5)]
+    pub optimal_max_depth: u32,
+    /// Optimal MIS: regularisation toward the balance solution (0 = the seed's direct estimator).
+    #[arg(long, default_value_t = integrator::DEFAULT_KAPPA)]
+    pub kappa: f64,
+    #[arg(long, value_enum, default_value_t = SamplerKind::Sobol)]
+    pub sampler: SamplerKind,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Path tracer: how emitters are reached. `light` / `bsdf` use one strategy alone (for
+    /// validation; both are unbiased, BSDF sampling cannot see point lights).
+    #[arg(long, value_enum, default_value_t = DirectStrategy::Mis)]
+    pub direct: DirectStrategy,
+    /// Override the scene's resolution, e.g. 256x256 (the vertical field of view is kept).
+    #[arg(long)]
+    pub resolution: Option<String>,
+    /// Tile edge in pixels.
+    #[arg(long, default_value_t = job::DEFAULT_TILE_SIZE)]
+    pub tile_size: u32,
+    /// Samples per pixel of one pass (one task = one tile for one pass).
+    #[arg(long, default_value_t = job::DEFAULT_PASS_SIZE)]
+    pub pass_size: u32,
+    /// eps of relMSE = mean (I - R)^2 / (R^2 + eps).
+    #[arg(long, default_value_t = 0.01)]
+    pub eps: f64,
+}
+
+impl JobArgs {
+    /// The job settings these flags describe (validated).
+    pub fn settings(&self) -> anyhow::Result<JobSettings> {
+        let resolution = match &self.resolution {
+            Some(r) => {
+                let (w, h) = super::parse_resolution(r).map_err(anyhow::Error::msg)?;
+                Some([w, h])
+            }
+            None => None,
+        };
+        let s = JobSettings {
+            resolution,
+            spp: self.spp,
+            time_budget_s: self.time_budget,
+            integrator: self.integrator,
+            mis: self.mis,
+            optimal_max_depth: self.optimal_max_depth,
+            kappa: self.kappa,
+            max_depth: self.max_depth,
+            seed: self.seed,
+            sampler: self.sampler,
+            direct: self.direct,
+            strategies: self.strategies,
+            depth_layers: self.depth_layers,
+            tile_size: self.tile_size,
+            pass_size: self.pass_size,
+            eps: self.eps,
+        };
+        s.validate(&job::Limits::default()).map_err(|e| {
+            let flag = match e.field.as_str() {
+                "time_budget_s" => "time-budget".to_string(),
+                f => f.replace('_', "-"),
+            };
+            anyhow::anyhow!("--{flag}: {}", e.message)
+        })?;
+        Ok(s)
+    }
+}

@@ -1,0 +1,356 @@
+//! `omis serve`, `omis worker`, and the clients `submit`, `status`, `download`, `cancel`.
+
+use super::client::{self, Client};
+use super::job_args::JobArgs;
+use crate::job::Limits;
+use crate::service;
+use crate::worker;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::{Value, json};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+/// A token given directly, or read from a file (first line).
+fn token(direct: &Option<String>, file: &Option<PathBuf>, what: &str) -> Result<Option<String>> {
+    if let Some(t) = direct.as_ref().filter(|t| !t.is_empty()) {
+        return Ok(Some(t.clone()));
+    }
+    match file {
+        Some(f) => {
+            let text = std::fs::read_to_string(f)
+                .with_context(|| format!("{what} file {}", f.display()))?;
+            let t = text.lines().next().unwrap_or("").trim().to_string();
+            if t.is_empty() {
+                bail!("{what} file {} is empty", f.display());
+            }
+            Ok(Some(t))
+        }
+        None => Ok(None),
+    }
+}
+
+pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")
+}
+
+pub(crate) fn init_logging() {
+    let filter = tracing_subscriber::EnvFilter::try_from_env("OMIS_LOG")
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
+}
+
+#[derive(Args)]
+pub struct ServeArgs {
+    /// Address to listen on (port 0 = any free port; the address is printed).
+    #[arg(long, default_value = "127.0.0.1:8570")]
+    pub bind: SocketAddr,
+    /// Folder for the database, task results and outputs (created if missing).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Local worker processes to start and keep alive.
+    #[arg(long, default_value_t = 0)]
+    pub workers: usize,
+    /// Threads (concurrent tasks) of each local worker.
+    #[arg(long, default_value_t = 1)]
+    pub worker_threads: usize,
+    /// Scene library: jobs may name a scene file of this folder.
+    #[arg(long, default_value = "scenes")]
+    pub scenes: PathBuf,
+    /// Bearer token clients must send.
+    #[arg(long, env = "OMIS_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    #[arg(long)]
+    pub token_file: Option<PathBuf>,
+    /// Bearer token workers must send.
+    #[arg(long, env = "OMIS_WORKER_TOKEN", hide_env_values = true)]
+    pub worker_token: Option<String>,
+    #[arg(long)]
+    pub worker_token_file: Option<PathBuf>,
+    /// Seconds a worker may stay silent before its task is given to another.
+    #[arg(long, default_value_t = 30.0)]
+    pub lease_seconds: f64,
+    /// Largest width or height of a job.
+    #[arg(long, default_value_t = 8192)]
+    pub max_resolution: u32,
+    #[arg(long, default_value_t = 65536)]
+    pub max_spp: u32,
+    #[arg(long, default_value_t = 20_000_000)]
+    pub max_triangles: usize,
+    /// Largest upload (scene bundle, reference, task result) in MiB.
+    #[arg(long, default_value_t = 1024)]
+    pub max_upload_mb: u64,
+}
+
+pub fn serve(a: ServeArgs) -> Result<()> {
+    init_logging();
+    if !(a.lease_seconds >= 1.0 && a.lease_seconds.is_finite()) {
+        bail!("--lease-seconds must be >= 1");
+    }
+    let mut cfg = service::Config::new(a.bind, a.data.clone());
+    cfg.library = a.scenes.is_dir().then(|| a.scenes.clone());
+    cfg.client_token = token(&a.token, &a.token_file, "--token-file")?;
+    cfg.worker_token = token(&a.worker_token, &a.worker_token_file, "--worker-token-file")?;
+    cfg.workers = a.workers;
+    cfg.worker_threads = a.worker_threads.max(1);
+    cfg.lease_s = a.lease_seconds;
+    cfg.limits = Limits {
+        max_resolution: a.max_resolution,
+        max_spp: a.max_spp,
+        max_triangles: a.max_triangles,
+        ..Limits::default()
+    };
+    cfg.max_upload_bytes = a.max_upload_mb.saturating_mul(1 << 20);
+    runtime()?.block_on(async move {
+        let running = service::start(cfg).await?;
+        // The first line of stdout is the address (scripts and tests read it).
+        println!("listening on {}", running.url);
+        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+        tokio::select! {
+            _ = term.recv() => {}
+            _ = tokio::signal::ctrl_c() => {}
+        }
+        tracing::info!("stopping: draining local workers");
+        running.stop().await;
+        Ok(())
+    })
+}
+
+#[derive(Args)]
+pub struct WorkerArgs {
+    /// The coordinator's URL, e.g. http://render-host:8570.
+    #[arg(long, env = "OMIS_COORDINATOR")]
+    pub coordinator: String,
+    /// Tasks rendered at once (0 = number of cores).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    #[arg(long, env = "OMIS_WORKER_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    #[arg(long)]
+    pub token_file: Option<PathBuf>,
+    /// Name shown in GET /v1/workers (default: host name and pid).
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Folder for downloaded scenes (default: a temporary folder, removed on exit).
+    #[arg(long)]
+    pub cache: Option<PathBuf>,
+    /// Exit when the parent process ends (used by local pools).
+    #[arg(long, hide = true)]
+    pub exit_with_parent: bool,
+}
+
+pub fn worker(a: WorkerArgs) -> Result<()> {
+    init_logging();
+    let threads = if a.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        a.threads
+    };
+    let host = std::fs::read_to_string("/etc/hostname")
+        .map(|s| s.trim().to_string())
+        .unwrap_or_else(|_| "worker".into());
+    let cfg = worker::WorkerConfig {
+        coordinator: a.coordinator.trim_end_matches('/').to_string(),
+        threads,
+        token: token(&a.token, &a.token_file, "--token-file")?,
+        name: a
+            .name
+            .unwrap_or_else(|| format!("{host}-{}", std::process::id())),
+        exit_with_parent: a.exit_with_parent,
+        cache: a.cache.unwrap_or_else(|| {
+            std::env::temp_dir().join(format!("omis-worker-{}", std::process::id()))
+        }),
+    };
+    if !(cfg.coordinator.starts_with("http://") || cfg.coordinator.starts_with("https://")) {
+        bail!("--coordinator '{}' is not an http:// URL", cfg.coordinator);
+    }
+    runtime()?.block_on(worker::run(cfg))
+}
+
+#[derive(Args, Clone)]
+pub struct ServerArgs {
+    /// The coordinator's URL.
+    #[arg(long, env = "OMIS_SERVER", default_value = "http://127.0.0.1:8570")]
+    pub server: String,
+    /// Client bearer token.
+    #[arg(long, env = "OMIS_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    #[arg(long)]
+    pub token_file: Option<PathBuf>,
+}
+
+impl ServerArgs {
+    fn client(&self) -> Result<Client> {
+        Client::new(
+            &self.server,
+            token(&self.token, &self.token_file, "--token-file")?,
+        )
+    }
+}
+
+#[derive(Args)]
+pub struct SubmitArgs {
+    /// A scene file (uploaded with the files it reads) or the name of a library scene.
+    pub scene: String,
+    #[command(flatten)]
+    pub job: JobArgs,
+    /// Reference EXR: the job reports relMSE per pass and an error map.
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
+    /// A name for the job.
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Wait until the job ends, with a progress bar.
+    #[arg(long)]
+    pub wait: bool,
+    /// With --wait: download the EXR here.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    #[command(flatten)]
+    pub server: ServerArgs,
+}
+
+/// Builds a job request and submits it; returns the job's status document.
+pub(crate) async fn submit_job(
+    c: &Client,
+    scene: Value,
+    job: &JobArgs,
+    reference: Option<&std::path::Path>,
+    name: Option<&str>,
+) -> Result<Value> {
+    let settings = job.settings()?;
+    let mut req = json!({ "scene": scene, "settings": settings });
+    if let Some(r) = reference {
+        req["reference"] = json!({ "upload": c.upload_reference(r).await? });
+    }
+    if let Some(n) = name {
+        req["name"] = json!(n);
+    }
+    c.submit(&req).await
+}
+
+/// Follows a job with a progress bar over its tiles; returns its final state.
+pub(crate) async fn wait_job(c: &Client, status: &Value, quiet: bool) -> Result<String> {
+    let id = status["id"].as_str().unwrap_or_default().to_string();
+    let tiles = status["tiles_per_pass"].as_u64().unwrap_or(1);
+    let total = status["passes_total"].as_u64().map(|p| p * tiles);
+    let bar = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(total.unwrap_or(0))
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} tiles {msg} {eta}",
+        )
+        .expect("valid template"),
+    );
+    let state = c
+        .follow(&id, |e| match e.kind.as_str() {
+            "tile_done" => bar.inc(1),
+            "pass_done" => {
+                let spp = e.data["spp"].as_u64().unwrap_or(0);
+                match e.data["relmse"].as_f64() {
+                    Some(r) => bar.set_message(format!("{spp} spp, relMSE {r:.3e}")),
+                    None => bar.set_message(format!("{spp} spp")),
+                }
+                if total.is_none() {
+                    bar.set_length(bar.position());
+                }
+            }
+            _ => {}
+        })
+        .await?;
+    bar.finish_and_clear();
+    Ok(state)
+}
+
+pub fn submit(a: SubmitArgs) -> Result<()> {
+    runtime()?.block_on(async move {
+        let c = a.server.client()?;
+        let scene = client::scene_source(&c, &a.scene).await?;
+        let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), a.name.as_deref()).await?;
+        let id = st["id"].as_str().unwrap_or_default().to_string();
+        if !a.wait {
+            println!("{id}");
+            return Ok(());
+        }
+        eprintln!("job {id}");
+        let state = wait_job(&c, &st, false).await?;
+        let st = c.status(&id).await?;
+        if state != "done" {
+            bail!(
+                "job {id} {state}: {}",
+                st["error"].as_str().unwrap_or("no error given")
+            );
+        }
+        if let Some(out) = &a.out {
+            c.download(&id, "image.exr", out).await?;
+            eprintln!("{}", out.display());
+        }
+        println!("{}", serde_json::to_string(&st)?);
+        Ok(())
+    })
+}
+
+#[derive(Args)]
+pub struct IdArgs {
+    /// The job id.
+    pub id: String,
+    #[command(flatten)]
+    pub server: ServerArgs,
+}
+
+pub fn status(a: IdArgs) -> Result<()> {
+    runtime()?.block_on(async move {
+        let st = a.server.client()?.status(&a.id).await?;
+        println!("{}", serde_json::to_string_pretty(&st)?);
+        Ok(())
+    })
+}
+
+pub fn cancel(a: IdArgs) -> Result<()> {
+    runtime()?.block_on(async move {
+        let st = a.server.client()?.cancel(&a.id).await?;
+        println!("{}", st["state"].as_str().unwrap_or_default());
+        Ok(())
+    })
+}
+
+#[derive(Args)]
+pub struct DownloadArgs {
+    /// The job id.
+    pub id: String,
+    /// Where to write the EXR.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Which file: image.exr, preview.png, error.png or convergence.svg.
+    #[arg(long, default_value = "image.exr")]
+    pub file: String,
+    #[command(flatten)]
+    pub server: ServerArgs,
+}
+
+pub fn download(a: DownloadArgs) -> Result<()> {
+    if !matches!(
+        a.file.as_str(),
+        "image.exr" | "preview.png" | "error.png" | "convergence.svg"
+    ) {
+        bail!(
+            "--file '{}' is not one of image.exr, preview.png, error.png, convergence.svg",
+            a.file
+        );
+    }
+    runtime()?.block_on(async move {
+        let n = a.server.client()?.download(&a.id, &a.file, &a.out).await?;
+        eprintln!("{}: {n} bytes", a.out.display());
+        Ok(())
+    })
+}

@@ -1,0 +1,447 @@
+//! What to render besides the scene: the settings of a render job, shared by `omis render`, the
+//! coordinator's REST API and the worker. One place validates them, so the command line and the
+//! service refuse the same inputs with the same words, and resolve them to the same
+//! `RenderSettings` (the in-process and distributed renders of a job must be equal).
+
+use crate::integrator::path::DirectStrategy;
+use crate::integrator::{self, IntegratorKind, MisKind, RenderSettings};
+use crate::sampler::SamplerKind;
+use crate::scene::Scene;
+use serde::{Deserialize, Serialize};
+
+/// A setting that is out of range: which one (its JSON name) and why.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("{field}: {message}")]
+pub struct FieldError {
+    pub field: String,
+    pub message: String,
+}
+
+impl FieldError {
+    pub fn new(field: impl Into<String>, message: impl Into<String>) -> FieldError {
+        FieldError {
+            field: field.into(),
+            message: message.into(),
+        }
+    }
+}
+
+/// The settings of a render job. Every field has a default; unknown fields are refused.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct JobSettings {
+    /// [width, height]; default: the scene's.
+    pub resolution: Option<[u32; 2]>,
+    /// Samples per pixel; default: the scene's, else 16 (unless a time budget is given).
+    pub spp: Option<u32>,
+    /// Render passes until this many seconds have passed (at least one pass). With `spp` too,
+    /// whichever comes first ends the job.
+    pub time_budget_s: Option<f64>,
+    pub integrator: IntegratorKind,
+    pub mis: MisKind,
+    /// Optimal MIS: depths 1 ..= D weighted optimally, balance above.
+    pub optimal_max_depth: u32,
+    /// Optimal MIS: regularisation toward the balance solution (0 = the seed's direct estimator).
+    pub kappa: f64,
+    /// Maximum path depth in bounces; default: the scene's, else 5.
+    pub max_depth: Option<u32>,
+    pub seed: u64,
+    pub sampler: SamplerKind,
+    /// Path tracer: how emitters are reached.
+    pub direct: DirectStrategy,
+    /// BDPT: weighted contribution of each (s, t) up to depth 3 as EXR layers.
+    pub strategies: bool,
+    /// The image of each path depth as EXR layers `depth<d>`.
+    pub depth_layers: bool,
+    /// Tile edge in pixels.
+    pub tile_size: u32,
+    /// Samples per pixel of one pass (a task renders one tile for one pass).
+    pub pass_size: u32,
+    /// eps of relMSE = mean (I - R)^2 / (R^2 + eps).
+    pub eps: f64,
+}
+
+/// Default samples per pass: a preview every 16 spp, and bounded light-tracing records per task.
+pub const DEFAULT_PASS_SIZE: u32 = 16;
+/// Default tile edge.
+pub const DEFAULT_TILE_SIZE: u32 = 32;
+
+impl Default for JobSettings {
+    fn default() -> Self {
+        JobSettings {
+            resolution: None,
+            spp: None,
+            time_budget_s: None,
+            integrator: IntegratorKind::Pt,
+            mis: MisKind::Balance,
+            optimal_max_depth: 5,
+            kappa: integrator::DEFAULT_KAPPA,
+            max_depth: None,
+            seed: 0,
+            sampler: SamplerKind::Sobol,
+            direct: DirectStrategy::Mis,
+            strategies: false,
+            depth_layers: false,
+            tile_size: DEFAULT_TILE_SIZE,
+            pass_size: DEFAULT_PASS_SIZE,
+            eps: 0.01,
+        }
+    }
+}
+
+/// Limits a coordinator puts on jobs (the command line uses `Limits::default()`).
+#[derive(Clone, Debug)]
+pub struct Limits {
+    pub max_resolution: u32,
+    pub max_spp: u32,
+    pub max_triangles: usize,
+    pub max_time_budget_s: f64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_resolution: 16384,
+            max_spp: 1 << 20,
+            max_triangles: 50_000_000,
+            max_time_budget_s: 7.0 * 24.0 * 3600.0,
+        }
+    }
+}
+
+/// A job's settings resolved against its scene: everything a worker needs to render a task.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Resolved {
+    pub width: u32,
+    pub height: u32,
+    /// `render.spp` is the stratification block of the sampler: the total spp of a fixed-spp
+    /// job, the pass size of a time-budget job.
+    pub render: RenderSettings,
+    /// Total samples per pixel, or None for a time budget without spp.
+    pub spp: Option<u32>,
+    pub time_budget_s: Option<f64>,
+    pub tile_size: u32,
+    pub pass_size: u32,
+    pub eps: f64,
+}
+
+impl Resolved {
+    /// Sample range of pass `p`, or None when a fixed-spp job has no such pass.
+    pub fn pass_range(&self, p: u32) -> Option<std::ops::Range<u32>> {
+        let s0 = p.checked_mul(self.pass_size)?;
+        match self.spp {
+            Some(spp) if s0 >= spp => None,
+            Some(spp) => Some(s0..(s0 + self.pass_size).min(spp)),
+            None => Some(s0..s0.checked_add(self.pass_size)?),
+        }
+    }
+
+    /// Number of passes of a fixed-spp job.
+    pub fn total_passes(&self) -> Option<u32> {
+        self.spp.map(|s| s.div_ceil(self.pass_size))
+    }
+
+    /// Header attributes of the job's EXR (the same in-process and from the service).
+    pub fn exr_attributes(&self, scene: &str, spp_done: u32) -> Vec<(&'static str, String)> {
+        let r = &self.render;
+        vec![
+            ("omis.scene", scene.to_string()),
+            (
+                "omis.integrator",
+                format!("{:?}", r.integrator).to_lowercase(),
+            ),
+            ("omis.mis", format!("{:?}", r.mis).to_lowercase()),
+            ("omis.spp", spp_done.to_string()),
+            ("omis.max_depth", r.max_depth.to_string()),
+            ("omis.seed", r.seed.to_string()),
+        ]
+    }
+
+    /// Renders the job in this process on the current rayon pool: the same tasks, merged in the
+    /// same order, as the render service (so the same image). Returns the output and the samples
+    /// per pixel rendered.
+    pub fn render_in_process(
+        &self,
+        scene: &Scene,
+        progress: &(dyn Fn(usize) + Sync),
+    ) -> (integrator::RenderOutput, u32) {
+        let start = std::time::Instant::now();
+        let tiles = self.tiles();
+        let mut frame = integrator::Frame::new(self.width, self.height, &self.render);
+        let mut stats = integrator::RayStats::default();
+        let mut spp_done = 0;
+        match self.time_budget_s {
+            None => {
+                let tasks = integrator::pass_tasks(&tiles, self.render.spp, self.pass_size);
+                integrator::run_tasks(
+                    scene,
+                    &self.render,
+                    &tasks,
+                    &mut frame,
+                    &mut stats,
+                    progress,
+                );
+                spp_done = self.render.spp;
+            }
+            Some(budget) => {
+                let mut p = 0;
+                while let Some(range) = self.pass_range(p) {
+                    let tasks: Vec<_> = tiles.iter().map(|&t| (t, range.clone())).collect();
+                    integrator::run_tasks(
+                        scene,
+                        &self.render,
+                        &tasks,
+                        &mut frame,
+                        &mut stats,
+                        progress,
+                    );
+                    spp_done = range.end;
+                    p += 1;
+                    if start.elapsed().as_secs_f64() >= budget {
+                        break;
+                    }
+                }
+            }
+        }
+        (
+            integrator::RenderOutput {
+                frame,
+                stats,
+                seconds: start.elapsed().as_secs_f64(),
+            },
+            spp_done,
+        )
+    }
+
+    /// The tiles of the frame, in the order tasks are created and merged.
+    pub fn tiles(&self) -> Vec<integrator::Tile> {
+        integrator::make_tiles(self.width, self.height, self.tile_size)
+    }
+}
+
+impl JobSettings {
+    /// Checks the settings that do not depend on the scene.
+    pub fn validate(&self, limits: &Limits) -> Result<(), FieldError> {
+        if let Some([w, h]) = self.resolution
+            && (w == 0 || h == 0 || w > limits.max_resolution || h > limits.max_resolution)
+        {
+            return Err(FieldError::new(
+                "resolution",
+                format!(
+                    "{w}x{h} is outside 1x1 .. {m}x{m}",
+                    m = limits.max_resolution
+                ),
+            ));
+        }
+        if let Some(spp) = self.spp
+            && (spp == 0 || spp > limits.max_spp)
+        {
+            return Err(FieldError::new(
+                "spp",
+                format!("{spp} is outside 1 ..= {}", limits.max_spp),
+            ));
+        }
+        if let Some(t) = self.time_budget_s
+            && !(t > 0.0 && t <= limits.max_time_budget_s)
+        {
+            return Err(FieldError::new(
+                "time_budget_s",
+                format!("{t} is outside (0, {}] seconds", limits.max_time_budget_s),
+            ));
+        }
+        if self.mis == MisKind::Optimal && self.integrator != IntegratorKind::Bdpt {
+            return Err(FieldError::new(
+                "mis",
+                "optimal MIS needs the bdpt integrator",
+            ));
+        }
+        if self.optimal_max_depth > crate::mis::optimal::MAX_OPTIMAL_DEPTH {
+            return Err(FieldError::new(
+                "optimal_max_depth",
+                format!(
+                    "{} exceeds {}",
+                    self.optimal_max_depth,
+                    crate::mis::optimal::MAX_OPTIMAL_DEPTH
+                ),
+            ));
+        }
+        if !(self.kappa >= 0.0 && self.kappa.is_finite()) {
+            return Err(FieldError::new("kappa", "must be a finite number >= 0"));
+        }
+        if let Some(d) = self.max_depth
+            && d > integrator::bdpt::MAX_DEPTH
+        {
+            return Err(FieldError::new(
+                "max_depth",
+                format!("{d} exceeds the limit of {}", integrator::bdpt::MAX_DEPTH),
+            ));
+        }
+        if self.tile_size == 0 || self.tile_size > 4096 {
+            return Err(FieldError::new("tile_size", "must be within 1 ..= 4096"));
+        }
+        if self.pass_size == 0 || self.pass_size > 1 << 16 {
+            return Err(FieldError::new("pass_size", "must be within 1 ..= 65536"));
+        }
+        if !(self.eps > 0.0 && self.eps.is_finite()) {
+            return Err(FieldError::new("eps", "must be a finite number > 0"));
+        }
+        Ok(())
+    }
+
+    /// Applies the resolution to the scene's camera and resolves the settings against the
+    /// scene's defaults. Call `validate` first.
+    pub fn resolve(&self, scene: &mut Scene, limits: &Limits) -> Result<Resolved, FieldError> {
+        self.validate(limits)?;
+        if let Some([w, h]) = self.resolution {
+            scene.camera = scene
+                .camera
+                .with_resolution(w, h)
+                .map_err(|e| FieldError::new("resolution", e))?;
+        }
+        let (width, height) = (scene.camera.width, scene.camera.height);
+        if width > limits.max_resolution || height > limits.max_resolution {
+            return Err(FieldError::new(
+                "resolution",
+                format!(
+                    "the scene's {width}x{height} exceeds {m}x{m}",
+                    m = limits.max_resolution
+                ),
+            ));
+        }
+        if scene.stats.triangles > limits.max_triangles {
+            return Err(FieldError::new(
+                "scene",
+                format!(
+                    "{} triangles exceed the limit of {}",
+                    scene.stats.triangles, limits.max_triangles
+                ),
+            ));
+        }
+        let spp = match (self.spp, self.time_budget_s) {
+            (Some(s), _) => Some(s),
+            (None, Some(_)) => None,
+            (None, None) => Some(scene.defaults.spp.unwrap_or(16).clamp(1, limits.max_spp)),
+        };
+        let max_depth = self.max_depth.or(scene.defaults.max_depth).unwrap_or(5);
+        if self.integrator == IntegratorKind::Bdpt && max_depth > integrator::bdpt::MAX_DEPTH {
+            return Err(FieldError::new(
+                "max_depth",
+                format!(
+                    "{max_depth} exceeds the BDPT limit of {}",
+                    integrator::bdpt::MAX_DEPTH
+                ),
+            ));
+        }
+        let render = RenderSettings {
+            integrator: self.integrator,
+            spp: spp.unwrap_or(self.pass_size),
+            max_depth,
+            seed: self.seed,
+            sampler: self.sampler,
+            direct: self.direct,
+            mis: self.mis,
+            strategies: self.strategies,
+            optimal_max_depth: self.optimal_max_depth,
+            optimal_kappa: self.kappa,
+            depth_layers: self.depth_layers,
+        };
+        Ok(Resolved {
+            width,
+            height,
+            render,
+            spp,
+            time_budget_s: self.time_budget_s,
+            tile_size: self.tile_size,
+            pass_size: self.pass_size,
+            eps: self.eps,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pass_ranges_cover_the_samples_once() {
+        let mut r = Resolved {
+            width: 4,
+            height: 4,
+            render: RenderSettings::default(),
+            spp: Some(40),
+            time_budget_s: None,
+            tile_size: 2,
+            pass_size: 16,
+            eps: 0.01,
+        };
+        assert_eq!(r.total_passes(), Some(3));
+        assert_eq!(r.pass_range(0), Some(0..16));
+        assert_eq!(r.pass_range(2), Some(32..40));
+        assert_eq!(r.pass_range(3), None);
+        r.spp = None;
+        assert_eq!(r.pass_range(7), Some(112..128));
+        assert_eq!(r.total_passes(), None);
+    }
+
+    #[test]
+    fn bad_settings_name_their_field() {
+        let l = Limits::default();
+        let cases = [
+            (
+                JobSettings {
+                    resolution: Some([0, 4]),
+                    ..Default::default()
+                },
+                "resolution",
+            ),
+            (
+                JobSettings {
+                    resolution: Some([100000, 4]),
+                    ..Default::default()
+                },
+                "resolution",
+            ),
+            (
+                JobSettings {
+                    spp: Some(0),
+                    ..Default::default()
+                },
+                "spp",
+            ),
+            (
+                JobSettings {
+                    mis: MisKind::Optimal,
+                    ..Default::default()
+                },
+                "mis",
+            ),
+            (
+                JobSettings {
+                    kappa: f64::NAN,
+                    ..Default::default()
+                },
+                "kappa",
+            ),
+            (
+                JobSettings {
+                    tile_size: 0,
+                    ..Default::default()
+                },
+                "tile_size",
+            ),
+        ];
+        for (s, field) in cases {
+            assert_eq!(s.validate(&l).map_err(|e| e.field), Err(field.to_string()));
+        }
+        assert!(JobSettings::default().validate(&l).is_ok());
+    }
+
+    #[test]
+    fn unknown_fields_are_refused() {
+        let e = serde_json::from_str::<JobSettings>(r#"{"spp": 4, "spq": 1}"#).unwrap_err();
+        assert!(e.to_string().contains("spq"), "{e}");
+        let s: JobSettings = serde_json::from_str(r#"{"spp": 4, "resolution": [8, 6]}"#).unwrap();
+        assert_eq!(s.spp, Some(4));
+        assert_eq!(s.resolution, Some([8, 6]));
+    }
+}

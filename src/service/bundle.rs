@@ -1,0 +1,146 @@
+//! Scene bundles: a tar archive of a scene file and every file it reads (meshes, textures,
+//! includes), with paths relative to the scene's folder. Clients upload them, the coordinator
+//! keeps them, workers download and cache them.
+
+use crate::scene::Scene;
+use std::io::Read;
+use std::path::{Component, Path, PathBuf};
+
+/// Packs `scene` (loaded to learn the files it reads) into a tar archive. Returns the archive and
+/// the scene file's name inside it.
+pub fn pack(scene_path: &Path) -> Result<(Vec<u8>, String), String> {
+    let scene = Scene::load(scene_path).map_err(|e| e.to_string())?;
+    pack_files(scene_path, &scene.files)
+}
+
+/// Packs the scene file and `files` (paths inside the scene's folder).
+pub fn pack_files(scene_path: &Path, files: &[PathBuf]) -> Result<(Vec<u8>, String), String> {
+    let main = scene_path
+        .file_name()
+        .and_then(|n| n.to_str())
+        .ok_or_else(|| format!("{}: not a file name", scene_path.display()))?
+        .to_string();
+    let dir = scene_path.parent().unwrap_or(Path::new("."));
+    let dir = if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    };
+    let base = dir
+        .canonicalize()
+        .map_err(|e| format!("{}: {e}", dir.display()))?;
+    let mut tar = tar::Builder::new(Vec::new());
+    tar.append_path_with_name(scene_path, &main)
+        .map_err(|e| format!("{}: {e}", scene_path.display()))?;
+    for f in files {
+        let rel = f
+            .strip_prefix(&base)
+            .map_err(|_| format!("{} is outside the scene's folder", f.display()))?;
+        if rel == Path::new(&main) {
+            continue;
+        }
+        tar.append_path_with_name(f, rel)
+            .map_err(|e| format!("{}: {e}", f.display()))?;
+    }
+    let bytes = tar
+        .into_inner()
+        .map_err(|e| format!("cannot finish the bundle: {e}"))?;
+    Ok((bytes, main))
+}
+
+/// Unpacks a bundle into `dest` (which must not exist yet), refusing absolute paths, `..`,
+/// links and anything but plain files and folders, and more than `max_bytes` of content.
+/// Returns the relative paths of the files.
+pub fn unpack(bytes: &[u8], dest: &Path, max_bytes: u64) -> Result<Vec<String>, String> {
+    let mut archive = tar::Archive::new(bytes);
+    let entries = archive
+        .entries()
+        .map_err(|e| format!("not a tar archive: {e}"))?;
+    std::fs::create_dir_all(dest).map_err(|e| format!("{}: {e}", dest.display()))?;
+    let mut total = 0u64;
+    let mut files = Vec::new();
+    for entry in entries {
+        let mut entry = entry.map_err(|e| format!("not a tar archive: {e}"))?;
+        let path = entry
+            .path()
+            .map_err(|e| format!("bad path in bundle: {e}"))?
+            .into_owned();
+        let shown = path.display().to_string();
+        if path
+            .components()
+            .any(|c| !matches!(c, Component::Normal(_) | Component::CurDir))
+        {
+            return Err(format!(
+                "'{shown}' in the bundle is not a relative path inside it"
+            ));
+        }
+        let kind = entry.header().entry_type();
+        if kind.is_dir() {
+            continue;
+        }
+        if !kind.is_file() {
+            return Err(format!(
+                "'{shown}' in the bundle is not a plain file (links are refused)"
+            ));
+        }
+        total = total.saturating_add(entry.size());
+        if total > max_bytes {
+            return Err(format!("the bundle's files exceed {max_bytes} bytes"));
+        }
+        let target = dest.join(&path);
+        if let Some(parent) = target.parent() {
+            std::fs::create_dir_all(parent).map_err(|e| format!("{shown}: {e}"))?;
+        }
+        let mut data = Vec::with_capacity(entry.size() as usize);
+        entry
+            .read_to_end(&mut data)
+            .map_err(|e| format!("{shown}: {e}"))?;
+        std::fs::write(&target, &data).map_err(|e| format!("{shown}: {e}"))?;
+        files.push(
+            path.components()
+                .filter_map(|c| match c {
+                    Component::Normal(s) => s.to_str(),
+                    _ => None,
+                })
+                .collect::<Vec<_>>()
+                .join("/"),
+        );
+    }
+    if files.is_empty() {
+        return Err("the bundle holds no files".into());
+    }
+    Ok(files)
+}
+
+/// The scene file of an unpacked bundle: `main` when given (it must be one of the files), else
+/// the only top-level .json / .pbrt / .xml file.
+pub fn choose_main(files: &[String], main: Option<&str>) -> Result<String, String> {
+    if let Some(m) = main {
+        return files
+            .iter()
+            .find(|f| f.as_str() == m)
+            .cloned()
+            .ok_or_else(|| format!("main file '{m}' is not in the bundle"));
+    }
+    let candidates: Vec<&String> = files
+        .iter()
+        .filter(|f| {
+            !f.contains('/')
+                && [".json", ".pbrt", ".xml"]
+                    .iter()
+                    .any(|e| f.to_ascii_lowercase().ends_with(e))
+        })
+        .collect();
+    match candidates.as_slice() {
+        [one] => Ok((*one).clone()),
+        [] => Err("the bundle has no top-level .json, .pbrt or .xml scene file".into()),
+        _ => Err(format!(
+            "the bundle has several scene files ({}); name one with ?main=",
+            candidates
+                .iter()
+                .map(|s| s.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        )),
+    }
+}

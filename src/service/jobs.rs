@@ -1,0 +1,403 @@
+//! Job life cycle in the coordinator: tasks pass by pass, the merge of a finished pass (in tile
+//! order, so the image has the bits of an in-process render), checkpoints, outputs, recovery
+//! after a restart, and expiry of silent leases.
+
+use super::App;
+use super::store::{self, JobRow, SeriesPoint, TaskRow, write_atomic};
+use crate::film::{Image, exr_io, metrics, plot, png};
+use crate::integrator::wire::Checkpoint;
+use crate::integrator::{Frame, RayStats, TileFilm};
+use crate::job::Resolved;
+use serde_json::json;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+/// A task that failed on this many attempts fails its job.
+pub const MAX_FAILURES: u32 = 3;
+
+/// What merging needs of a running job, kept between passes.
+pub struct Runtime {
+    pub resolved: Resolved,
+    /// The merged accumulators (loaded from the checkpoint on first use).
+    pub checkpoint: Option<Checkpoint>,
+    pub reference: Option<Image>,
+}
+
+pub fn resolved_of(job: &JobRow) -> Result<Resolved, String> {
+    serde_json::from_str(&job.resolved).map_err(|e| format!("job {}: bad settings: {e}", job.id))
+}
+
+/// The runtime of an active job, created on first use.
+fn runtime(app: &App, job: &JobRow) -> Result<Arc<Mutex<Runtime>>, String> {
+    let mut map = app.runtimes.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(r) = map.get(&job.id) {
+        return Ok(r.clone());
+    }
+    let resolved = resolved_of(job)?;
+    let reference = match &job.reference {
+        Some(r) => Some(exr_io::read_exr(std::path::Path::new(r))?),
+        None => None,
+    };
+    let rt = Arc::new(Mutex::new(Runtime {
+        resolved,
+        checkpoint: None,
+        reference,
+    }));
+    map.insert(job.id.clone(), rt.clone());
+    Ok(rt)
+}
+
+fn drop_runtime(app: &App, id: &str) {
+    app.runtimes
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .remove(id);
+}
+
+/// Creates the first passes of a new job (two, so workers never wait on a merge).
+pub fn create_initial_passes(app: &App, id: &str, r: &Resolved) -> rusqlite::Result<()> {
+    let tiles = r.tiles().len() as u32;
+    let db = app.db();
+    for p in 0..2 {
+        if let Some(range) = r.pass_range(p) {
+            db.create_pass(id, p, tiles, range)?;
+        }
+    }
+    Ok(())
+}
+
+/// Merges every finished pass of a job, in order, and finishes the job after its last one.
+/// Runs on a blocking thread; one merge per job at a time.
+pub fn advance(app: &App, id: &str) {
+    if let Err(e) = advance_inner(app, id) {
+        tracing::error!("job {id}: {e}");
+        let _ = app.db().set_job_state(id, store::FAILED, Some(&e));
+        app.event(id, "failed", json!({ "error": e }));
+        drop_runtime(app, id);
+    }
+}
+
+fn advance_inner(app: &App, id: &str) -> Result<(), String> {
+    let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
+        return Ok(());
+    };
+    if !matches!(job.state.as_str(), store::QUEUED | store::RUNNING) {
+        return Ok(());
+    }
+    let rt = runtime(app, &job)?;
+    let mut rt = rt.lock().unwrap_or_else(|e| e.into_inner());
+    loop {
+        let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
+            return Ok(());
+        };
+        if !matches!(job.state.as_str(), store::QUEUED | store::RUNNING) {
+            drop_runtime(app, id);
+            return Ok(());
+        }
+        let pass = job.passes_done;
+        let (done, total) = app
+            .db()
+            .pass_progress(id, pass)
+            .map_err(|e| e.to_string())?;
+        if total == 0 || done < total {
+            if total == 0 && finished_all(app, &job)? {
+                finish(app, &job, &mut rt)?;
+                drop_runtime(app, id);
+            }
+            return Ok(());
+        }
+        let tasks = app.db().pass_tasks(id, pass).map_err(|e| e.to_string())?;
+        merge_pass(app, &job, &mut rt, pass, &tasks)?;
+    }
+}
+
+/// True when no task of the job is left after its merged passes.
+fn finished_all(app: &App, job: &JobRow) -> Result<bool, String> {
+    let last = app.db().last_pass(&job.id).map_err(|e| e.to_string())?;
+    Ok(last.is_none_or(|l| l < job.passes_done))
+}
+
+fn load_checkpoint<'a>(
+    app: &App,
+    job: &JobRow,
+    rt: &'a mut Runtime,
+) -> Result<&'a mut Checkpoint, String> {
+    if rt.checkpoint.is_none() {
+        let r = &rt.resolved;
+        let path = app.paths.checkpoint(&job.id);
+        let ck = match std::fs::read(&path) {
+            Ok(bytes) => Checkpoint::decode(&bytes, r.width, r.height, &r.render)
+                .map_err(|e| format!("{}: {e}", path.display()))?,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Checkpoint {
+                frame: Frame::new(r.width, r.height, &r.render),
+                passes: 0,
+                stats: RayStats::default(),
+            },
+            Err(e) => return Err(format!("{}: {e}", path.display())),
+        };
+        if ck.passes != job.passes_done {
+            return Err(format!(
+                "checkpoint holds {} passes, the database {}",
+                ck.passes, job.passes_done
+            ));
+        }
+        rt.checkpoint = Some(ck);
+    }
+    Ok(rt.checkpoint.as_mut().expect("loaded above"))
+}
+
+fn merge_pass(
+    app: &App,
+    job: &JobRow,
+    rt: &mut Runtime,
+    pass: u32,
+    tasks: &[TaskRow],
+) -> Result<(), String> {
+    let t0 = Instant::now();
+    let (w, h) = (rt.resolved.width, rt.resolved.height);
+    let d_opt = rt.resolved.render.optimal_layout().map(|l| l.d_opt);
+    // Read and check every result before touching the accumulators.
+    let mut films = Vec::with_capacity(tasks.len());
+    for t in tasks {
+        let path = app.paths.result(&job.id, pass, t.tile, t.attempt);
+        let film = std::fs::read(&path)
+            .map_err(|e| e.to_string())
+            .and_then(|b| TileFilm::decode(&b, w, h, d_opt).map_err(|e| e.to_string()));
+        match film {
+            Ok((f, _)) => films.push(f),
+            Err(e) => {
+                // A lost or damaged result file: render that task again.
+                tracing::error!("job {} pass {pass} tile {}: {e}; requeued", job.id, t.tile);
+                app.db()
+                    .conn
+                    .execute(
+                        "UPDATE tasks SET state = 'queued', worker_id = NULL WHERE id = ?1",
+                        [t.id],
+                    )
+                    .map_err(|e| e.to_string())?;
+                app.work.notify_waiters();
+                return Ok(());
+            }
+        }
+    }
+    let ck = load_checkpoint(app, job, rt)?;
+    for f in &films {
+        ck.frame.merge_task(f);
+        ck.stats.add(&f.stats);
+    }
+    ck.passes = pass + 1;
+    write_atomic(&app.paths.checkpoint(&job.id), &ck.encode())
+        .map_err(|e| format!("cannot write the checkpoint: {e}"))?;
+    let spp_done = tasks.first().map_or(0, |t| t.s1);
+    app.db()
+        .pass_merged(&job.id, pass + 1, spp_done, &ck.stats)
+        .map_err(|e| e.to_string())?;
+    let _ = std::fs::remove_dir_all(app.paths.pass_dir(&job.id, pass));
+    super::Metrics::add(&app.metrics.passes_merged, 1);
+    super::Metrics::add(&app.metrics.merge_micros, t0.elapsed().as_micros() as u64);
+
+    // Outputs of the pass: preview, EXR, error map, relMSE.
+    let job = app
+        .db()
+        .job(&job.id)
+        .map_err(|e| e.to_string())?
+        .ok_or("job vanished")?;
+    let image = write_outputs(app, &job, rt)?;
+    let relmse = match &rt.reference {
+        Some(r) => Some(
+            metrics::compare(&image, r, rt.resolved.eps)
+                .map_err(|e| e.to_string())?
+                .relmse,
+        ),
+        None => None,
+    };
+    let seconds = job.started_at.map_or(0.0, |s| store::now() - s);
+    app.db()
+        .add_series(
+            &job.id,
+            &SeriesPoint {
+                pass,
+                spp: spp_done,
+                seconds,
+                relmse,
+            },
+        )
+        .map_err(|e| e.to_string())?;
+    app.event(
+        &job.id,
+        "pass_done",
+        json!({ "pass": pass, "spp": spp_done, "seconds": seconds, "relmse": relmse }),
+    );
+    app.event(
+        &job.id,
+        "preview",
+        json!({ "pass": pass, "spp": spp_done, "url": format!("/v1/jobs/{}/preview.png", job.id) }),
+    );
+
+    // The pass after next, while the job wants more.
+    let next = pass + 2;
+    let within_time = rt.resolved.time_budget_s.is_none_or(|b| seconds < b);
+    if within_time && let Some(range) = rt.resolved.pass_range(next) {
+        let tiles = rt.resolved.tiles().len() as u32;
+        app.db()
+            .create_pass(&job.id, next, tiles, range)
+            .map_err(|e| e.to_string())?;
+        app.work.notify_waiters();
+    }
+    if finished_all(app, &job)? {
+        finish(app, &job, rt)?;
+        drop_runtime(app, &job.id);
+    }
+    Ok(())
+}
+
+/// The image of the merged passes; writes preview.png, image.exr and (with a reference)
+/// error.png.
+fn write_outputs(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<Image, String> {
+    let integrator = rt.resolved.render.integrator;
+    let mut attrs = rt.resolved.exr_attributes(&job.scene_main, job.spp_done);
+    attrs.push(("omis.job", job.id.clone()));
+    let ck = load_checkpoint(app, job, rt)?;
+    let image = ck.frame.image();
+    let preview = png::encode_rgb8(image.width, image.height, &png::to_srgb8(&image, 0.0))?;
+    write_atomic(&app.paths.output(&job.id, "preview.png"), &preview).map_err(|e| e.to_string())?;
+    let layers = ck.frame.extra_layers(integrator);
+    let named: Vec<exr_io::NamedLayer> = layers
+        .iter()
+        .map(|(name, image)| exr_io::NamedLayer {
+            name: name.clone(),
+            image,
+        })
+        .collect();
+    let tmp = app.paths.output(&job.id, "image.exr.tmp");
+    exr_io::write_exr(&tmp, &image, &named, &attrs)?;
+    std::fs::rename(&tmp, app.paths.output(&job.id, "image.exr")).map_err(|e| e.to_string())?;
+    if let Some(r) = &rt.reference {
+        let map = metrics::error_map(&image, r, rt.resolved.eps, 1.0)?;
+        let bytes = png::encode_rgb8(image.width, image.height, &map)?;
+        write_atomic(&app.paths.output(&job.id, "error.png"), &bytes).map_err(|e| e.to_string())?;
+    }
+    Ok(image)
+}
+
+fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
+    if job.passes_done == 0 {
+        write_outputs(app, job, rt)?;
+    }
+    app.db()
+        .set_job_state(&job.id, store::DONE, None)
+        .map_err(|e| e.to_string())?;
+    let _ = std::fs::remove_file(app.paths.checkpoint(&job.id));
+    app.event(&job.id, "done", json!({ "spp": job.spp_done }));
+    Ok(())
+}
+
+/// Records a failed attempt; after `MAX_FAILURES` the job fails with the worker's error.
+pub fn task_failed(app: &App, task: &TaskRow, worker: &str, error: &str) -> Result<bool, String> {
+    let failures = app
+        .db()
+        .fail(task.id, task.attempt, worker, error)
+        .map_err(|e| e.to_string())?;
+    let Some(failures) = failures else {
+        return Ok(false);
+    };
+    app.event(
+        &task.job_id,
+        "task_failed",
+        json!({ "pass": task.pass, "tile": task.tile, "worker": worker, "error": error, "failures": failures }),
+    );
+    if failures >= MAX_FAILURES {
+        let msg = format!(
+            "tile {} of pass {} failed {failures} times; last error (worker {worker}): {error}",
+            task.tile, task.pass
+        );
+        app.db()
+            .set_job_state(&task.job_id, store::FAILED, Some(&msg))
+            .map_err(|e| e.to_string())?;
+        app.event(&task.job_id, "failed", json!({ "error": msg }));
+        drop_runtime(app, &task.job_id);
+    } else {
+        app.work.notify_waiters();
+    }
+    Ok(true)
+}
+
+/// Cancels a job that has not ended; false when it had.
+pub fn cancel(app: &App, id: &str) -> Result<bool, String> {
+    let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
+        return Ok(false);
+    };
+    if !matches!(job.state.as_str(), store::QUEUED | store::RUNNING) {
+        return Ok(false);
+    }
+    app.db()
+        .set_job_state(id, store::CANCELLED, None)
+        .map_err(|e| e.to_string())?;
+    app.event(id, "cancelled", json!({}));
+    drop_runtime(app, id);
+    Ok(true)
+}
+
+/// After a restart: reconcile each unfinished job with its checkpoint, and merge passes whose
+/// results all arrived before the stop.
+pub async fn recover(app: &Arc<App>) -> anyhow::Result<()> {
+    let jobs = app.db().active_jobs()?;
+    for job in jobs {
+        let path = app.paths.checkpoint(&job.id);
+        if let Ok(bytes) = std::fs::read(&path) {
+            let r = resolved_of(&job).map_err(anyhow::Error::msg)?;
+            match Checkpoint::decode(&bytes, r.width, r.height, &r.render) {
+                Ok(ck) if ck.passes > job.passes_done => {
+                    // Stopped between writing the checkpoint and recording it.
+                    let spp = r
+                        .pass_range(ck.passes - 1)
+                        .map_or(job.spp_done, |range| range.end);
+                    app.db().pass_merged(&job.id, ck.passes, spp, &ck.stats)?;
+                }
+                Ok(_) => {}
+                Err(e) => tracing::error!("job {}: {e}", job.id),
+            }
+        }
+        tracing::info!("recovering job {} ({})", job.id, job.state);
+        let a = app.clone();
+        let id = job.id.clone();
+        tokio::task::spawn_blocking(move || advance(&a, &id)).await?;
+    }
+    Ok(())
+}
+
+/// Every second: requeue expired leases, mark silent workers gone.
+pub async fn reaper(app: Arc<App>) {
+    let mut tick = tokio::time::interval(std::time::Duration::from_millis(500));
+    loop {
+        tick.tick().await;
+        let (expired, _) = {
+            let db = app.db();
+            (
+                db.expire_leases().unwrap_or(0),
+                db.mark_gone(app.cfg.lease_s * 2.0).unwrap_or(0),
+            )
+        };
+        if expired > 0 {
+            tracing::warn!("{expired} lease(s) expired; tasks requeued");
+            super::Metrics::add(&app.metrics.leases_expired, expired as u64);
+            app.work.notify_waiters();
+        }
+    }
+}
+
+/// The convergence plot of a job: relMSE against spp (log-log).
+pub fn convergence_svg(job: &JobRow, series: &[SeriesPoint]) -> String {
+    let pts: Vec<(f64, f64)> = series
+        .iter()
+        .filter_map(|p| p.relmse.map(|r| (p.spp as f64, r)))
+        .collect();
+    plot::line_chart(
+        &format!("job {}: relMSE vs samples per pixel", job.id),
+        "samples per pixel",
+        "relMSE",
+        &[("relMSE".to_string(), pts)],
+        true,
+        true,
+    )
+}

@@ -1,0 +1,197 @@
+//! The render service's coordinator (DESIGN §4, §5): jobs, tile tasks leased to workers, the
+//! merge of their results pass by pass, and the REST API over it. It knows scenes only as
+//! bundles and results only as accumulators: it never touches a BSDF.
+
+pub mod api;
+pub mod bundle;
+pub mod jobs;
+pub mod pool;
+pub mod store;
+
+use crate::job::Limits;
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use store::{EventRow, Paths, Store};
+use tokio::sync::{Notify, broadcast};
+
+/// How a coordinator runs.
+#[derive(Clone, Debug)]
+pub struct Config {
+    pub bind: SocketAddr,
+    pub data: PathBuf,
+    /// The scene library: jobs may name a scene file in this folder.
+    pub library: Option<PathBuf>,
+    pub client_token: Option<String>,
+    pub worker_token: Option<String>,
+    /// Local worker processes to spawn and keep alive.
+    pub workers: usize,
+    /// Threads (concurrent tasks) of each local worker.
+    pub worker_threads: usize,
+    /// Seconds a worker may stay silent before its lease is given to another.
+    pub lease_s: f64,
+    pub limits: Limits,
+    pub max_upload_bytes: u64,
+    /// OMIS_LOG of local workers (None: inherit).
+    pub worker_log: Option<String>,
+}
+
+impl Config {
+    pub fn new(bind: SocketAddr, data: PathBuf) -> Config {
+        Config {
+            bind,
+            data,
+            library: None,
+            client_token: None,
+            worker_token: None,
+            workers: 0,
+            worker_threads: 1,
+            lease_s: 30.0,
+            limits: Limits::default(),
+            max_upload_bytes: 1 << 30,
+            worker_log: None,
+        }
+    }
+}
+
+/// Counters for /metrics.
+#[derive(Default)]
+pub struct Metrics {
+    pub results_accepted: AtomicU64,
+    pub results_refused: AtomicU64,
+    pub result_bytes: AtomicU64,
+    pub passes_merged: AtomicU64,
+    pub merge_micros: AtomicU64,
+    pub leases_expired: AtomicU64,
+    pub worker_restarts: AtomicU64,
+    pub http_errors: AtomicU64,
+}
+
+impl Metrics {
+    pub fn add(c: &AtomicU64, v: u64) {
+        c.fetch_add(v, Ordering::Relaxed);
+    }
+}
+
+/// The coordinator's shared state.
+pub struct App {
+    pub cfg: Config,
+    pub paths: Paths,
+    pub store: Mutex<Store>,
+    pub events: broadcast::Sender<EventRow>,
+    /// Woken when tasks may have become available.
+    pub work: Notify,
+    /// Per running job: the merged accumulators and what a merge needs (one merge at a time).
+    pub runtimes: Mutex<HashMap<String, Arc<Mutex<jobs::Runtime>>>>,
+    pub metrics: Metrics,
+    pub base_url: String,
+}
+
+impl App {
+    /// Locks the store (a panic while holding it cannot leave SQLite inconsistent).
+    pub fn db(&self) -> std::sync::MutexGuard<'_, Store> {
+        self.store.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Records an event and publishes it to SSE subscribers.
+    pub fn event(&self, job: &str, kind: &str, data: serde_json::Value) {
+        match self.db().add_event(job, kind, &data) {
+            Ok(row) => {
+                let _ = self.events.send(row);
+            }
+            Err(e) => tracing::error!("cannot record event {kind} of job {job}: {e}"),
+        }
+    }
+}
+
+/// A started coordinator.
+pub struct Running {
+    pub addr: SocketAddr,
+    pub url: String,
+    pub app: Arc<App>,
+    shutdown: Option<tokio::sync::oneshot::Sender<()>>,
+    server: tokio::task::JoinHandle<()>,
+    pool: Option<pool::Pool>,
+}
+
+impl Running {
+    /// Stops the HTTP server and the local workers.
+    pub async fn stop(mut self) {
+        if let Some(p) = self.pool.take() {
+            p.stop().await;
+        }
+        if let Some(tx) = self.shutdown.take() {
+            let _ = tx.send(());
+        }
+        let _ = tokio::time::timeout(std::time::Duration::from_secs(5), &mut self.server).await;
+        self.server.abort();
+    }
+}
+
+fn is_loopback(addr: &SocketAddr) -> bool {
+    addr.ip().is_loopback()
+}
+
+/// Opens the data folder, recovers unfinished jobs, binds and serves; spawns the local pool.
+pub async fn start(cfg: Config) -> anyhow::Result<Running> {
+    use anyhow::Context;
+    if (cfg.client_token.is_none() || cfg.worker_token.is_none()) && !is_loopback(&cfg.bind) {
+        anyhow::bail!(
+            "refusing to serve {} without both a client token and a worker token (--token, \
+             --worker-token); without tokens bind a loopback address such as 127.0.0.1",
+            cfg.bind
+        );
+    }
+    std::fs::create_dir_all(&cfg.data)
+        .with_context(|| format!("cannot create the data folder {}", cfg.data.display()))?;
+    let paths = Paths {
+        root: cfg
+            .data
+            .canonicalize()
+            .with_context(|| format!("{}", cfg.data.display()))?,
+    };
+    let store = Store::open(&paths.db())
+        .with_context(|| format!("cannot open the database {}", paths.db().display()))?;
+    let listener = tokio::net::TcpListener::bind(cfg.bind)
+        .await
+        .with_context(|| format!("cannot bind {}", cfg.bind))?;
+    let addr = listener.local_addr()?;
+    let url = format!("http://{addr}");
+    let (events, _) = broadcast::channel(4096);
+    let app = Arc::new(App {
+        cfg: cfg.clone(),
+        paths,
+        store: Mutex::new(store),
+        events,
+        work: Notify::new(),
+        runtimes: Mutex::new(HashMap::new()),
+        metrics: Metrics::default(),
+        base_url: url.clone(),
+    });
+    if cfg.client_token.is_none() && cfg.worker_token.is_none() {
+        tracing::warn!("no tokens given: serving {addr} (loopback only) without authentication");
+    }
+    jobs::recover(&app).await?;
+    let router = api::router(app.clone());
+    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    let server = tokio::spawn(async move {
+        let serve = axum::serve(listener, router).with_graceful_shutdown(async move {
+            let _ = rx.await;
+        });
+        if let Err(e) = serve.await {
+            tracing::error!("server error: {e}");
+        }
+    });
+    tokio::spawn(jobs::reaper(app.clone()));
+    let pool = (cfg.workers > 0).then(|| pool::Pool::spawn(app.clone(), &url));
+    Ok(Running {
+        addr,
+        url,
+        app,
+        shutdown: Some(tx),
+        server,
+        pool,
+    })
+}

@@ -1,0 +1,683 @@
+//! The coordinator's durable state: jobs, tasks (leases), workers, the relMSE series and the
+//! event log, in one embedded SQLite database (WAL) under the data folder. Outputs and task
+//! results are files beside it (see `Paths`).
+
+use rusqlite::{Connection, OptionalExtension, params};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+/// Seconds since the Unix epoch.
+pub fn now() -> f64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
+}
+
+/// Where a coordinator keeps its files.
+#[derive(Clone, Debug)]
+pub struct Paths {
+    pub root: PathBuf,
+}
+
+impl Paths {
+    pub fn db(&self) -> PathBuf {
+        self.root.join("omis.sqlite")
+    }
+    pub fn job(&self, id: &str) -> PathBuf {
+        self.root.join("jobs").join(id)
+    }
+    pub fn pass_dir(&self, id: &str, pass: u32) -> PathBuf {
+        self.job(id).join(format!("pass-{pass:06}"))
+    }
+    /// The uploaded result of one attempt of a task.
+    pub fn result(&self, id: &str, pass: u32, tile: u32, attempt: u32) -> PathBuf {
+        self.pass_dir(id, pass)
+            .join(format!("tile-{tile:06}.a{attempt}.bin"))
+    }
+    pub fn checkpoint(&self, id: &str) -> PathBuf {
+        self.job(id).join("frame.ckpt")
+    }
+    pub fn output(&self, id: &str, name: &str) -> PathBuf {
+        self.job(id).join(name)
+    }
+    pub fn scene(&self, id: &str) -> PathBuf {
+        self.root.join("scenes").join(id)
+    }
+    pub fn reference(&self, id: &str) -> PathBuf {
+        self.root.join("references").join(format!("{id}.exr"))
+    }
+}
+
+/// Writes `bytes` to `path` atomically (temporary file, fsync, rename).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    use std::io::Write;
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+    {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+    }
+    std::fs::rename(&tmp, path)
+}
+
+/// Job states. `queued` until a task is first leased, `running`, then one of the final three.
+pub const QUEUED: &str = "queued";
+pub const RUNNING: &str = "running";
+pub const DONE: &str = "done";
+pub const FAILED: &str = "failed";
+pub const CANCELLED: &str = "cancelled";
+
+/// Task states.
+pub const T_QUEUED: &str = "queued";
+pub const T_LEASED: &str = "leased";
+pub const T_DONE: &str = "done";
+
+#[derive(Clone, Debug, Serialize)]
+pub struct JobRow {
+    pub id: String,
+    pub seq: i64,
+    pub name: Option<String>,
+    pub state: String,
+    pub error: Option<String>,
+    /// The request's settings (JSON) and their resolution against the scene (JSON).
+    pub settings: String,
+    pub resolved: String,
+    pub scene_id: String,
+    pub scene_main: String,
+    pub reference: Option<String>,
+    pub created_at: f64,
+    pub started_at: Option<f64>,
+    pub finished_at: Option<f64>,
+    pub passes_done: u32,
+    pub spp_done: u32,
+    pub samples: i64,
+    pub rays: i64,
+    pub non_finite: i64,
+    pub accum_bytes: i64,
+    pub result_bytes: i64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct TaskRow {
+    pub id: i64,
+    pub job_id: String,
+    pub pass: u32,
+    pub tile: u32,
+    pub s0: u32,
+    pub s1: u32,
+    pub state: String,
+    pub attempt: u32,
+    pub worker_id: Option<String>,
+    pub lease_expires: Option<f64>,
+    pub failures: u32,
+    pub last_error: Option<String>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct WorkerRow {
+    pub id: String,
+    pub name: String,
+    pub threads: u32,
+    pub version: String,
+    pub registered_at: f64,
+    pub last_seen: f64,
+    pub state: String,
+    pub tasks_done: i64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct EventRow {
+    pub id: i64,
+    pub job_id: String,
+    pub kind: String,
+    pub data: serde_json::Value,
+    pub at: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct SeriesPoint {
+    pub pass: u32,
+    pub spp: u32,
+    pub seconds: f64,
+    pub relmse: Option<f64>,
+}
+
+pub struct Store {
+    pub conn: Connection,
+}
+
+const SCHEMA: &str = "
+PRAGMA journal_mode = WAL;
+PRAGMA synchronous = NORMAL;
+PRAGMA foreign_keys = ON;
+CREATE TABLE IF NOT EXISTS jobs (
+  id TEXT PRIMARY KEY,
+  seq INTEGER NOT NULL,
+  name TEXT,
+  state TEXT NOT NULL,
+  error TEXT,
+  settings TEXT NOT NULL,
+  resolved TEXT NOT NULL,
+  scene_id TEXT NOT NULL,
+  scene_main TEXT NOT NULL,
+  reference TEXT,
+  created_at REAL NOT NULL,
+  started_at REAL,
+  finished_at REAL,
+  passes_done INTEGER NOT NULL DEFAULT 0,
+  spp_done INTEGER NOT NULL DEFAULT 0,
+  samples INTEGER NOT NULL DEFAULT 0,
+  rays INTEGER NOT NULL DEFAULT 0,
+  non_finite INTEGER NOT NULL DEFAULT 0,
+  accum_bytes INTEGER NOT NULL DEFAULT 0,
+  result_bytes INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS tasks (
+  id INTEGER PRIMARY KEY AUTOINCREMENT,
+  job_id TEXT NOT NULL REFERENCES jobs(id),
+  pass INTEGER NOT NULL,
+  tile INTEGER NOT NULL,
+  s0 INTEGER NOT NULL,
+  s1 INTEGER NOT NULL,
+  state TEXT NOT NULL,
+  attempt INTEGER NOT NULL DEFAULT 0,
+  worker_id TEXT,
+  lease_expires REAL,
+  failures INTEGER NOT NULL DEFAULT 0,
+  last_error TEXT,
+  UNIQUE (job_id, pass, tile)
+);
+CREATE INDEX IF NOT EXISTS tasks_state ON tasks (state, job_id, pass, tile);
+CREATE TABLE IF NOT EXISTS workers (
+  id TEXT PRIMARY KEY,
+  name TEXT NOT NULL,
+  threads INTEGER NOT NULL,
+  version TEXT NOT NULL,
+  registered_at REAL NOT NULL,
+  last_seen REAL NOT NULL,
+  state TEXT NOT NULL,
+  tasks_done INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS series (
+  job_id TEXT NOT NULL REFERENCES jobs(id),
+  pass INTEGER NOT NULL,
+  spp INTEGER NOT NULL,
+  seconds REAL NOT NULL,
+  relmse REAL,
+  PRIMARY KEY (job_id, pass)
+);
+CREATE TABLE IF NOT EXISTS events (
+  id INTEGER PRIMARY KEY AUTOINCREMENT,
+  job_id TEXT NOT NULL,
+  kind TEXT NOT NULL,
+  data TEXT NOT NULL,
+  at REAL NOT NULL
+);
+CREATE INDEX IF NOT EXISTS events_job ON events (job_id, id);
+";
+
+const JOB_COLS: &str = "id, seq, name, state, error, settings, resolved, scene_id, scene_main, \
+    reference, created_at, started_at, finished_at, passes_done, spp_done, samples, rays, \
+    non_finite, accum_bytes, result_bytes";
+
+const TASK_COLS: &str = "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, lease_expires, failures, last_error";
+
+fn job_row(r: &rusqlite::Row) -> rusqlite::Result<JobRow> {
+    Ok(JobRow {
+        id: r.get(0)?,
+        seq: r.get(1)?,
+        name: r.get(2)?,
+        state: r.get(3)?,
+        error: r.get(4)?,
+        settings: r.get(5)?,
+        resolved: r.get(6)?,
+        scene_id: r.get(7)?,
+        scene_main: r.get(8)?,
+        reference: r.get(9)?,
+        created_at: r.get(10)?,
+        started_at: r.get(11)?,
+        finished_at: r.get(12)?,
+        passes_done: r.get(13)?,
+        spp_done: r.get(14)?,
+        samples: r.get(15)?,
+        rays: r.get(16)?,
+        non_finite: r.get(17)?,
+        accum_bytes: r.get(18)?,
+        result_bytes: r.get(19)?,
+    })
+}
+
+fn task_row(r: &rusqlite::Row) -> rusqlite::Result<TaskRow> {
+    Ok(TaskRow {
+        id: r.get(0)?,
+        job_id: r.get(1)?,
+        pass: r.get(2)?,
+        tile: r.get(3)?,
+        s0: r.get(4)?,
+        s1: r.get(5)?,
+        state: r.get(6)?,
+        attempt: r.get(7)?,
+        worker_id: r.get(8)?,
+        lease_expires: r.get(9)?,
+        failures: r.get(10)?,
+        last_error: r.get(11)?,
+    })
+}
+
+/// A new job's row.
+pub struct NewJob<'a> {
+    pub id: &'a str,
+    pub name: Option<&'a str>,
+    pub settings: &'a str,
+    pub resolved: &'a str,
+    pub scene_id: &'a str,
+    pub scene_main: &'a str,
+    pub reference: Option<&'a str>,
+    pub accum_bytes: i64,
+}
+
+impl Store {
+    pub fn open(path: &Path) -> rusqlite::Result<Store> {
+        let conn = Connection::open(path)?;
+        conn.busy_timeout(std::time::Duration::from_secs(10))?;
+        conn.execute_batch(SCHEMA)?;
+        Ok(Store { conn })
+    }
+
+    pub fn insert_job(&self, j: &NewJob) -> rusqlite::Result<()> {
+        let seq: i64 =
+            self.conn
+                .query_row("SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs", [], |r| {
+                    r.get(0)
+                })?;
+        self.conn.execute(
+            "INSERT INTO jobs (id, seq, name, state, settings, resolved, scene_id, scene_main, \
+             reference, created_at, accum_bytes) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
+            params![
+                j.id,
+                seq,
+                j.name,
+                QUEUED,
+                j.settings,
+                j.resolved,
+                j.scene_id,
+                j.scene_main,
+                j.reference,
+                now(),
+                j.accum_bytes
+            ],
+        )?;
+        Ok(())
+    }
+
+    pub fn job(&self, id: &str) -> rusqlite::Result<Option<JobRow>> {
+        self.conn
+            .query_row(
+                &format!("SELECT {JOB_COLS} FROM jobs WHERE id = ?1"),
+                [id],
+                job_row,
+            )
+            .optional()
+    }
+
+    pub fn jobs(&self) -> rusqlite::Result<Vec<JobRow>> {
+        let mut st = self
+            .conn
+            .prepare(&format!("SELECT {JOB_COLS} FROM jobs ORDER BY seq"))?;
+        st.query_map([], job_row)?.collect()
+    }
+
+    /// Jobs still to be worked on (queued or running).
+    pub fn active_jobs(&self) -> rusqlite::Result<Vec<JobRow>> {
+        let mut st = self.conn.prepare(&format!(
+            "SELECT {JOB_COLS} FROM jobs WHERE state IN ('queued', 'running') ORDER BY seq"
+        ))?;
+        st.query_map([], job_row)?.collect()
+    }
+
+    pub fn set_job_state(
+        &self,
+        id: &str,
+        state: &str,
+        error: Option<&str>,
+    ) -> rusqlite::Result<()> {
+        let finished = matches!(state, DONE | FAILED | CANCELLED).then(now);
+        self.conn.execute(
+            "UPDATE jobs SET state = ?2, error = COALESCE(?3, error), \
+             finished_at = COALESCE(?4, finished_at) WHERE id = ?1",
+            params![id, state, error, finished],
+        )?;
+        Ok(())
+    }
+
+    /// Records a merged pass: counters, and the task rows of the pass are no longer needed.
+    pub fn pass_merged(
+        &self,
+        id: &str,
+        passes_done: u32,
+        spp_done: u32,
+        stats: &crate::integrator::RayStats,
+    ) -> rusqlite::Result<()> {
+        self.conn.execute(
+            "UPDATE jobs SET passes_done = ?2, spp_done = ?3, samples = ?4, rays = ?5, \
+             non_finite = ?6 WHERE id = ?1",
+            params![
+                id,
+                passes_done,
+                spp_done,
+                stats.samples as i64,
+                stats.rays() as i64,
+                stats.non_finite as i64
+            ],
+        )?;
+        self.conn.execute(
+            "DELETE FROM tasks WHERE job_id = ?1 AND pass < ?2",
+            params![id, passes_done],
+        )?;
+        Ok(())
+    }
+
+    pub fn add_series(&self, id: &str, p: &SeriesPoint) -> rusqlite::Result<()> {
+        self.conn.execute(
+            "INSERT OR REPLACE INTO series (job_id, pass, spp, seconds, relmse) VALUES (?1, ?2, ?3, ?4, ?5)",
+            params![id, p.pass, p.spp, p.seconds, p.relmse],
+        )?;
+        Ok(())
+    }
+
+    pub fn series(&self, id: &str) -> rusqlite::Result<Vec<SeriesPoint>> {
+        let mut st = self.conn.prepare(
+            "SELECT pass, spp, seconds, relmse FROM series WHERE job_id = ?1 ORDER BY pass",
+        )?;
+        st.query_map([id], |r| {
+            Ok(SeriesPoint {
+                pass: r.get(0)?,
+                spp: r.get(1)?,
+                seconds: r.get(2)?,
+                relmse: r.get(3)?,
+            })
+        })?
+        .collect()
+    }
+
+    /// Creates the tasks of one pass (idempotent).
+    pub fn create_pass(
+        &self,
+        id: &str,
+        pass: u32,
+        tiles: u32,
+        range: std::ops::Range<u32>,
+    ) -> rusqlite::Result<()> {
+        let mut st = self.conn.prepare(
+            "INSERT OR IGNORE INTO tasks (job_id, pass, tile, s0, s1, state) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+        )?;
+        for t in 0..tiles {
+            st.execute(params![id, pass, t, range.start, range.end, T_QUEUED])?;
+        }
+        Ok(())
+    }
+
+    /// The highest pass with tasks, if any.
+    pub fn last_pass(&self, id: &str) -> rusqlite::Result<Option<u32>> {
+        self.conn
+            .query_row("SELECT MAX(pass) FROM tasks WHERE job_id = ?1", [id], |r| {
+                r.get(0)
+            })
+    }
+
+    /// (done, total) tasks of a pass.
+    pub fn pass_progress(&self, id: &str, pass: u32) -> rusqlite::Result<(u32, u32)> {
+        self.conn.query_row(
+            "SELECT COALESCE(SUM(state = 'done'), 0), COUNT(*) FROM tasks WHERE job_id = ?1 AND pass = ?2",
+            params![id, pass],
+            |r| Ok((r.get(0)?, r.get(1)?)),
+        )
+    }
+
+    /// Done tasks of a job's unmerged passes.
+    pub fn tasks_done(&self, id: &str) -> rusqlite::Result<u32> {
+        self.conn.query_row(
+            "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = 'done'",
+            [id],
+            |r| r.get(0),
+        )
+    }
+
+    pub fn pass_tasks(&self, id: &str, pass: u32) -> rusqlite::Result<Vec<TaskRow>> {
+        let mut st = self.conn.prepare(&format!(
+            "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND pass = ?2 ORDER BY tile"
+        ))?;
+        st.query_map(params![id, pass], task_row)?.collect()
+    }
+
+    pub fn task(&self, task_id: i64) -> rusqlite::Result<Option<TaskRow>> {
+        self.conn
+            .query_row(
+                &format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?1"),
+                [task_id],
+                task_row,
+            )
+            .optional()
+    }
+
+    /// Leases the first queued task of the oldest active job (passes in order) to `worker`.
+    pub fn lease(&self, worker: &str, lease_s: f64) -> rusqlite::Result<Option<TaskRow>> {
+        let tx = self.conn.unchecked_transaction()?;
+        let id: Option<i64> = tx
+            .query_row(
+                "SELECT t.id FROM tasks t JOIN jobs j ON j.id = t.job_id \
+                 WHERE t.state = 'queued' AND j.state IN ('queued', 'running') \
+                 ORDER BY j.seq, t.pass, t.tile LIMIT 1",
+                [],
+                |r| r.get(0),
+            )
+            .optional()?;
+        let Some(id) = id else {
+            return Ok(None);
+        };
+        let t = now();
+        tx.execute(
+            "UPDATE tasks SET state = 'leased', attempt = attempt + 1, worker_id = ?2, \
+             lease_expires = ?3 WHERE id = ?1",
+            params![id, worker, t + lease_s],
+        )?;
+        tx.execute(
+            "UPDATE jobs SET state = 'running', started_at = COALESCE(started_at, ?2) \
+             WHERE id = (SELECT job_id FROM tasks WHERE id = ?1) AND state = 'queued'",
+            params![id, t],
+        )?;
+        let row = tx.query_row(
+            &format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?1"),
+            [id],
+            task_row,
+        )?;
+        tx.commit()?;
+        Ok(Some(row))
+    }
+
+    /// Extends a lease; false when the task is no longer this worker's attempt.
+    pub fn extend(
+        &self,
+        task_id: i64,
+        attempt: u32,
+        worker: &str,
+        lease_s: f64,
+    ) -> rusqlite::Result<bool> {
+        let n = self.conn.execute(
+            "UPDATE tasks SET lease_expires = ?4 WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 \
+             AND state = 'leased' AND job_id IN (SELECT id FROM jobs WHERE state = 'running')",
+            params![task_id, attempt, worker, now() + lease_s],
+        )?;
+        Ok(n == 1)
+    }
+
+    /// Marks the task done if it is still this worker's current attempt.
+    pub fn complete(
+        &self,
+        task_id: i64,
+        attempt: u32,
+        worker: &str,
+        bytes: usize,
+    ) -> rusqlite::Result<bool> {
+        let tx = self.conn.unchecked_transaction()?;
+        let n = tx.execute(
+            "UPDATE tasks SET state = 'done', lease_expires = NULL WHERE id = ?1 AND attempt = ?2 \
+             AND worker_id = ?3 AND state = 'leased'",
+            params![task_id, attempt, worker],
+        )?;
+        if n == 1 {
+            tx.execute(
+                "UPDATE jobs SET result_bytes = result_bytes + ?2 WHERE id = (SELECT job_id FROM tasks WHERE id = ?1)",
+                params![task_id, bytes as i64],
+            )?;
+            tx.execute(
+                "UPDATE workers SET tasks_done = tasks_done + 1 WHERE id = ?1",
+                [worker],
+            )?;
+        }
+        tx.commit()?;
+        Ok(n == 1)
+    }
+
+    /// Records a failed attempt and requeues the task; returns the failures so far, or None when
+    /// the attempt was not current.
+    pub fn fail(
+        &self,
+        task_id: i64,
+        attempt: u32,
+        worker: &str,
+        error: &str,
+    ) -> rusqlite::Result<Option<u32>> {
+        let n = self.conn.execute(
+            "UPDATE tasks SET state = 'queued', worker_id = NULL, lease_expires = NULL, \
+             failures = failures + 1, last_error = ?4 WHERE id = ?1 AND attempt = ?2 \
+             AND worker_id = ?3 AND state = 'leased'",
+            params![task_id, attempt, worker, error],
+        )?;
+        if n == 0 {
+            return Ok(None);
+        }
+        self.conn
+            .query_row("SELECT failures FROM tasks WHERE id = ?1", [task_id], |r| {
+                r.get(0)
+            })
+            .map(Some)
+    }
+
+    /// Requeues every lease that expired; returns how many.
+    pub fn expire_leases(&self) -> rusqlite::Result<usize> {
+        self.conn.execute(
+            "UPDATE tasks SET state = 'queued', worker_id = NULL, lease_expires = NULL \
+             WHERE state = 'leased' AND lease_expires < ?1",
+            [now()],
+        )
+    }
+
+    pub fn register_worker(
+        &self,
+        id: &str,
+        name: &str,
+        threads: u32,
+        version: &str,
+    ) -> rusqlite::Result<()> {
+        let t = now();
+        self.conn.execute(
+            "INSERT INTO workers (id, name, threads, version, registered_at, last_seen, state) \
+             VALUES (?1, ?2, ?3, ?4, ?5, ?5, 'idle') ON CONFLICT (id) DO UPDATE SET \
+             name = ?2, threads = ?3, version = ?4, last_seen = ?5, state = 'idle'",
+            params![id, name, threads, version, t],
+        )?;
+        Ok(())
+    }
+
+    /// Notes that a worker is alive; false when it is unknown.
+    pub fn touch_worker(&self, id: &str, state: &str) -> rusqlite::Result<bool> {
+        let n = self.conn.execute(
+            "UPDATE workers SET last_seen = ?2, state = ?3 WHERE id = ?1",
+            params![id, now(), state],
+        )?;
+        Ok(n == 1)
+    }
+
+    /// Workers not heard from for `silent_s` are marked gone.
+    pub fn mark_gone(&self, silent_s: f64) -> rusqlite::Result<usize> {
+        self.conn.execute(
+            "UPDATE workers SET state = 'gone' WHERE state != 'gone' AND last_seen < ?1",
+            [now() - silent_s],
+        )
+    }
+
+    pub fn workers(&self) -> rusqlite::Result<Vec<WorkerRow>> {
+        let mut st = self.conn.prepare(
+            "SELECT id, name, threads, version, registered_at, last_seen, state, tasks_done \
+             FROM workers ORDER BY registered_at",
+        )?;
+        st.query_map([], |r| {
+            Ok(WorkerRow {
+                id: r.get(0)?,
+                name: r.get(1)?,
+                threads: r.get(2)?,
+                version: r.get(3)?,
+                registered_at: r.get(4)?,
+                last_seen: r.get(5)?,
+                state: r.get(6)?,
+                tasks_done: r.get(7)?,
+            })
+        })?
+        .collect()
+    }
+
+    pub fn add_event(
+        &self,
+        job: &str,
+        kind: &str,
+        data: &serde_json::Value,
+    ) -> rusqlite::Result<EventRow> {
+        let at = now();
+        self.conn.execute(
+            "INSERT INTO events (job_id, kind, data, at) VALUES (?1, ?2, ?3, ?4)",
+            params![job, kind, data.to_string(), at],
+        )?;
+        Ok(EventRow {
+            id: self.conn.last_insert_rowid(),
+            job_id: job.to_string(),
+            kind: kind.to_string(),
+            data: data.clone(),
+            at,
+        })
+    }
+
+    pub fn events_after(&self, job: &str, after: i64) -> rusqlite::Result<Vec<EventRow>> {
+        let mut st = self.conn.prepare(
+            "SELECT id, job_id, kind, data, at FROM events WHERE job_id = ?1 AND id > ?2 ORDER BY id",
+        )?;
+        st.query_map(params![job, after], |r| {
+            let data: String = r.get(3)?;
+            Ok(EventRow {
+                id: r.get(0)?,
+                job_id: r.get(1)?,
+                kind: r.get(2)?,
+                data: serde_json::from_str(&data).unwrap_or(serde_json::Value::Null),
+                at: r.get(4)?,
+            })
+        })?
+        .collect()
+    }
+
+    /// Counts of (state, n) in a table (jobs, tasks or workers).
+    pub fn state_counts(&self, table: &str) -> rusqlite::Result<Vec<(String, i64)>> {
+        let table = match table {
+            "jobs" | "tasks" | "workers" => table,
+            _ => return Ok(Vec::new()),
+        };
+        let mut st = self.conn.prepare(&format!(
+            "SELECT state, COUNT(*) FROM {table} GROUP BY state"
+        ))?;
+        st.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?.collect()
+    }
+}

@@ -1,0 +1,433 @@
+//! `omis worker`: registers with a coordinator, long-polls for tile tasks, renders them (one
+//! task per thread), uploads each result, and heartbeats its leases meanwhile. Scenes are
+//! downloaded once per bundle and kept loaded (with their BVH) for the tasks that follow.
+//! SIGTERM drains: no new task is taken, the ones in hand are finished and uploaded.
+
+use crate::integrator::{self, Tile};
+use crate::job::Resolved;
+use crate::scene::Scene;
+use crate::service::bundle;
+use anyhow::{Context, Result};
+use reqwest::StatusCode;
+use serde::Deserialize;
+use serde_json::json;
+use std::collections::{HashMap, HashSet};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::sync::{OnceCell, watch};
+
+#[derive(Clone, Debug)]
+pub struct WorkerConfig {
+    pub coordinator: String,
+    pub threads: usize,
+    pub token: Option<String>,
+    pub name: String,
+    /// Exit when the parent process goes away (local pools).
+    pub exit_with_parent: bool,
+    /// Where downloaded scene bundles are unpacked.
+    pub cache: PathBuf,
+}
+
+#[derive(Deserialize)]
+struct Lease {
+    task: LeasedTask,
+    job: LeasedJob,
+}
+
+#[derive(Deserialize)]
+struct LeasedTask {
+    id: i64,
+    attempt: u32,
+    job_id: String,
+    pass: u32,
+    tile: u32,
+    rect: Tile,
+    samples: [u32; 2],
+}
+
+#[derive(Deserialize)]
+struct LeasedJob {
+    scene_id: String,
+    scene_main: String,
+    resolved: Resolved,
+}
+
+type SceneCell = Arc<OnceCell<Result<Arc<Scene>, String>>>;
+
+struct Worker {
+    cfg: WorkerConfig,
+    http: reqwest::Client,
+    id: Mutex<String>,
+    heartbeat_s: Mutex<f64>,
+    /// Tasks in hand: id -> attempt.
+    held: Mutex<HashMap<i64, u32>>,
+    /// Tasks the coordinator says are no longer ours.
+    lost: Mutex<HashSet<i64>>,
+    scenes: Mutex<HashMap<(String, u32, u32), SceneCell>>,
+    drain: watch::Sender<bool>,
+    draining: AtomicBool,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl Worker {
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.cfg.coordinator.trim_end_matches('/'))
+    }
+
+    fn req(&self, method: reqwest::Method, path: &str) -> reqwest::RequestBuilder {
+        let r = self.http.request(method, self.url(path));
+        match &self.cfg.token {
+            Some(t) => r.bearer_auth(t),
+            None => r,
+        }
+    }
+
+    fn id(&self) -> String {
+        lock(&self.id).clone()
+    }
+
+    /// Registers (keeping a previous id), retrying until the coordinator answers.
+    async fn register(&self) -> Result<()> {
+        let mut backoff = Duration::from_millis(200);
+        loop {
+            let prev = self.id();
+            let body = json!({
+                "name": self.cfg.name,
+                "threads": self.cfg.threads,
+                "version": env!("CARGO_PKG_VERSION"),
+                "id": (!prev.is_empty()).then_some(prev),
+            });
+            match self
+                .req(reqwest::Method::POST, "/v1/worker/register")
+                .json(&body)
+                .timeout(Duration::from_secs(10))
+                .send()
+                .await
+            {
+                Ok(r) if r.status().is_success() => {
+                    let v: serde_json::Value = r.json().await?;
+                    let id = v["worker_id"].as_str().unwrap_or_default().to_string();
+                    *lock(&self.heartbeat_s) = v["heartbeat_seconds"].as_f64().unwrap_or(5.0);
+                    tracing::info!("registered as {id}");
+                    *lock(&self.id) = id;
+                    return Ok(());
+                }
+                Ok(r) if r.status() == StatusCode::UNAUTHORIZED => {
+                    anyhow::bail!(
+                        "the coordinator refused the worker token: {}",
+                        r.text().await.unwrap_or_default()
+                    );
+                }
+                Ok(r) => tracing::warn!("register: HTTP {}", r.status()),
+                Err(e) => tracing::warn!("register: {e}"),
+            }
+            if self.draining.load(Ordering::SeqCst) {
+                anyhow::bail!("stopped before registering");
+            }
+            tokio::time::sleep(backoff).await;
+            backoff = (backoff * 2).min(Duration::from_secs(5));
+        }
+    }
+
+    /// The scene of a bundle at the job's resolution, loaded once.
+    async fn scene(&self, job: &LeasedJob) -> Result<Arc<Scene>, String> {
+        let key = (
+            job.scene_id.clone(),
+            job.resolved.width,
+            job.resolved.height,
+        );
+        let cell = lock(&self.scenes).entry(key).or_default().clone();
+        cell.get_or_init(|| async {
+            let dir = self.cfg.cache.join(&job.scene_id);
+            if !dir.join(".complete").exists() {
+                let r = self
+                    .req(
+                        reqwest::Method::GET,
+                        &format!("/v1/worker/scenes/{}", job.scene_id),
+                    )
+                    .send()
+                    .await
+                    .map_err(|e| format!("downloading scene {}: {e}", job.scene_id))?;
+                if !r.status().is_success() {
+                    return Err(format!(
+                        "downloading scene {}: HTTP {}",
+                        job.scene_id,
+                        r.status()
+                    ));
+                }
+                let bytes = r
+                    .bytes()
+                    .await
+                    .map_err(|e| format!("downloading scene {}: {e}", job.scene_id))?;
+                let d = dir.clone();
+                tokio::task::spawn_blocking(move || {
+                    let _ = std::fs::remove_dir_all(&d);
+                    bundle::unpack(&bytes, &d, u64::MAX)?;
+                    std::fs::write(d.join(".complete"), b"").map_err(|e| e.to_string())
+                })
+                .await
+                .map_err(|e| e.to_string())??;
+            }
+            let main = dir.join(&job.scene_main);
+            let (w, h) = (job.resolved.width, job.resolved.height);
+            tokio::task::spawn_blocking(move || {
+                let mut scene = Scene::load(&main).map_err(|e| e.to_string())?;
+                if (scene.camera.width, scene.camera.height) != (w, h) {
+                    scene.camera = scene.camera.with_resolution(w, h)?;
+                }
+                Ok(Arc::new(scene))
+            })
+            .await
+            .map_err(|e| e.to_string())?
+        })
+        .await
+        .clone()
+    }
+
+    async fn lease(&self) -> Result<Option<Lease>, reqwest::Error> {
+        let r = self
+            .req(reqwest::Method::POST, "/v1/worker/lease")
+            .json(&json!({ "worker_id": self.id(), "wait_s": 10.0 }))
+            .timeout(Duration::from_secs(40))
+            .send()
+            .await?;
+        match r.status() {
+            StatusCode::OK => Ok(Some(r.json().await?)),
+            StatusCode::NOT_FOUND => {
+                tracing::warn!("the coordinator does not know this worker; registering again");
+                if let Err(e) = self.register().await {
+                    tracing::error!("{e:#}");
+                }
+                Ok(None)
+            }
+            s => {
+                if !s.is_success() {
+                    tracing::warn!("lease: HTTP {s}");
+                    tokio::time::sleep(Duration::from_secs(1)).await;
+                }
+                Ok(None)
+            }
+        }
+    }
+
+    /// Uploads a result, retrying while the coordinator is unreachable (up to about a minute).
+    async fn upload(&self, t: &LeasedTask, bytes: Vec<u8>) {
+        let path = format!("/v1/worker/tasks/{}/result", t.id);
+        let mut backoff = Duration::from_millis(200);
+        for _ in 0..30 {
+            if lock(&self.lost).contains(&t.id) {
+                tracing::warn!("task {} was taken back; result dropped", t.id);
+                return;
+            }
+            let r = self
+                .req(reqwest::Method::PUT, &path)
+                .query(&[("worker_id", self.id()), ("attempt", t.attempt.to_string())])
+                .header("content-type", "application/octet-stream")
+                .body(bytes.clone())
+                .timeout(Duration::from_secs(120))
+                .send()
+                .await;
+            match r {
+                Ok(r) if r.status().is_success() => return,
+                Ok(r) if r.status().is_client_error() => {
+                    tracing::warn!(
+                        "task {} (job {} pass {} tile {}) refused: HTTP {} {}",
+                        t.id,
+                        t.job_id,
+                        t.pass,
+                        t.tile,
+                        r.status(),
+                        r.text().await.unwrap_or_default()
+                    );
+                    return;
+                }
+                Ok(r) => tracing::warn!("upload of task {}: HTTP {}", t.id, r.status()),
+                Err(e) => tracing::warn!("upload of task {}: {e}", t.id),
+            }
+            tokio::time::sleep(backoff).await;
+            backoff = (backoff * 2).min(Duration::from_secs(3));
+        }
+        tracing::error!("task {}: could not upload its result; giving up", t.id);
+    }
+
+    async fn fail(&self, t: &LeasedTask, error: &str) {
+        let r = self
+            .req(
+                reqwest::Method::POST,
+                &format!("/v1/worker/tasks/{}/fail", t.id),
+            )
+            .json(&json!({ "worker_id": self.id(), "attempt": t.attempt, "error": error }))
+            .timeout(Duration::from_secs(10))
+            .send()
+            .await;
+        if let Err(e) = r {
+            tracing::warn!("reporting the failure of task {}: {e}", t.id);
+        }
+    }
+
+    async fn run_task(&self, lease: Lease) {
+        let t = &lease.task;
+        lock(&self.held).insert(t.id, t.attempt);
+        match self.scene(&lease.job).await {
+            Err(e) => {
+                tracing::error!("task {}: {e}", t.id);
+                self.fail(t, &e).await;
+            }
+            Ok(scene) => {
+                let settings = lease.job.resolved.render.clone();
+                let (rect, range) = (t.rect, t.samples[0]..t.samples[1]);
+                let rendered = tokio::task::spawn_blocking(move || {
+                    integrator::render_tile(&scene, &settings, rect, range.clone()).encode(range)
+                })
+                .await;
+                match rendered {
+                    Ok(bytes) => self.upload(t, bytes).await,
+                    Err(e) => {
+                        let msg = format!("render panicked: {e}");
+                        tracing::error!("task {}: {msg}", t.id);
+                        self.fail(t, &msg).await;
+                    }
+                }
+            }
+        }
+        lock(&self.held).remove(&t.id);
+        lock(&self.lost).remove(&t.id);
+    }
+
+    async fn slot(self: Arc<Self>) {
+        let mut drain = self.drain.subscribe();
+        let mut backoff = Duration::from_millis(200);
+        while !*drain.borrow() {
+            let lease = tokio::select! {
+                l = self.lease() => l,
+                _ = drain.changed() => break,
+            };
+            match lease {
+                Ok(Some(l)) => {
+                    backoff = Duration::from_millis(200);
+                    self.run_task(l).await;
+                }
+                Ok(None) => {}
+                Err(e) => {
+                    tracing::warn!("lease: {e}");
+                    tokio::time::sleep(backoff).await;
+                    backoff = (backoff * 2).min(Duration::from_secs(5));
+                }
+            }
+        }
+    }
+
+    async fn heartbeat(self: Arc<Self>) {
+        loop {
+            let every = *lock(&self.heartbeat_s);
+            tokio::time::sleep(Duration::from_secs_f64(every.max(0.2))).await;
+            let tasks: Vec<_> = lock(&self.held)
+                .iter()
+                .map(|(id, a)| json!({ "id": id, "attempt": a }))
+                .collect();
+            let r = self
+                .req(reqwest::Method::POST, "/v1/worker/heartbeat")
+                .json(&json!({ "worker_id": self.id(), "tasks": tasks }))
+                .timeout(Duration::from_secs(10))
+                .send()
+                .await;
+            match r {
+                Ok(r) if r.status().is_success() => {
+                    if let Ok(v) = r.json::<serde_json::Value>().await
+                        && let Some(lost) = v["lost"].as_array()
+                    {
+                        let mut l = lock(&self.lost);
+                        for id in lost.iter().filter_map(|x| x.as_i64()) {
+                            l.insert(id);
+                        }
+                    }
+                }
+                Ok(r) if r.status() == StatusCode::NOT_FOUND => {
+                    let _ = self.register().await;
+                }
+                Ok(r) => tracing::warn!("heartbeat: HTTP {}", r.status()),
+                Err(e) => tracing::warn!("heartbeat: {e}"),
+            }
+        }
+    }
+}
+
+/// Runs a worker until SIGTERM / Ctrl-C (drained) or, with `exit_with_parent`, its parent's end.
+pub async fn run(cfg: WorkerConfig) -> Result<()> {
+    std::fs::create_dir_all(&cfg.cache)
+        .with_context(|| format!("cannot create the cache folder {}", cfg.cache.display()))?;
+    let http = reqwest::Client::builder()
+        .connect_timeout(Duration::from_secs(5))
+        .build()
+        .context("cannot create the HTTP client")?;
+    let (drain, _) = watch::channel(false);
+    let w = Arc::new(Worker {
+        cfg: cfg.clone(),
+        http,
+        id: Mutex::new(String::new()),
+        heartbeat_s: Mutex::new(5.0),
+        held: Mutex::new(HashMap::new()),
+        lost: Mutex::new(HashSet::new()),
+        scenes: Mutex::new(HashMap::new()),
+        drain,
+        draining: AtomicBool::new(false),
+    });
+    if cfg.exit_with_parent {
+        let parent = std::os::unix::process::parent_id();
+        tokio::spawn(async move {
+            loop {
+                tokio::time::sleep(Duration::from_millis(300)).await;
+                if std::os::unix::process::parent_id() != parent {
+                    tracing::warn!("the coordinator that started this worker is gone; exiting");
+                    std::process::exit(0);
+                }
+            }
+        });
+    }
+    {
+        let w = w.clone();
+        tokio::spawn(async move {
+            let mut term =
+                match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                    Ok(s) => s,
+                    Err(_) => return,
+                };
+            tokio::select! {
+                _ = term.recv() => {}
+                _ = tokio::signal::ctrl_c() => {}
+            }
+            tracing::info!("draining: finishing the tasks in hand");
+            w.draining.store(true, Ordering::SeqCst);
+            let _ = w.drain.send(true);
+            tokio::select! {
+                _ = term.recv() => {}
+                _ = tokio::signal::ctrl_c() => {}
+            }
+            tracing::warn!("second signal: exiting now");
+            std::process::exit(1);
+        });
+    }
+    w.register().await?;
+    let hb = tokio::spawn(w.clone().heartbeat());
+    let slots: Vec<_> = (0..cfg.threads.max(1))
+        .map(|_| tokio::spawn(w.clone().slot()))
+        .collect();
+    for s in slots {
+        let _ = s.await;
+    }
+    hb.abort();
+    let _ = w
+        .req(reqwest::Method::POST, "/v1/worker/deregister")
+        .json(&json!({ "worker_id": w.id() }))
+        .timeout(Duration::from_secs(5))
+        .send()
+        .await;
+    let _ = std::fs::remove_dir_all(&cfg.cache);
+    tracing::info!("drained; bye");
+    Ok(())
+}
