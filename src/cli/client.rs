@@ -23,9 +23,7 @@ pub struct SseEvent {
 impl Client {
     pub fn new(base: &str, token: Option<String>) -> Result<Client> {
         let base = base.trim_end_matches('/').to_string();
-        if !(base.starts_with("http://") || base.starts_with("https://")) {
-            bail!("--server '{base}' is not an http:// URL");
-        }
+        check_url(&base, "--server")?;
         let http = reqwest::Client::builder()
             .connect_timeout(Duration::from_secs(5))
             .build()
@@ -216,6 +214,20 @@ impl Client {
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
     }
+}
+
+/// Refuses what this build cannot reach: only plain http:// (no TLS is built in; put a TLS
+/// proxy in front of a coordinator that must be reached over an untrusted network).
+pub fn check_url(url: &str, flag: &str) -> Result<()> {
+    if url.starts_with("https://") {
+        bail!(
+            "{flag} '{url}': https is not built into omis; use http:// on a private network or a TLS-terminating proxy"
+        );
+    }
+    if !url.starts_with("http://") {
+        bail!("{flag} '{url}' is not an http:// URL");
+    }
+    Ok(())
 }
 
 /// The job request for a scene argument: an existing file is uploaded as a bundle, anything

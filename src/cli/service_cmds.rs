@@ -168,9 +168,7 @@ pub fn worker(a: WorkerArgs) -> Result<()> {
             std::env::temp_dir().join(format!("omis-worker-{}", std::process::id()))
         }),
     };
-    if !(cfg.coordinator.starts_with("http://") || cfg.coordinator.starts_with("https://")) {
-        bail!("--coordinator '{}' is not an http:// URL", cfg.coordinator);
-    }
+    client::check_url(&cfg.coordinator, "--coordinator")?;
     runtime()?.block_on(worker::run(cfg))
 }
 

@@ -80,12 +80,13 @@ fn parse_json<T: serde::de::DeserializeOwned>(body: &[u8]) -> ApiResult<T> {
     serde_path_to_error::deserialize(de).map_err(|e| {
         let path = e.path().to_string();
         let inner = e.into_inner();
-        let field = if path == "." {
+        let syntax = inner.is_syntax() || inner.is_eof();
+        let field = if path == "." || syntax {
             "body".to_string()
         } else {
             path
         };
-        let status = if inner.is_syntax() || inner.is_eof() {
+        let status = if syntax {
             StatusCode::BAD_REQUEST
         } else {
             StatusCode::UNPROCESSABLE_ENTITY
@@ -155,12 +156,43 @@ pub fn router(app: AppState) -> Router {
         .with_state(app)
 }
 
+/// Counts errors, and turns the plain-text rejections of axum's extractors and router (bad path
+/// or query parameters, wrong method, body too large) into our JSON error shape.
 async fn count_errors(State(app): State<AppState>, req: Request, next: Next) -> Response {
     let r = next.run(req).await;
-    if r.status().is_client_error() || r.status().is_server_error() {
-        Metrics::add(&app.metrics.http_errors, 1);
+    let status = r.status();
+    if !(status.is_client_error() || status.is_server_error()) {
+        return r;
     }
-    r
+    Metrics::add(&app.metrics.http_errors, 1);
+    let is_json = r
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/json"));
+    if is_json {
+        return r;
+    }
+    let text = match axum::body::to_bytes(r.into_body(), 64 << 10).await {
+        Ok(b) => String::from_utf8_lossy(&b).into_owned(),
+        Err(_) => String::new(),
+    };
+    let field = match status {
+        StatusCode::METHOD_NOT_ALLOWED => "method",
+        StatusCode::PAYLOAD_TOO_LARGE => "body",
+        _ if text.contains("query") => "query",
+        _ if text.contains("path") => "path",
+        _ => "body",
+    };
+    let msg = if text.is_empty() {
+        status
+            .canonical_reason()
+            .unwrap_or("request refused")
+            .to_string()
+    } else {
+        text
+    };
+    ApiError::field(status, field, msg).into_response()
 }
 
 fn check_token(headers: &HeaderMap, want: &Option<String>) -> Result<(), ApiError> {
@@ -170,7 +202,10 @@ fn check_token(headers: &HeaderMap, want: &Option<String>) -> Result<(), ApiErro
     let got = headers
         .get(header::AUTHORIZATION)
         .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "));
+        .and_then(|v| {
+            let (scheme, token) = v.split_once(' ')?;
+            scheme.eq_ignore_ascii_case("bearer").then(|| token.trim())
+        });
     match got {
         Some(t) if constant_time_eq(t.as_bytes(), want.as_bytes()) => Ok(()),
         Some(_) => Err(ApiError::field(
@@ -330,11 +365,12 @@ fn bad(field: &str, msg: impl Into<String>) -> ApiError {
 }
 
 fn settings_error(e: FieldError) -> ApiError {
-    ApiError::field(
-        StatusCode::UNPROCESSABLE_ENTITY,
-        format!("settings.{}", e.field),
-        e.message,
-    )
+    let field = if e.field == "scene" {
+        e.field
+    } else {
+        format!("settings.{}", e.field)
+    };
+    ApiError::field(StatusCode::UNPROCESSABLE_ENTITY, field, e.message)
 }
 
 /// Metadata of a stored scene bundle.
@@ -569,7 +605,11 @@ fn create_job_blocking(app: &App, req: JobRequest) -> ApiResult<JobRow> {
         reference: reference.as_deref(),
         accum_bytes: accum,
     })?;
-    jobs::create_initial_passes(app, &id, &resolved)?;
+    let row = app
+        .db()
+        .job(&id)?
+        .ok_or_else(|| ApiError::internal("job vanished"))?;
+    jobs::ensure_passes(app, &row, &resolved)?;
     app.event(
         &id,
         "queued",
@@ -714,7 +754,7 @@ async fn job_events(
     Path(id): Path<String>,
     headers: HeaderMap,
 ) -> ApiResult<Sse<impl Stream<Item = Result<Event, Infallible>>>> {
-    find_job(&app, &id)?;
+    let job = find_job(&app, &id)?;
     let after: i64 = headers
         .get("last-event-id")
         .and_then(|v| v.to_str().ok())
@@ -724,7 +764,9 @@ async fn job_events(
     let rx = app.events.subscribe();
     let backlog = app.db().events_after(&id, after)?;
     let last = backlog.last().map_or(after, |e| e.id);
-    let ended = backlog.iter().any(|e| is_terminal(&e.kind));
+    // A job that has ended (its final event at or before Last-Event-ID) ends the stream.
+    let ended = backlog.iter().any(|e| is_terminal(&e.kind))
+        || !matches!(job.state.as_str(), store::QUEUED | store::RUNNING);
     let backlog_stream = stream::iter(
         backlog
             .into_iter()
@@ -842,7 +884,6 @@ async fn list_scenes(State(app): State<AppState>) -> Json<Value> {
 async fn upload_reference(State(app): State<AppState>, body: Bytes) -> ApiResult<Response> {
     let id = uuid::Uuid::new_v4().to_string();
     let path = app.paths.reference(&id);
-    let a = app.clone();
     let img = tokio::task::spawn_blocking(move || {
         store::write_atomic(&path, &body).map_err(ApiError::internal)?;
         exr_io::read_exr(&path).map_err(|e| {
@@ -856,7 +897,6 @@ async fn upload_reference(State(app): State<AppState>, body: Bytes) -> ApiResult
     })
     .await
     .map_err(ApiError::internal)??;
-    let _ = a;
     Ok((
         StatusCode::CREATED,
         Json(json!({ "id": id, "width": img.width, "height": img.height })),
@@ -1020,8 +1060,21 @@ struct DeregisterRequest {
 
 async fn deregister(State(app): State<AppState>, body: Bytes) -> ApiResult<Json<Value>> {
     let r: DeregisterRequest = parse_json(&body)?;
-    app.db().touch_worker(&r.worker_id, "left")?;
-    Ok(Json(json!({ "ok": true })))
+    let released = {
+        let db = app.db();
+        if !db.touch_worker(&r.worker_id, "left")? {
+            return Err(ApiError::field(
+                StatusCode::NOT_FOUND,
+                "worker_id",
+                "unknown worker",
+            ));
+        }
+        db.release_worker(&r.worker_id)?
+    };
+    if released > 0 {
+        app.work.notify_waiters();
+    }
+    Ok(Json(json!({ "ok": true, "released": released })))
 }
 
 async fn worker_scene(State(app): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
@@ -1081,9 +1134,17 @@ async fn upload_result(
     };
     let (task, job) = {
         let db = app.db();
-        let task = db
-            .task(task_id)?
-            .ok_or_else(|| refused(ApiError::not_found("task", &task_id.to_string())))?;
+        let Some(task) = db.task(task_id)? else {
+            return Err(refused(if db.task_existed(task_id)? {
+                ApiError::field(
+                    StatusCode::CONFLICT,
+                    "id",
+                    format!("task {task_id} is no longer current (its pass was merged)"),
+                )
+            } else {
+                ApiError::not_found("task", &task_id.to_string())
+            }));
+        };
         let job = db
             .job(&task.job_id)?
             .ok_or_else(|| ApiError::internal("task without job"))?;

@@ -54,13 +54,21 @@ fn drop_runtime(app: &App, id: &str) {
         .remove(id);
 }
 
-/// Creates the first passes of a new job (two, so workers never wait on a merge).
-pub fn create_initial_passes(app: &App, id: &str, r: &Resolved) -> rusqlite::Result<()> {
+/// Makes sure the job's next two passes (`passes_done` and the one after) have their tasks, so
+/// workers never wait on a merge; a time-budget job gets no new pass once its time is up.
+/// Idempotent: called at creation, after every merge and after a restart.
+pub fn ensure_passes(app: &App, job: &JobRow, r: &Resolved) -> rusqlite::Result<()> {
+    let within_time = r
+        .time_budget_s
+        .is_none_or(|b| job.started_at.is_none_or(|s| store::now() - s < b));
+    if !within_time {
+        return Ok(());
+    }
     let tiles = r.tiles().len() as u32;
     let db = app.db();
-    for p in 0..2 {
+    for p in job.passes_done..job.passes_done + 2 {
         if let Some(range) = r.pass_range(p) {
-            db.create_pass(id, p, tiles, range)?;
+            db.create_pass(&job.id, p, tiles, range)?;
         }
     }
     Ok(())
@@ -71,8 +79,9 @@ pub fn create_initial_passes(app: &App, id: &str, r: &Resolved) -> rusqlite::Res
 pub fn advance(app: &App, id: &str) {
     if let Err(e) = advance_inner(app, id) {
         tracing::error!("job {id}: {e}");
-        let _ = app.db().set_job_state(id, store::FAILED, Some(&e));
-        app.event(id, "failed", json!({ "error": e }));
+        if let Ok(true) = app.db().set_job_state(id, store::FAILED, Some(&e)) {
+            app.event(id, "failed", json!({ "error": e }));
+        }
         drop_runtime(app, id);
     }
 }
@@ -94,6 +103,8 @@ fn advance_inner(app: &App, id: &str) -> Result<(), String> {
             drop_runtime(app, id);
             return Ok(());
         }
+        ensure_passes(app, &job, &rt.resolved).map_err(|e| e.to_string())?;
+        app.work.notify_waiters();
         let pass = job.passes_done;
         let (done, total) = app
             .db()
@@ -234,20 +245,6 @@ fn merge_pass(
         json!({ "pass": pass, "spp": spp_done, "url": format!("/v1/jobs/{}/preview.png", job.id) }),
     );
 
-    // The pass after next, while the job wants more.
-    let next = pass + 2;
-    let within_time = rt.resolved.time_budget_s.is_none_or(|b| seconds < b);
-    if within_time && let Some(range) = rt.resolved.pass_range(next) {
-        let tiles = rt.resolved.tiles().len() as u32;
-        app.db()
-            .create_pass(&job.id, next, tiles, range)
-            .map_err(|e| e.to_string())?;
-        app.work.notify_waiters();
-    }
-    if finished_all(app, &job)? {
-        finish(app, &job, rt)?;
-        drop_runtime(app, &job.id);
-    }
     Ok(())
 }
 
@@ -284,11 +281,14 @@ fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
     if job.passes_done == 0 {
         write_outputs(app, job, rt)?;
     }
-    app.db()
+    let ended = app
+        .db()
         .set_job_state(&job.id, store::DONE, None)
         .map_err(|e| e.to_string())?;
-    let _ = std::fs::remove_file(app.paths.checkpoint(&job.id));
-    app.event(&job.id, "done", json!({ "spp": job.spp_done }));
+    if ended {
+        let _ = std::fs::remove_file(app.paths.checkpoint(&job.id));
+        app.event(&job.id, "done", json!({ "spp": job.spp_done }));
+    }
     Ok(())
 }
 
@@ -311,10 +311,13 @@ pub fn task_failed(app: &App, task: &TaskRow, worker: &str, error: &str) -> Resu
             "tile {} of pass {} failed {failures} times; last error (worker {worker}): {error}",
             task.tile, task.pass
         );
-        app.db()
+        let ended = app
+            .db()
             .set_job_state(&task.job_id, store::FAILED, Some(&msg))
             .map_err(|e| e.to_string())?;
-        app.event(&task.job_id, "failed", json!({ "error": msg }));
+        if ended {
+            app.event(&task.job_id, "failed", json!({ "error": msg }));
+        }
         drop_runtime(app, &task.job_id);
     } else {
         app.work.notify_waiters();
@@ -330,12 +333,16 @@ pub fn cancel(app: &App, id: &str) -> Result<bool, String> {
     if !matches!(job.state.as_str(), store::QUEUED | store::RUNNING) {
         return Ok(false);
     }
-    app.db()
+    let ended = app
+        .db()
         .set_job_state(id, store::CANCELLED, None)
         .map_err(|e| e.to_string())?;
-    app.event(id, "cancelled", json!({}));
+    if ended {
+        app.event(id, "cancelled", json!({}));
+        app.work.notify_waiters();
+    }
     drop_runtime(app, id);
-    Ok(true)
+    Ok(ended)
 }
 
 /// After a restart: reconcile each unfinished job with its checkpoint, and merge passes whose

@@ -340,19 +340,44 @@ impl Store {
         st.query_map([], job_row)?.collect()
     }
 
+    /// Moves an active (queued or running) job to `state`; false when the job had already
+    /// ended (a cancelled job stays cancelled).
     pub fn set_job_state(
         &self,
         id: &str,
         state: &str,
         error: Option<&str>,
-    ) -> rusqlite::Result<()> {
+    ) -> rusqlite::Result<bool> {
         let finished = matches!(state, DONE | FAILED | CANCELLED).then(now);
-        self.conn.execute(
+        let n = self.conn.execute(
             "UPDATE jobs SET state = ?2, error = COALESCE(?3, error), \
-             finished_at = COALESCE(?4, finished_at) WHERE id = ?1",
+             finished_at = COALESCE(?4, finished_at) WHERE id = ?1 \
+             AND state IN ('queued', 'running')",
             params![id, state, error, finished],
         )?;
-        Ok(())
+        Ok(n == 1)
+    }
+
+    /// Gives back every task a worker holds (it said it is leaving).
+    pub fn release_worker(&self, worker: &str) -> rusqlite::Result<usize> {
+        self.conn.execute(
+            "UPDATE tasks SET state = 'queued', worker_id = NULL, lease_expires = NULL \
+             WHERE worker_id = ?1 AND state = 'leased'",
+            [worker],
+        )
+    }
+
+    /// True when `task_id` was ever issued (tasks of merged passes are deleted).
+    pub fn task_existed(&self, task_id: i64) -> rusqlite::Result<bool> {
+        let max: Option<i64> = self
+            .conn
+            .query_row(
+                "SELECT seq FROM sqlite_sequence WHERE name = 'tasks'",
+                [],
+                |r| r.get(0),
+            )
+            .optional()?;
+        Ok(task_id >= 1 && max.is_some_and(|m| task_id <= m))
     }
 
     /// Records a merged pass: counters, and the task rows of the pass are no longer needed.

@@ -1,0 +1,685 @@
+//! The render service with real processes on 127.0.0.1: a coordinator (`omis serve`), worker
+//! processes, HTTP + SSE. Every image the service produces must equal the in-process render of
+//! the same job (the tiling-invariance property across processes), whatever dies on the way.
+//! Every process a test starts is killed when the test ends, also when it fails.
+
+use omis::film::{Image, exr_io};
+use omis::job::{JobSettings, Limits};
+use omis::scene::Scene;
+use reqwest::blocking::Client;
+use serde_json::{Value, json};
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const EXE: &str = env!("CARGO_BIN_EXE_omis");
+const WAIT: Duration = Duration::from_secs(180);
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn folder(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("omis-svc-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("temp dir");
+    d
+}
+
+/// A child process killed (SIGKILL) and reaped on drop.
+struct Proc(Child);
+
+impl Proc {
+    fn kill9(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        self.kill9();
+    }
+}
+
+/// `omis serve` on a free loopback port; returns the process and its URL.
+fn serve(data: &Path, extra: &[&str]) -> (Proc, String) {
+    let scenes = repo().join("scenes");
+    let mut child = Command::new(EXE)
+        .args(["serve", "--bind", "127.0.0.1:0", "--data"])
+        .arg(data)
+        .arg("--scenes")
+        .arg(&scenes)
+        .args(extra)
+        .env("OMIS_LOG", "warn")
+        .env_remove("OMIS_TOKEN")
+        .env_remove("OMIS_WORKER_TOKEN")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("start omis serve");
+    let stdout = child.stdout.take().expect("stdout");
+    let proc = Proc(child);
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut lines = BufReader::new(stdout).lines();
+        if let Some(Ok(l)) = lines.next() {
+            let _ = tx.send(l);
+        }
+        for _ in lines {}
+    });
+    let line = rx
+        .recv_timeout(Duration::from_secs(60))
+        .expect("omis serve printed its address");
+    let url = line
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line: {line}"))
+        .to_string();
+    (proc, url)
+}
+
+fn worker(url: &str, name: &str, extra: &[&str]) -> Proc {
+    Proc(
+        Command::new(EXE)
+            .args([
+                "worker",
+                "--coordinator",
+                url,
+                "--threads",
+                "1",
+                "--name",
+                name,
+            ])
+            .args(extra)
+            .env("OMIS_LOG", "warn")
+            .stdin(Stdio::null())
+            .spawn()
+            .expect("start omis worker"),
+    )
+}
+
+fn http() -> Client {
+    Client::builder()
+        .timeout(Duration::from_secs(60))
+        .build()
+        .expect("client")
+}
+
+fn post(c: &Client, url: &str, body: &Value) -> (u16, Value) {
+    let r = c.post(url).json(body).send().expect("POST");
+    let s = r.status().as_u16();
+    (s, r.json().unwrap_or(Value::Null))
+}
+
+fn get_json(c: &Client, url: &str) -> Value {
+    let r = c.get(url).send().expect("GET");
+    assert!(r.status().is_success(), "GET {url}: {}", r.status());
+    r.json().expect("JSON")
+}
+
+/// The settings of the test jobs: a small Cornell box, BDPT with optimal MIS, several passes.
+fn settings(spp: u32) -> Value {
+    json!({
+        "resolution": [40, 32],
+        "spp": spp,
+        "pass_size": 4,
+        "tile_size": 16,
+        "integrator": "bdpt",
+        "mis": "optimal",
+        "max_depth": 4,
+        "seed": 7,
+    })
+}
+
+fn submit(c: &Client, url: &str, spp: u32) -> String {
+    let (s, v) = post(
+        c,
+        &format!("{url}/v1/jobs"),
+        &json!({ "scene": { "library": "cornell-box" }, "settings": settings(spp) }),
+    );
+    assert_eq!(s, 201, "{v}");
+    v["id"].as_str().expect("id").to_string()
+}
+
+fn wait_state(c: &Client, url: &str, id: &str, pred: impl Fn(&Value) -> bool) -> Value {
+    let start = Instant::now();
+    loop {
+        let st = get_json(c, &format!("{url}/v1/jobs/{id}"));
+        if pred(&st) {
+            return st;
+        }
+        assert!(
+            !matches!(st["state"].as_str(), Some("failed" | "cancelled")),
+            "job ended: {st}"
+        );
+        assert!(start.elapsed() < WAIT, "timed out; last status {st}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn download_exr(c: &Client, url: &str, id: &str, dir: &Path) -> Image {
+    let r = c
+        .get(format!("{url}/v1/jobs/{id}/image.exr"))
+        .send()
+        .expect("GET image.exr");
+    assert!(r.status().is_success(), "{}", r.status());
+    let p = dir.join(format!("{id}.exr"));
+    std::fs::write(&p, r.bytes().expect("bytes")).expect("write");
+    exr_io::read_exr(&p).expect("the EXR opens")
+}
+
+/// The same job rendered in this process.
+fn in_process(spp: u32) -> Image {
+    let mut s: JobSettings = serde_json::from_value(settings(spp)).expect("settings");
+    s.spp = Some(spp);
+    let mut scene = Scene::load(&repo().join("scenes/cornell-box.json")).expect("scene");
+    let r = s.resolve(&mut scene, &Limits::default()).expect("resolve");
+    r.render_in_process(&scene, &|_| {}).0.image()
+}
+
+fn assert_equal(a: &Image, b: &Image) {
+    assert_eq!((a.width, a.height), (b.width, b.height));
+    let mut worst = 0.0f64;
+    for (p, q) in a.pixels.iter().zip(&b.pixels) {
+        for c in 0..3 {
+            let (x, y) = (p[c] as f64, q[c] as f64);
+            let rel = (x - y).abs() / x.abs().max(y.abs()).max(1e-30);
+            if x != y {
+                worst = worst.max(rel);
+            }
+        }
+    }
+    assert!(worst <= 1e-6, "max relative difference {worst:e}");
+    let mean = a.mean();
+    assert!(mean[0] > 0.01, "the image is not black: {mean:?}");
+}
+
+/// Reads SSE events (kind, data) from a job's stream until a final one.
+fn follow_sse(c: &Client, url: &str, id: &str) -> Vec<(String, Value)> {
+    let mut r = c
+        .get(format!("{url}/v1/jobs/{id}/events"))
+        .timeout(WAIT)
+        .send()
+        .expect("GET events");
+    assert_eq!(
+        r.headers()
+            .get("content-type")
+            .and_then(|v| v.to_str().ok()),
+        Some("text/event-stream")
+    );
+    let mut text = String::new();
+    let mut events = Vec::new();
+    let mut buf = [0u8; 8192];
+    let start = Instant::now();
+    loop {
+        let n = r.read(&mut buf).expect("read SSE");
+        if n == 0 {
+            break;
+        }
+        text.push_str(&String::from_utf8_lossy(&buf[..n]));
+        while let Some(end) = text.find("\n\n") {
+            let block: String = text.drain(..end + 2).collect();
+            let mut kind = String::new();
+            let mut data = Value::Null;
+            for line in block.lines() {
+                if let Some(k) = line.strip_prefix("event:") {
+                    kind = k.trim().to_string();
+                } else if let Some(d) = line.strip_prefix("data:") {
+                    data = serde_json::from_str(d.trim()).unwrap_or(Value::Null);
+                }
+            }
+            if !kind.is_empty() {
+                events.push((kind, data));
+            }
+        }
+        if events
+            .last()
+            .is_some_and(|(k, _)| matches!(k.as_str(), "done" | "failed" | "cancelled"))
+        {
+            break;
+        }
+        assert!(start.elapsed() < WAIT, "SSE stream did not end");
+    }
+    events
+}
+
+#[test]
+fn http_job_with_two_workers_follows_sse_and_equals_the_in_process_render() {
+    let dir = folder("basic");
+    let (_server, url) = serve(&dir.join("data"), &[]);
+    let _w1 = worker(&url, "w1", &[]);
+    let _w2 = worker(&url, "w2", &[]);
+    let c = http();
+    let id = submit(&c, &url, 16);
+    let events = follow_sse(&c, &url, &id);
+    let kinds: Vec<&str> = events.iter().map(|(k, _)| k.as_str()).collect();
+    assert_eq!(kinds.first(), Some(&"queued"), "{kinds:?}");
+    assert_eq!(kinds.last(), Some(&"done"), "{kinds:?}");
+    let passes: Vec<u64> = events
+        .iter()
+        .filter(|(k, _)| k == "pass_done")
+        .map(|(_, d)| d["spp"].as_u64().expect("spp"))
+        .collect();
+    assert_eq!(passes, vec![4, 8, 12, 16]);
+    assert_eq!(kinds.iter().filter(|k| **k == "tile_done").count(), 4 * 6);
+    assert!(kinds.contains(&"preview"));
+    let st = get_json(&c, &format!("{url}/v1/jobs/{id}"));
+    assert_eq!(st["state"], "done");
+    assert_eq!(st["spp_done"], 16);
+    assert!(st["accum_bytes"].as_i64().unwrap_or(0) > 0);
+    let workers = get_json(&c, &format!("{url}/v1/workers"));
+    assert_eq!(workers["workers"].as_array().map(|w| w.len()), Some(2));
+    let img = download_exr(&c, &url, &id, &dir);
+    assert_equal(&img, &in_process(16));
+    // The preview is a PNG; the convergence plot an SVG; no reference, so no error map.
+    let png = c
+        .get(format!("{url}/v1/jobs/{id}/preview.png"))
+        .send()
+        .expect("preview");
+    assert_eq!(&png.bytes().expect("bytes")[..4], b"\x89PNG");
+    let svg = c
+        .get(format!("{url}/v1/jobs/{id}/convergence.svg"))
+        .send()
+        .expect("svg");
+    assert!(svg.text().expect("text").contains("<svg"));
+    let e = c
+        .get(format!("{url}/v1/jobs/{id}/error.png"))
+        .send()
+        .expect("error map");
+    assert_eq!(e.status().as_u16(), 404);
+    let metrics = c
+        .get(format!("{url}/metrics"))
+        .send()
+        .expect("metrics")
+        .text()
+        .expect("text");
+    assert!(metrics.contains("omis_jobs{state=\"done\"} 1"), "{metrics}");
+    assert!(metrics.contains("omis_passes_merged_total 4"), "{metrics}");
+}
+
+#[test]
+fn killing_a_worker_mid_job_loses_nothing() {
+    let dir = folder("killworker");
+    let (_server, url) = serve(&dir.join("data"), &["--lease-seconds", "1"]);
+    let mut w1 = worker(&url, "w1", &[]);
+    let _w2 = worker(&url, "w2", &[]);
+    let c = http();
+    let id = submit(&c, &url, 64);
+    let st = wait_state(&c, &url, &id, |s| {
+        s["tiles_done"].as_u64().unwrap_or(0) >= 2
+    });
+    w1.kill9();
+    assert_ne!(st["state"], "done", "the job ended before the kill");
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 64);
+    assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(64));
+}
+
+#[test]
+fn killing_the_coordinator_mid_job_resumes_without_losing_a_pass() {
+    let dir = folder("killserver");
+    let data = dir.join("data");
+    let (mut server, url) = serve(&data, &["--workers", "2", "--lease-seconds", "1"]);
+    let c = http();
+    let id = submit(&c, &url, 64);
+    let before = wait_state(&c, &url, &id, |s| {
+        s["passes_done"].as_u64().unwrap_or(0) >= 2
+    });
+    server.kill9();
+    let passes_before = before["passes_done"].as_u64().expect("passes");
+    assert!(passes_before < 16, "the job ended before the kill");
+    // The local workers follow their coordinator.
+    std::thread::sleep(Duration::from_millis(1500));
+    let (_server2, url2) = serve(&data, &["--workers", "2", "--lease-seconds", "1"]);
+    let after = get_json(&c, &format!("{url2}/v1/jobs/{id}"));
+    assert!(
+        after["passes_done"].as_u64().expect("passes") >= passes_before,
+        "a finished pass was lost: {after}"
+    );
+    let st = wait_state(&c, &url2, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 64);
+    assert_equal(&download_exr(&c, &url2, &id, &dir), &in_process(64));
+}
+
+/// A tile result as a worker would upload it, rendered with `seed`.
+fn tile_result(task: &Value, seed: u64) -> Vec<u8> {
+    let mut s: JobSettings = serde_json::from_value(settings(64)).expect("settings");
+    s.seed = seed;
+    let mut scene = Scene::load(&repo().join("scenes/cornell-box.json")).expect("scene");
+    let r = s.resolve(&mut scene, &Limits::default()).expect("resolve");
+    let rect: omis::integrator::Tile = serde_json::from_value(task["rect"].clone()).expect("rect");
+    let range = task["samples"][0].as_u64().expect("s0") as u32
+        ..task["samples"][1].as_u64().expect("s1") as u32;
+    omis::integrator::render_tile(&scene, &r.render, rect, range.clone()).encode(range)
+}
+
+fn register(c: &Client, url: &str, name: &str) -> String {
+    let (s, v) = post(
+        c,
+        &format!("{url}/v1/worker/register"),
+        &json!({ "name": name, "threads": 1 }),
+    );
+    assert_eq!(s, 200, "{v}");
+    v["worker_id"].as_str().expect("id").to_string()
+}
+
+fn lease(c: &Client, url: &str, worker: &str) -> Value {
+    let (s, v) = post(
+        c,
+        &format!("{url}/v1/worker/lease"),
+        &json!({ "worker_id": worker, "wait_s": 5 }),
+    );
+    assert_eq!(s, 200, "{v}");
+    v
+}
+
+fn upload(c: &Client, url: &str, task: &Value, worker: &str, body: Vec<u8>) -> u16 {
+    c.put(format!(
+        "{url}/v1/worker/tasks/{}/result",
+        task["task"]["id"]
+    ))
+    .query(&[
+        ("worker_id", worker.to_string()),
+        ("attempt", task["task"]["attempt"].to_string()),
+    ])
+    .body(body)
+    .send()
+    .expect("PUT result")
+    .status()
+    .as_u16()
+}
+
+#[test]
+fn a_late_result_of_an_expired_lease_is_refused_and_changes_nothing() {
+    let dir = folder("late");
+    let (_server, url) = serve(&dir.join("data"), &["--lease-seconds", "1"]);
+    let c = http();
+    let id = submit(&c, &url, 64);
+    let a = register(&c, &url, "slow");
+    let first = lease(&c, &url, &a);
+    // Silent past its lease: the task goes back to the queue and to the next worker.
+    std::thread::sleep(Duration::from_millis(2500));
+    let b = register(&c, &url, "fast");
+    let second = lease(&c, &url, &b);
+    assert_eq!(first["task"]["id"], second["task"]["id"]);
+    assert_eq!(second["task"]["attempt"], 2);
+    // The late result (wrong seed, so it would show) is refused, and so is a non-owner's.
+    let wrong = tile_result(&first["task"], 99);
+    assert_eq!(upload(&c, &url, &first, &a, wrong.clone()), 409);
+    assert_eq!(upload(&c, &url, &second, &a, wrong), 409);
+    // A result for another tile is refused as invalid.
+    let mut other = second["task"].clone();
+    other["rect"] = json!({ "x0": 16, "y0": 0, "x1": 32, "y1": 16 });
+    assert_eq!(upload(&c, &url, &second, &b, tile_result(&other, 7)), 400);
+    // After the invalid upload the task is back in the queue; the workers finish the job.
+    let _w = worker(&url, "w", &[]);
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 64);
+    assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(64));
+}
+
+#[test]
+fn a_task_that_fails_three_times_fails_the_job_with_the_workers_error() {
+    let dir = folder("fail");
+    let (_server, url) = serve(&dir.join("data"), &[]);
+    let c = http();
+    let id = submit(&c, &url, 8);
+    for k in 0..3 {
+        let w = register(&c, &url, &format!("bad{k}"));
+        let t = lease(&c, &url, &w);
+        let (s, v) = post(
+            &c,
+            &format!("{url}/v1/worker/tasks/{}/fail", t["task"]["id"]),
+            &json!({ "worker_id": w, "attempt": t["task"]["attempt"], "error": "out of memory" }),
+        );
+        assert_eq!(s, 200, "{v}");
+    }
+    let st = get_json(&c, &format!("{url}/v1/jobs/{id}"));
+    assert_eq!(st["state"], "failed");
+    assert!(
+        st["error"].as_str().unwrap_or("").contains("out of memory"),
+        "{st}"
+    );
+}
+
+#[test]
+fn bad_inputs_get_4xx_naming_the_problem_and_the_server_keeps_serving() {
+    let dir = folder("bad");
+    let (_server, url) = serve(
+        &dir.join("data"),
+        &[
+            "--token",
+            "client-secret",
+            "--worker-token",
+            "worker-secret",
+        ],
+    );
+    let c = http();
+    let auth = |r: reqwest::blocking::RequestBuilder| r.bearer_auth("client-secret");
+    // A good job first: it must survive everything below.
+    let good = auth(c.post(format!("{url}/v1/jobs")))
+        .json(&json!({ "scene": { "library": "cornell-box" }, "settings": settings(8) }))
+        .send()
+        .expect("POST");
+    assert_eq!(good.status().as_u16(), 201);
+    let good: Value = good.json().expect("JSON");
+    let id = good["id"].as_str().expect("id").to_string();
+
+    let send = |body: &str| -> (u16, Value) {
+        let r = auth(c.post(format!("{url}/v1/jobs")))
+            .header("content-type", "application/json")
+            .body(body.to_string())
+            .send()
+            .expect("POST");
+        (r.status().as_u16(), r.json().unwrap_or(Value::Null))
+    };
+    let job = |settings: Value| {
+        json!({ "scene": { "library": "cornell-box" }, "settings": settings }).to_string()
+    };
+    let cases: Vec<(String, u16, &str, &str)> = vec![
+        ("{\"scene\": ".to_string(), 400, "body", "JSON"),
+        (
+            job(json!({ "spq": 4 })),
+            422,
+            "settings.spq",
+            "unknown field",
+        ),
+        (
+            job(json!({ "resolution": [0, 4] })),
+            422,
+            "settings.resolution",
+            "0x4",
+        ),
+        (
+            job(json!({ "resolution": [100000, 4] })),
+            422,
+            "settings.resolution",
+            "100000",
+        ),
+        (job(json!({ "spp": -1 })), 422, "settings.spp", "-1"),
+        (
+            json!({ "scene": { "library": "../../etc/passwd" } }).to_string(),
+            400,
+            "scene.library",
+            "not a scene name",
+        ),
+        (
+            json!({ "scene": { "library": "no-such-scene" } }).to_string(),
+            400,
+            "scene.library",
+            "no scene",
+        ),
+        (
+            json!({ "scene": { "library": "cornell-box" }, "reference": { "upload": "nope" } })
+                .to_string(),
+            400,
+            "reference.upload",
+            "reference",
+        ),
+    ];
+    for (body, status, field, needle) in &cases {
+        let (s, v) = send(body);
+        assert_eq!(s, *status, "{body} -> {v}");
+        assert_eq!(v["field"].as_str(), Some(*field), "{body} -> {v}");
+        assert!(
+            v["error"].as_str().unwrap_or("").contains(needle),
+            "{body} -> {v} should mention {needle}"
+        );
+    }
+    // A reference that is not an EXR.
+    let r = auth(c.post(format!("{url}/v1/references")))
+        .body("P6 not an exr")
+        .send()
+        .expect("POST");
+    assert_eq!(r.status().as_u16(), 400);
+    let v: Value = r.json().expect("JSON");
+    assert!(v["error"].as_str().unwrap_or("").contains("OpenEXR"), "{v}");
+    // Missing and wrong tokens, for clients and for workers.
+    let r = c.get(format!("{url}/v1/jobs")).send().expect("GET");
+    assert_eq!(r.status().as_u16(), 401);
+    let v: Value = r.json().expect("JSON");
+    assert_eq!(v["field"], "Authorization");
+    let r = c
+        .post(format!("{url}/v1/worker/register"))
+        .bearer_auth("client-secret")
+        .json(&json!({ "name": "x", "threads": 1 }))
+        .send()
+        .expect("POST");
+    assert_eq!(r.status().as_u16(), 401);
+    // An unknown job, a wrong method, a result upload without its query: JSON errors too.
+    let r = auth(c.get(format!("{url}/v1/jobs/nope")))
+        .send()
+        .expect("GET");
+    assert_eq!(r.status().as_u16(), 404);
+    let r = auth(c.delete(format!("{url}/v1/jobs")))
+        .send()
+        .expect("DELETE");
+    assert_eq!(r.status().as_u16(), 405);
+    let v: Value = r.json().expect("JSON");
+    assert_eq!(v["field"], "method");
+    let r = c
+        .put(format!("{url}/v1/worker/tasks/1/result"))
+        .bearer_auth("worker-secret")
+        .body("x")
+        .send()
+        .expect("PUT");
+    assert_eq!(r.status().as_u16(), 400);
+    let v: Value = r.json().expect("JSON");
+    assert_eq!(v["field"], "query", "{v}");
+    // The server still serves, and the good job is intact and can finish.
+    let ok = c.get(format!("{url}/healthz")).send().expect("healthz");
+    assert!(ok.status().is_success());
+    let _w = worker(&url, "w", &["--token", "worker-secret"]);
+    let start = Instant::now();
+    loop {
+        let st: Value = auth(c.get(format!("{url}/v1/jobs/{id}")))
+            .send()
+            .expect("GET")
+            .json()
+            .expect("JSON");
+        if st["state"] == "done" {
+            break;
+        }
+        assert!(start.elapsed() < WAIT, "{st}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn a_non_loopback_bind_without_tokens_is_refused() {
+    let dir = folder("bind");
+    let out = Command::new(EXE)
+        .args(["serve", "--bind", "0.0.0.0:0", "--data"])
+        .arg(dir.join("data"))
+        .env_remove("OMIS_TOKEN")
+        .env_remove("OMIS_WORKER_TOKEN")
+        .output()
+        .expect("run");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("refusing to serve"), "{err}");
+}
+
+/// (method, path) pairs of proto/openapi.yaml's `paths` (2-space YAML indentation).
+fn openapi_routes() -> std::collections::BTreeSet<(String, String)> {
+    let text = std::fs::read_to_string(repo().join("proto/openapi.yaml")).expect("openapi.yaml");
+    let mut set = std::collections::BTreeSet::new();
+    let mut in_paths = false;
+    let mut path = String::new();
+    for line in text.lines() {
+        if !line.starts_with(' ') && !line.trim().is_empty() {
+            in_paths = line.trim_end() == "paths:";
+            continue;
+        }
+        if !in_paths {
+            continue;
+        }
+        let indent = line.len() - line.trim_start().len();
+        let key = line.trim().trim_end_matches(':');
+        if indent == 2 && key.starts_with('/') {
+            path = key.trim_matches(|c| c == '"' || c == '\'').to_string();
+        } else if indent == 4 && ["get", "post", "put", "delete", "patch"].contains(&key) {
+            set.insert((key.to_string(), path.clone()));
+        }
+    }
+    set
+}
+
+#[test]
+fn the_router_and_the_openapi_contract_have_the_same_routes() {
+    let served: std::collections::BTreeSet<(String, String)> = omis::service::api::ROUTES
+        .iter()
+        .map(|(m, p)| (m.to_string(), p.to_string()))
+        .collect();
+    assert_eq!(openapi_routes(), served);
+    // Every listed route is really served (the fallback answers 404 with field "path").
+    let dir = folder("routes");
+    let (_server, url) = serve(&dir.join("data"), &[]);
+    let c = http();
+    for (m, p) in omis::service::api::ROUTES {
+        let u = format!("{url}{}", p.replace("{id}", "0"));
+        let r = match *m {
+            "get" => c.get(&u),
+            "post" => c.post(&u),
+            "put" => c.put(&u),
+            _ => unreachable!(),
+        }
+        .timeout(Duration::from_secs(10))
+        .send();
+        let Ok(r) = r else { continue };
+        let v: Value = r.json().unwrap_or(Value::Null);
+        assert_ne!(v["field"], "path", "{m} {p} is not served");
+    }
+    // And a path outside the list is not.
+    let v: Value = c
+        .get(format!("{url}/v1/nothing"))
+        .send()
+        .expect("GET")
+        .json()
+        .expect("JSON");
+    assert_eq!(v["field"], "path");
+}
+
+#[test]
+fn a_checkpoint_round_trips() {
+    use omis::integrator::wire::Checkpoint;
+    let mut s: JobSettings = serde_json::from_value(settings(8)).expect("settings");
+    s.depth_layers = true;
+    let mut scene = Scene::load(&repo().join("scenes/cornell-box.json")).expect("scene");
+    let r = s.resolve(&mut scene, &Limits::default()).expect("resolve");
+    let (out, _) = r.render_in_process(&scene, &|_| {});
+    let ck = Checkpoint {
+        frame: out.frame,
+        passes: 2,
+        stats: out.stats,
+    };
+    let bytes = ck.encode();
+    let back = Checkpoint::decode(&bytes, r.width, r.height, &r.render).expect("decode");
+    assert_eq!(back.passes, 2);
+    assert_eq!(back.stats, ck.stats);
+    assert_eq!(back.frame.image(), ck.frame.image());
+    assert_eq!(back.frame.depth_images(), ck.frame.depth_images());
+    assert!(Checkpoint::decode(&bytes[..bytes.len() - 1], r.width, r.height, &r.render).is_err());
+    assert!(Checkpoint::decode(&bytes, r.width + 1, r.height, &r.render).is_err());
+}
