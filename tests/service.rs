@@ -683,3 +683,198 @@ fn a_checkpoint_round_trips() {
     assert!(Checkpoint::decode(&bytes[..bytes.len() - 1], r.width, r.height, &r.render).is_err());
     assert!(Checkpoint::decode(&bytes, r.width + 1, r.height, &r.render).is_err());
 }
+
+/// Pids of the children of `pid` (of any of its threads).
+fn children(pid: u32) -> Vec<u32> {
+    let Ok(tasks) = std::fs::read_dir(format!("/proc/{pid}/task")) else {
+        return Vec::new();
+    };
+    tasks
+        .filter_map(|t| t.ok())
+        .flat_map(|t| {
+            std::fs::read_to_string(t.path().join("children"))
+                .unwrap_or_default()
+                .split_whitespace()
+                .filter_map(|s| s.parse().ok())
+                .collect::<Vec<u32>>()
+        })
+        .collect()
+}
+
+#[test]
+fn a_local_pool_restarts_a_worker_that_dies_and_workers_drain_on_sigterm() {
+    let dir = folder("pool");
+    let (server, url) = serve(
+        &dir.join("data"),
+        &["--workers", "1", "--lease-seconds", "1"],
+    );
+    let c = http();
+    // Wait for the pool's worker, kill it, and see it replaced.
+    let start = Instant::now();
+    let first = loop {
+        if let Some(&p) = children(server.0.id()).first() {
+            break p;
+        }
+        assert!(start.elapsed() < WAIT, "no local worker started");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    // SAFETY: kill(2) on a pid we just read as our child's child.
+    unsafe {
+        libc::kill(first as libc::pid_t, libc::SIGKILL);
+    }
+    let start = Instant::now();
+    loop {
+        let m = c
+            .get(format!("{url}/metrics"))
+            .send()
+            .expect("metrics")
+            .text()
+            .expect("text");
+        if m.contains("omis_worker_restarts_total 1") && !children(server.0.id()).is_empty() {
+            break;
+        }
+        assert!(start.elapsed() < WAIT, "the worker was not restarted: {m}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    // A job still completes with the restarted worker and an extra one that is told to drain.
+    let mut extra = worker(&url, "drainer", &[]);
+    let id = submit(&c, &url, 16);
+    wait_state(&c, &url, &id, |s| {
+        s["tiles_done"].as_u64().unwrap_or(0) >= 1
+    });
+    // SAFETY: kill(2) on our own child.
+    unsafe {
+        libc::kill(extra.0.id() as libc::pid_t, libc::SIGTERM);
+    }
+    let start = Instant::now();
+    let status = loop {
+        if let Some(s) = extra.0.try_wait().expect("wait") {
+            break s;
+        }
+        assert!(start.elapsed() < WAIT, "the worker did not drain");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(status.success(), "a drained worker exits 0: {status}");
+    let workers = get_json(&c, &format!("{url}/v1/workers"));
+    let drainer = workers["workers"]
+        .as_array()
+        .and_then(|w| w.iter().find(|w| w["name"] == "drainer").cloned())
+        .expect("drainer listed");
+    assert_eq!(drainer["state"], "left");
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 16);
+    assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(16));
+}
+
+#[test]
+fn cli_clients_submit_wait_download_status_and_cancel() {
+    let dir = folder("clients");
+    let (_server, url) = serve(&dir.join("data"), &[]);
+    let _w = worker(&url, "w", &[]);
+    let omis = |args: &[&str]| {
+        Command::new(EXE)
+            .args(args)
+            .args(["--server", &url])
+            .env("OMIS_LOG", "warn")
+            .output()
+            .expect("run omis")
+    };
+    let exr = dir.join("first.exr");
+    let s = |p: &Path| p.to_str().expect("utf-8").to_string();
+    // The first job, from the library, becomes the reference of the second.
+    let out = omis(&[
+        "submit",
+        "cornell-box",
+        "--resolution",
+        "40x32",
+        "--spp",
+        "8",
+        "--pass-size",
+        "4",
+        "--integrator",
+        "bdpt",
+        "--wait",
+        "--out",
+        &s(&exr),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let st: Value = serde_json::from_str(
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .last()
+            .expect("a line"),
+    )
+    .expect("JSON status");
+    assert_eq!(st["state"], "done");
+    exr_io::read_exr(&exr).expect("the downloaded EXR opens");
+    // The second job, a scene file uploaded as a bundle, with the first as reference.
+    let scene = repo().join("scenes/cornell-box.json");
+    let out = omis(&[
+        "submit",
+        &s(&scene),
+        "--resolution",
+        "40x32",
+        "--spp",
+        "8",
+        "--pass-size",
+        "4",
+        "--integrator",
+        "bdpt",
+        "--seed",
+        "3",
+        "--reference",
+        &s(&exr),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let id = String::from_utf8_lossy(&out.stdout).trim().to_string();
+    let c = http();
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    let series = st["series"].as_array().expect("series");
+    assert_eq!(series.len(), 2);
+    let relmse = series[1]["relmse"].as_f64().expect("relMSE per pass");
+    assert!(relmse > 0.0 && relmse < 1.0, "{relmse}");
+    let out = omis(&["status", &id]);
+    assert!(out.status.success());
+    let v: Value = serde_json::from_slice(&out.stdout).expect("status JSON");
+    assert_eq!(v["id"], id.as_str());
+    let png = dir.join("error.png");
+    let out = omis(&["download", &id, "--file", "error.png", "--out", &s(&png)]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(&std::fs::read(&png).expect("png")[..4], b"\x89PNG");
+    // Cancelling an ended job is a one-line error naming the state.
+    let out = omis(&["cancel", &id]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert!(
+        err.contains("409") && err.contains("already ended"),
+        "{err}"
+    );
+    // A queued job can be cancelled.
+    let out = omis(&["submit", "cornell-box", "--spp", "60000"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let id = String::from_utf8_lossy(&out.stdout).trim().to_string();
+    let out = omis(&["cancel", &id]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "cancelled");
+}

@@ -1,6 +1,7 @@
 //! The `omis` command line: one binary, clap subcommands.
 
 mod bench;
+mod bench_service;
 mod client;
 mod compare;
 mod diff;
@@ -42,6 +43,9 @@ enum Command {
     Diff(diff::DiffArgs),
     /// Measure BVH build time, ray rates and integrator throughput.
     Bench(bench::BenchArgs),
+    /// Measure the render service: throughput with 1, 2, ... worker processes vs in-process,
+    /// bytes shipped per sample, coordinator memory, pass latency.
+    BenchService(bench_service::BenchServiceArgs),
     /// Compare MIS strategies at equal spp (and equal time) against a reference: table and plots.
     Compare(compare::CompareArgs),
 }
@@ -66,6 +70,7 @@ pub fn main() -> i32 {
         Command::Cancel(a) => service_cmds::cancel(a),
         Command::Diff(a) => diff::run(a),
         Command::Bench(a) => bench::run(a),
+        Command::BenchService(a) => bench_service::run(a),
         Command::Compare(a) => compare::run(a),
     };
     match result {

@@ -1,0 +1,180 @@
+//! `omis bench-service`: the render service measured against the in-process render of the same
+//! job: wall time and throughput with 1, 2, ... local worker processes, bytes shipped per pixel
+//! sample, coordinator memory per megapixel, pass latency (last tile of a pass in, pass merged
+//! and solved), and whether the images are equal.
+
+use super::client::Client;
+use super::job_args::JobArgs;
+use super::service_cmds::{runtime, submit_job};
+use crate::film::exr_io;
+use crate::job::Limits;
+use crate::scene::Scene;
+use crate::service;
+use anyhow::{Result, bail};
+use clap::Args;
+use serde_json::json;
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Args)]
+pub struct BenchServiceArgs {
+    /// Scene file.
+    pub scene: PathBuf,
+    #[command(flatten)]
+    pub job: JobArgs,
+    /// Worker process counts to measure, e.g. 1,2,4.
+    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    pub workers: Vec<usize>,
+    /// Print one JSON object per line instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// (VmRSS, VmHWM) of this process in bytes.
+fn memory() -> (u64, u64) {
+    let text = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let get = |key: &str| {
+        text.lines()
+            .find(|l| l.starts_with(key))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|v| v.parse::<u64>().ok())
+            .map_or(0, |kb| kb * 1024)
+    };
+    (get("VmRSS:"), get("VmHWM:"))
+}
+
+pub fn run(a: BenchServiceArgs) -> Result<()> {
+    if a.workers.is_empty() || a.workers.contains(&0) {
+        bail!("--workers needs counts >= 1");
+    }
+    let settings = a.job.settings()?;
+    let mut scene = Scene::load(&a.scene).map_err(anyhow::Error::msg)?;
+    let r = settings
+        .resolve(&mut scene, &Limits::default())
+        .map_err(|e| anyhow::anyhow!("--{}: {}", e.field.replace('_', "-"), e.message))?;
+    let (tar, main) =
+        service::bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
+    let megapixels = (r.width as f64 * r.height as f64) / 1e6;
+    let tmp = std::env::temp_dir().join(format!("omis-bench-service-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp)?;
+    let mut rows = Vec::new();
+    let mut images = Vec::new();
+    for &n in &a.workers {
+        let data = tmp.join(format!("data-{n}"));
+        let out = tmp.join(format!("svc-{n}.exr"));
+        // Reset the peak RSS (Linux: "5" to clear_refs), so the peak is this run's.
+        let _ = std::fs::write("/proc/self/clear_refs", "5");
+        let (rss0, _) = memory();
+        let (row, passes) = runtime()?.block_on(async {
+            let mut cfg = service::Config::new("127.0.0.1:0".parse()?, data.clone());
+            cfg.workers = n;
+            cfg.worker_log = Some("warn".into());
+            let running = service::start(cfg).await?;
+            // Let the workers start and register before the clock starts.
+            let c = Client::new(&running.url, None)?;
+            for _ in 0..100 {
+                let v: serde_json::Value = reqwest::get(format!("{}/v1/workers", running.url))
+                    .await?
+                    .json()
+                    .await?;
+                if v["workers"].as_array().map_or(0, |w| w.len()) >= n {
+                    break;
+                }
+                tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+            }
+            let t0 = Instant::now();
+            let scene = json!({ "bundle": c.upload_bundle(tar.clone(), main.clone()).await? });
+            let st = submit_job(&c, scene, &a.job, None, None).await?;
+            let id = st["id"].as_str().unwrap_or_default().to_string();
+            let mut last_tile = Instant::now();
+            let mut latencies = Vec::new();
+            let state = c
+                .follow(&id, |e| match e.kind.as_str() {
+                    "tile_done" => last_tile = Instant::now(),
+                    "pass_done" => latencies.push(last_tile.elapsed().as_secs_f64()),
+                    _ => {}
+                })
+                .await?;
+            let seconds = t0.elapsed().as_secs_f64();
+            if state != "done" {
+                bail!("the job {state}");
+            }
+            let st = c.status(&id).await?;
+            c.download(&id, "image.exr", &out).await?;
+            running.stop().await;
+            Ok::<_, anyhow::Error>(((st, seconds), latencies))
+        })?;
+        let (_, hwm) = memory();
+        let (st, seconds) = row;
+        let samples = st["samples"].as_f64().unwrap_or(0.0);
+        let bytes = st["result_bytes"].as_f64().unwrap_or(0.0);
+        let mean_latency = passes.iter().sum::<f64>() / passes.len().max(1) as f64;
+        images.push(exr_io::read_exr(&out).map_err(anyhow::Error::msg)?);
+        rows.push(json!({
+            "mode": format!("{n} workers"),
+            "workers": n,
+            "seconds": seconds,
+            "pixel_samples_per_second": samples / seconds,
+            "bytes_per_pixel_sample": bytes / samples.max(1.0),
+            "result_bytes": bytes,
+            "coordinator_peak_bytes_per_megapixel": hwm.saturating_sub(rss0) as f64 / megapixels,
+            "pass_latency_s": mean_latency,
+            "passes": passes.len(),
+        }));
+        let _ = std::fs::remove_dir_all(&data);
+    }
+    // The in-process render of the same job, on as many threads as the largest pool.
+    let threads = *a.workers.iter().max().unwrap_or(&1);
+    let pool = super::thread_pool(threads)?;
+    let t0 = Instant::now();
+    let (output, _) = pool.install(|| r.render_in_process(&scene, &|_| {}));
+    let seconds = t0.elapsed().as_secs_f64();
+    let reference = output.image();
+    rows.push(json!({
+        "mode": format!("in-process, {threads} threads"),
+        "workers": 0,
+        "seconds": seconds,
+        "pixel_samples_per_second": output.stats.samples as f64 / seconds,
+    }));
+    for (k, img) in images.iter().enumerate() {
+        let equal = img.pixels == reference.pixels;
+        rows[k]["equal_to_in_process"] = json!(equal);
+    }
+    let _ = std::fs::remove_dir_all(&tmp);
+    if a.json {
+        for r in &rows {
+            println!("{r}");
+        }
+        return Ok(());
+    }
+    println!(
+        "{}: {}x{}, {} spp, tiles {}, pass {} spp",
+        a.scene.display(),
+        r.width,
+        r.height,
+        r.spp.unwrap_or(0),
+        r.tile_size,
+        r.pass_size
+    );
+    println!(
+        "{:<22} {:>9} {:>14} {:>12} {:>14} {:>10} {:>6}",
+        "mode", "seconds", "samples/s", "B/sample", "coord MB/Mpx", "pass lat", "equal"
+    );
+    for row in &rows {
+        let f = |k: &str| row[k].as_f64();
+        println!(
+            "{:<22} {:>9.3} {:>14.0} {:>12} {:>14} {:>10} {:>6}",
+            row["mode"].as_str().unwrap_or(""),
+            f("seconds").unwrap_or(0.0),
+            f("pixel_samples_per_second").unwrap_or(0.0),
+            f("bytes_per_pixel_sample").map_or("-".into(), |v| format!("{v:.1}")),
+            f("coordinator_peak_bytes_per_megapixel")
+                .map_or("-".into(), |v| format!("{:.1}", v / 1e6)),
+            f("pass_latency_s").map_or("-".into(), |v| format!("{:.3} s", v)),
+            row["equal_to_in_process"]
+                .as_bool()
+                .map_or("-".into(), |b| b.to_string()),
+        );
+    }
+    Ok(())
+}
