@@ -878,3 +878,65 @@ fn cli_clients_submit_wait_download_status_and_cancel() {
     );
     assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "cancelled");
 }
+
+#[test]
+fn a_time_budget_job_renders_passes_until_its_time_is_up() {
+    let dir = folder("budget");
+    let (_server, url) = serve(&dir.join("data"), &[]);
+    let _w = worker(&url, "w", &[]);
+    let c = http();
+    let (s, v) = post(
+        &c,
+        &format!("{url}/v1/jobs"),
+        &json!({
+            "scene": { "library": "cornell-box" },
+            "settings": { "resolution": [40, 32], "time_budget_s": 1.0, "pass_size": 4 },
+        }),
+    );
+    assert_eq!(s, 201, "{v}");
+    assert_eq!(v["spp_target"], Value::Null);
+    let id = v["id"].as_str().expect("id").to_string();
+    let start = Instant::now();
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    let spp = st["spp_done"].as_u64().expect("spp");
+    assert!(spp >= 8 && spp % 4 == 0, "{st}");
+    assert!(
+        start.elapsed() >= Duration::from_millis(900),
+        "ended early: {st}"
+    );
+    assert_eq!(
+        st["series"].as_array().map(|a| a.len() as u64),
+        Some(spp / 4)
+    );
+    // The in-process render honours a time budget too.
+    let exr = dir.join("budget.exr");
+    let out = Command::new(EXE)
+        .args(["render", "scenes/cornell-box.json", "--in-process"])
+        .args([
+            "--resolution",
+            "40x32",
+            "--time-budget",
+            "0.3",
+            "--pass-size",
+            "2",
+        ])
+        .arg("--out")
+        .arg(&exr)
+        .arg("--json")
+        .current_dir(repo())
+        .output()
+        .expect("run");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let line = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .last()
+        .expect("summary")
+        .to_string();
+    let v: Value = serde_json::from_str(&line).expect("JSON");
+    let spp = v["spp"].as_u64().expect("spp");
+    assert!(spp >= 2 && spp % 2 == 0, "{v}");
+}

@@ -167,18 +167,23 @@ fn merge_pass(
     let t0 = Instant::now();
     let (w, h) = (rt.resolved.width, rt.resolved.height);
     let d_opt = rt.resolved.render.optimal_layout().map(|l| l.d_opt);
-    // Read and check every result before touching the accumulators.
-    let mut films = Vec::with_capacity(tasks.len());
+    // One result at a time (peak memory: the frame and one tile). A result that cannot be read
+    // drops the half-merged accumulators (the checkpoint on disk is intact) and is rendered again.
+    load_checkpoint(app, job, rt)?;
     for t in tasks {
         let path = app.paths.result(&job.id, pass, t.tile, t.attempt);
         let film = std::fs::read(&path)
             .map_err(|e| e.to_string())
             .and_then(|b| TileFilm::decode(&b, w, h, d_opt).map_err(|e| e.to_string()));
         match film {
-            Ok((f, _)) => films.push(f),
+            Ok((f, _)) => {
+                let ck = rt.checkpoint.as_mut().expect("loaded above");
+                ck.frame.merge_task(&f);
+                ck.stats.add(&f.stats);
+            }
             Err(e) => {
-                // A lost or damaged result file: render that task again.
                 tracing::error!("job {} pass {pass} tile {}: {e}; requeued", job.id, t.tile);
+                rt.checkpoint = None;
                 app.db()
                     .conn
                     .execute(
@@ -191,11 +196,7 @@ fn merge_pass(
             }
         }
     }
-    let ck = load_checkpoint(app, job, rt)?;
-    for f in &films {
-        ck.frame.merge_task(f);
-        ck.stats.add(&f.stats);
-    }
+    let ck = rt.checkpoint.as_mut().expect("loaded above");
     ck.passes = pass + 1;
     write_atomic(&app.paths.checkpoint(&job.id), &ck.encode())
         .map_err(|e| format!("cannot write the checkpoint: {e}"))?;
@@ -363,6 +364,12 @@ pub async fn recover(app: &Arc<App>) -> anyhow::Result<()> {
                 }
                 Ok(_) => {}
                 Err(e) => tracing::error!("job {}: {e}", job.id),
+            }
+        }
+        // Results of passes merged before the stop are no longer needed.
+        if let Some(job) = app.db().job(&job.id)? {
+            for p in 0..job.passes_done {
+                let _ = std::fs::remove_dir_all(app.paths.pass_dir(&job.id, p));
             }
         }
         tracing::info!("recovering job {} ({})", job.id, job.state);
