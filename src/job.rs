@@ -170,37 +170,24 @@ impl Resolved {
         let mut frame = integrator::Frame::new(self.width, self.height, &self.render);
         let mut stats = integrator::RayStats::default();
         let mut spp_done = 0;
-        match self.time_budget_s {
-            None => {
-                let tasks = integrator::pass_tasks(&tiles, self.render.spp, self.pass_size);
-                integrator::run_tasks(
-                    scene,
-                    &self.render,
-                    &tasks,
-                    &mut frame,
-                    &mut stats,
-                    progress,
-                );
-                spp_done = self.render.spp;
-            }
-            Some(budget) => {
-                let mut p = 0;
-                while let Some(range) = self.pass_range(p) {
-                    let tasks: Vec<_> = tiles.iter().map(|&t| (t, range.clone())).collect();
-                    integrator::run_tasks(
-                        scene,
-                        &self.render,
-                        &tasks,
-                        &mut frame,
-                        &mut stats,
-                        progress,
-                    );
-                    spp_done = range.end;
-                    p += 1;
-                    if start.elapsed().as_secs_f64() >= budget {
-                        break;
-                    }
-                }
+        let mut p = 0;
+        while let Some(range) = self.pass_range(p) {
+            let tasks: Vec<_> = tiles.iter().map(|&t| (t, range.clone())).collect();
+            integrator::run_tasks(
+                scene,
+                &self.render,
+                &tasks,
+                &mut frame,
+                &mut stats,
+                progress,
+            );
+            spp_done = range.end;
+            p += 1;
+            if self
+                .time_budget_s
+                .is_some_and(|b| start.elapsed().as_secs_f64() >= b)
+            {
+                break;
             }
         }
         (

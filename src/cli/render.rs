@@ -127,21 +127,18 @@ fn in_process(
     );
     let (output, spp) = pool.install(|| r.render_in_process(scene, &|n| bar.inc(n as u64)));
     bar.finish_and_clear();
-    let image = output.image();
-    let layers = output.frame.extra_layers(r.render.integrator);
-    let named: Vec<exr_io::NamedLayer> = layers
-        .iter()
-        .map(|(name, image)| exr_io::NamedLayer {
-            name: name.clone(),
-            image,
-        })
-        .collect();
     let scene_name = a
         .scene
         .file_name()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_default();
-    exr_io::write_exr(out, &image, &named, &r.exr_attributes(&scene_name, spp))
+    let image = output
+        .frame
+        .write_exr(
+            out,
+            r.render.integrator,
+            &r.exr_attributes(&scene_name, spp),
+        )
         .map_err(anyhow::Error::msg)?;
     if let Some(p) = &a.png {
         png::write_png(p, &image, 0.0).map_err(anyhow::Error::msg)?;

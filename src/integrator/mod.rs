@@ -709,6 +709,27 @@ impl Frame {
         layers
     }
 
+    /// Writes the EXR of the frame (beauty and `extra_layers`) with `attributes` in its header;
+    /// returns the beauty image.
+    pub fn write_exr(
+        &self,
+        path: &std::path::Path,
+        integrator: IntegratorKind,
+        attributes: &[(&str, String)],
+    ) -> Result<Image, String> {
+        let image = self.image();
+        let layers = self.extra_layers(integrator);
+        let named: Vec<crate::film::exr_io::NamedLayer> = layers
+            .iter()
+            .map(|(name, image)| crate::film::exr_io::NamedLayer {
+                name: name.clone(),
+                image,
+            })
+            .collect();
+        crate::film::exr_io::write_exr(path, &image, &named, attributes)?;
+        Ok(image)
+    }
+
     /// Adds out-of-tile light-tracing records (frame pixel indices).
     pub fn apply_records(&mut self, r: &LtRecords) {
         if let Some(o) = self.optimal.as_mut() {

@@ -48,6 +48,38 @@ impl W {
     }
 }
 
+impl W {
+    fn stats(&mut self, s: &RayStats) {
+        for v in [s.closest, s.shadow, s.samples, s.non_finite] {
+            self.u64(v);
+        }
+    }
+    /// A counted list of RGB f64 triples (strategy or depth layers).
+    fn rgb_list(&mut self, list: &[[f64; 3]]) {
+        self.u32(list.len() as u32);
+        for l in list {
+            for v in l {
+                self.f64(*v);
+            }
+        }
+    }
+    /// The optimal-MIS systems: d_opt (0 = none), the f64 values, the u32 hit counts.
+    fn optimal(&mut self, o: Option<&OptimalAccum>) {
+        match o {
+            None => self.u32(0),
+            Some(o) => {
+                self.u32(o.layout.d_opt);
+                for v in &o.data {
+                    self.f64(*v);
+                }
+                for v in &o.hits {
+                    self.u32(*v);
+                }
+            }
+        }
+    }
+}
+
 struct R<'a> {
     b: &'a [u8],
     at: usize,
@@ -88,6 +120,27 @@ impl R<'_> {
             self.take(8)?.try_into().expect("8 bytes"),
         ))
     }
+    fn stats(&mut self) -> Result<RayStats, WireError> {
+        Ok(RayStats {
+            closest: self.u64()?,
+            shadow: self.u64()?,
+            samples: self.u64()?,
+            non_finite: self.u64()?,
+        })
+    }
+    /// Fills `acc` (whose layout says how much) with the optimal-MIS values and hit counts.
+    fn optimal_into(&mut self, acc: &mut OptimalAccum) -> Result<(), WireError> {
+        if acc.data.len() * 8 + acc.hits.len() * 4 > self.b.len() - self.at {
+            return Err(WireError("optimal systems truncated".into()));
+        }
+        for v in acc.data.iter_mut() {
+            *v = self.f64()?;
+        }
+        for v in acc.hits.iter_mut() {
+            *v = self.u32()?;
+        }
+        Ok(())
+    }
     /// A count that must fit in the remaining bytes at `unit` bytes per item.
     fn count(&mut self, unit: usize, what: &str) -> Result<usize, WireError> {
         let n = self.u32()? as usize;
@@ -110,14 +163,7 @@ impl TileFilm {
         }
         w.u32(samples.start);
         w.u32(samples.end);
-        for v in [
-            self.stats.closest,
-            self.stats.shadow,
-            self.stats.samples,
-            self.stats.non_finite,
-        ] {
-            w.u64(v);
-        }
+        w.stats(&self.stats);
         for i in 0..px {
             w.u32(self.sums.count[i]);
             for c in 0..3 {
@@ -136,26 +182,9 @@ impl TileFilm {
                 w.f32(v);
             }
         }
-        for list in [&self.layers, &self.depths] {
-            w.u32(list.len() as u32);
-            for l in list {
-                for v in l {
-                    w.f64(*v);
-                }
-            }
-        }
-        match &self.optimal {
-            None => w.u32(0),
-            Some(o) => {
-                w.u32(o.layout.d_opt);
-                for v in &o.data {
-                    w.f64(*v);
-                }
-                for v in &o.hits {
-                    w.u32(*v);
-                }
-            }
-        }
+        w.rgb_list(&self.layers);
+        w.rgb_list(&self.depths);
+        w.optimal(self.optimal.as_ref());
         let r = &self.records;
         w.u32(r.pixels.len() as u32);
         for v in &r.pixels {
@@ -198,12 +227,7 @@ impl TileFilm {
         if s0 > s1 {
             return Err(WireError(format!("sample range {s0}..{s1}")));
         }
-        let stats = RayStats {
-            closest: r.u64()?,
-            shadow: r.u64()?,
-            samples: r.u64()?,
-            non_finite: r.u64()?,
-        };
+        let stats = r.stats()?;
         let px = tile.pixels();
         let mut sums = PixelSums::new(tile.width(), tile.height());
         for i in 0..px {
@@ -255,17 +279,8 @@ impl TileFilm {
         let optimal = match (d, d_opt) {
             (0, None) => None,
             (d, Some(e)) if d == e => {
-                let layout = Layout::new(d);
-                let mut acc = OptimalAccum::new(layout, px);
-                if acc.data.len() * 8 > bytes.len() - r.at {
-                    return Err(WireError("optimal systems truncated".into()));
-                }
-                for v in acc.data.iter_mut() {
-                    *v = r.f64()?;
-                }
-                for v in acc.hits.iter_mut() {
-                    *v = r.u32()?;
-                }
+                let mut acc = OptimalAccum::new(Layout::new(d), px);
+                r.optimal_into(&mut acc)?;
                 Some(acc)
             }
             (d, e) => {
@@ -348,14 +363,7 @@ impl Checkpoint {
         w.u32(f.width);
         w.u32(f.height);
         w.u32(self.passes);
-        for v in [
-            self.stats.closest,
-            self.stats.shadow,
-            self.stats.samples,
-            self.stats.non_finite,
-        ] {
-            w.u64(v);
-        }
+        w.stats(&self.stats);
         for i in 0..n {
             w.u32(f.sums.count[i]);
             for v in f.sums.sum[i]
@@ -366,26 +374,9 @@ impl Checkpoint {
                 w.f64(*v);
             }
         }
-        for list in [&f.layers, &f.depths] {
-            w.u32(list.len() as u32);
-            for l in list {
-                for v in l {
-                    w.f64(*v);
-                }
-            }
-        }
-        match &f.optimal {
-            None => w.u32(0),
-            Some(o) => {
-                w.u32(o.layout.d_opt);
-                for v in &o.data {
-                    w.f64(*v);
-                }
-                for v in &o.hits {
-                    w.u32(*v);
-                }
-            }
-        }
+        w.rgb_list(&f.layers);
+        w.rgb_list(&f.depths);
+        w.optimal(f.optimal.as_ref());
         w.0
     }
 
@@ -414,12 +405,7 @@ impl Checkpoint {
             )));
         }
         let passes = r.u32()?;
-        let stats = RayStats {
-            closest: r.u64()?,
-            shadow: r.u64()?,
-            samples: r.u64()?,
-            non_finite: r.u64()?,
-        };
+        let stats = r.stats()?;
         let mut frame = super::Frame::new(width, height, settings);
         let n = (width * height) as usize;
         if n.saturating_mul(76) > bytes.len() - r.at {
@@ -455,17 +441,7 @@ impl Checkpoint {
         let d = r.u32()?;
         match frame.optimal.as_mut() {
             None if d == 0 => {}
-            Some(o) if o.layout.d_opt == d => {
-                if o.data.len() * 8 > bytes.len() - r.at {
-                    return Err(WireError("optimal systems truncated".into()));
-                }
-                for v in o.data.iter_mut() {
-                    *v = r.f64()?;
-                }
-                for v in o.hits.iter_mut() {
-                    *v = r.u32()?;
-                }
-            }
+            Some(o) if o.layout.d_opt == d => r.optimal_into(o)?,
             _ => {
                 return Err(WireError(format!(
                     "optimal depth {d} does not match the job's settings"

@@ -313,6 +313,14 @@ impl Drop for FileRecorder {
     }
 }
 
+/// The canonical folder of a scene file (the current folder for a bare file name).
+pub fn scene_folder(scene_file: &Path) -> std::io::Result<PathBuf> {
+    match scene_file.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.canonicalize(),
+        _ => Path::new(".").canonicalize(),
+    }
+}
+
 /// Resolves `rel` against the scene's folder, refusing absolute paths and any path that leaves
 /// the folder (after following links), and missing files.
 pub fn resolve_in_folder(
@@ -327,14 +335,7 @@ pub fn resolve_in_folder(
             "'{rel}' is an absolute path; paths must be relative to the scene's folder"
         )));
     }
-    let dir = scene_file.parent().unwrap_or(Path::new("."));
-    let dir = if dir.as_os_str().is_empty() {
-        Path::new(".")
-    } else {
-        dir
-    };
-    let base = dir
-        .canonicalize()
+    let base = scene_folder(scene_file)
         .map_err(|e| err(format!("cannot resolve the scene's folder: {e}")))?;
     let joined = base.join(relp);
     let canon = joined

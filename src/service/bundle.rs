@@ -20,15 +20,8 @@ pub fn pack_files(scene_path: &Path, files: &[PathBuf]) -> Result<(Vec<u8>, Stri
         .and_then(|n| n.to_str())
         .ok_or_else(|| format!("{}: not a file name", scene_path.display()))?
         .to_string();
-    let dir = scene_path.parent().unwrap_or(Path::new("."));
-    let dir = if dir.as_os_str().is_empty() {
-        Path::new(".")
-    } else {
-        dir
-    };
-    let base = dir
-        .canonicalize()
-        .map_err(|e| format!("{}: {e}", dir.display()))?;
+    let base = crate::scene::json::scene_folder(scene_path)
+        .map_err(|e| format!("{}: {e}", scene_path.display()))?;
     let mut tar = tar::Builder::new(Vec::new());
     tar.append_path_with_name(scene_path, &main)
         .map_err(|e| format!("{}: {e}", scene_path.display()))?;

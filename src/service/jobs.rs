@@ -256,19 +256,10 @@ fn write_outputs(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<Image, Str
     let mut attrs = rt.resolved.exr_attributes(&job.scene_main, job.spp_done);
     attrs.push(("omis.job", job.id.clone()));
     let ck = load_checkpoint(app, job, rt)?;
-    let image = ck.frame.image();
+    let tmp = app.paths.output(&job.id, "image.exr.tmp");
+    let image = ck.frame.write_exr(&tmp, integrator, &attrs)?;
     let preview = png::encode_rgb8(image.width, image.height, &png::to_srgb8(&image, 0.0))?;
     write_atomic(&app.paths.output(&job.id, "preview.png"), &preview).map_err(|e| e.to_string())?;
-    let layers = ck.frame.extra_layers(integrator);
-    let named: Vec<exr_io::NamedLayer> = layers
-        .iter()
-        .map(|(name, image)| exr_io::NamedLayer {
-            name: name.clone(),
-            image,
-        })
-        .collect();
-    let tmp = app.paths.output(&job.id, "image.exr.tmp");
-    exr_io::write_exr(&tmp, &image, &named, &attrs)?;
     std::fs::rename(&tmp, app.paths.output(&job.id, "image.exr")).map_err(|e| e.to_string())?;
     if let Some(r) = &rt.reference {
         let map = metrics::error_map(&image, r, rt.resolved.eps, 1.0)?;
