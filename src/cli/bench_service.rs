@@ -9,8 +9,8 @@ use super::service_cmds::{runtime, submit_job};
 use crate::film::exr_io;
 use crate::job::Limits;
 use crate::scene::Scene;
-use crate::service;
-use anyhow::{Result, bail};
+use crate::service::bundle;
+use anyhow::{Context, Result, bail};
 use clap::Args;
 use serde_json::json;
 use std::path::PathBuf;
@@ -30,9 +30,9 @@ pub struct BenchServiceArgs {
     pub json: bool,
 }
 
-/// (VmRSS, VmHWM) of this process in bytes.
-fn memory() -> (u64, u64) {
-    let text = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+/// (VmRSS, VmHWM) of process `pid` in bytes.
+fn memory(pid: u32) -> (u64, u64) {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
     let get = |key: &str| {
         text.lines()
             .find(|l| l.starts_with(key))
@@ -52,8 +52,7 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
     let r = settings
         .resolve(&mut scene, &Limits::default())
         .map_err(|e| anyhow::anyhow!("--{}: {}", e.field.replace('_', "-"), e.message))?;
-    let (tar, main) =
-        service::bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
+    let (tar, main) = bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
     let megapixels = (r.width as f64 * r.height as f64) / 1e6;
     let tmp = std::env::temp_dir().join(format!("omis-bench-service-{}", std::process::id()));
     std::fs::create_dir_all(&tmp)?;
@@ -62,18 +61,31 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
     for &n in &a.workers {
         let data = tmp.join(format!("data-{n}"));
         let out = tmp.join(format!("svc-{n}.exr"));
-        // Reset the peak RSS (Linux: "5" to clear_refs), so the peak is this run's.
-        let _ = std::fs::write("/proc/self/clear_refs", "5");
-        let (rss0, _) = memory();
-        let (row, passes) = runtime()?.block_on(async {
-            let mut cfg = service::Config::new("127.0.0.1:0".parse()?, data.clone());
-            cfg.workers = n;
-            cfg.worker_log = Some("warn".into());
-            let running = service::start(cfg).await?;
+        // The coordinator is a process of its own, so its memory is measured alone.
+        let mut server = std::process::Command::new(std::env::current_exe()?)
+            .args(["serve", "--bind", "127.0.0.1:0", "--data"])
+            .arg(&data)
+            .args(["--workers", &n.to_string()])
+            .env("OMIS_LOG", "warn")
+            .stdout(std::process::Stdio::piped())
+            .spawn()?;
+        let pid = server.id();
+        let url = {
+            use std::io::BufRead;
+            let stdout = server.stdout.take().context("coordinator stdout")?;
+            let mut line = String::new();
+            std::io::BufReader::new(stdout).read_line(&mut line)?;
+            line.trim()
+                .strip_prefix("listening on ")
+                .context("the coordinator did not print its address")?
+                .to_string()
+        };
+        let (rss0, _) = memory(pid);
+        let result = runtime()?.block_on(async {
             // Let the workers start and register before the clock starts.
-            let c = Client::new(&running.url, None)?;
-            for _ in 0..100 {
-                let v: serde_json::Value = reqwest::get(format!("{}/v1/workers", running.url))
+            let c = Client::new(&url, None)?;
+            for _ in 0..200 {
+                let v: serde_json::Value = reqwest::get(format!("{url}/v1/workers"))
                     .await?
                     .json()
                     .await?;
@@ -101,10 +113,15 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
             }
             let st = c.status(&id).await?;
             c.download(&id, "image.exr", &out).await?;
-            running.stop().await;
             Ok::<_, anyhow::Error>(((st, seconds), latencies))
-        })?;
-        let (_, hwm) = memory();
+        });
+        let (_, hwm) = memory(pid);
+        // SAFETY: kill(2) on our own child; SIGTERM drains its workers.
+        unsafe {
+            libc::kill(pid as libc::pid_t, libc::SIGTERM);
+        }
+        let _ = server.wait();
+        let (row, passes) = result?;
         let (st, seconds) = row;
         let samples = st["samples"].as_f64().unwrap_or(0.0);
         let bytes = st["result_bytes"].as_f64().unwrap_or(0.0);
@@ -117,6 +134,8 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
             "pixel_samples_per_second": samples / seconds,
             "bytes_per_pixel_sample": bytes / samples.max(1.0),
             "result_bytes": bytes,
+            "coordinator_idle_bytes": rss0,
+            "coordinator_peak_bytes": hwm,
             "coordinator_peak_bytes_per_megapixel": hwm.saturating_sub(rss0) as f64 / megapixels,
             "pass_latency_s": mean_latency,
             "passes": passes.len(),
