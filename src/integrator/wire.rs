@@ -28,27 +28,47 @@ const VERSION: u32 = 2;
 #[error("invalid tile result: {0}")]
 pub struct WireError(pub String);
 
-struct W(Vec<u8>);
+/// A little-endian writer that keeps the first I/O error (writes into a Vec never fail).
+struct W<T: std::io::Write> {
+    out: T,
+    err: Option<std::io::Error>,
+}
 
-impl W {
+impl<T: std::io::Write> W<T> {
+    fn new(out: T) -> Self {
+        W { out, err: None }
+    }
+    fn bytes(&mut self, b: &[u8]) {
+        if self.err.is_none()
+            && let Err(e) = self.out.write_all(b)
+        {
+            self.err = Some(e);
+        }
+    }
     fn u8(&mut self, v: u8) {
-        self.0.push(v);
+        self.bytes(&[v]);
     }
     fn u32(&mut self, v: u32) {
-        self.0.extend_from_slice(&v.to_le_bytes());
+        self.bytes(&v.to_le_bytes());
     }
     fn u64(&mut self, v: u64) {
-        self.0.extend_from_slice(&v.to_le_bytes());
+        self.bytes(&v.to_le_bytes());
     }
     fn f32(&mut self, v: f32) {
-        self.0.extend_from_slice(&v.to_le_bytes());
+        self.bytes(&v.to_le_bytes());
     }
     fn f64(&mut self, v: f64) {
-        self.0.extend_from_slice(&v.to_le_bytes());
+        self.bytes(&v.to_le_bytes());
+    }
+    fn finish(self) -> std::io::Result<T> {
+        match self.err {
+            Some(e) => Err(e),
+            None => Ok(self.out),
+        }
     }
 }
 
-impl W {
+impl<T: std::io::Write> W<T> {
     fn stats(&mut self, s: &RayStats) {
         for v in [s.closest, s.shadow, s.samples, s.non_finite] {
             self.u64(v);
@@ -155,8 +175,8 @@ impl TileFilm {
     /// Serialises the result for upload.
     pub fn encode(&self, samples: std::ops::Range<u32>) -> Vec<u8> {
         let px = self.tile.pixels();
-        let mut w = W(Vec::with_capacity(64 + px * 52));
-        w.0.extend_from_slice(MAGIC);
+        let mut w = W::new(Vec::with_capacity(64 + px * 52));
+        w.bytes(MAGIC);
         w.u32(VERSION);
         for v in [self.tile.x0, self.tile.y0, self.tile.x1, self.tile.y1] {
             w.u32(v);
@@ -190,12 +210,12 @@ impl TileFilm {
         for v in &r.pixels {
             w.u32(*v);
         }
-        w.0.extend_from_slice(&r.depths);
+        w.bytes(&r.depths);
         w.u32(r.values.len() as u32);
         for v in &r.values {
             w.f32(*v);
         }
-        w.0
+        w.out
     }
 
     /// Parses and validates an uploaded result for a frame of `width` x `height` pixels whose
@@ -355,10 +375,18 @@ pub struct Checkpoint {
 
 impl Checkpoint {
     pub fn encode(&self) -> Vec<u8> {
+        let n = (self.frame.width * self.frame.height) as usize;
+        self.write_to(Vec::with_capacity(64 + n * 76))
+            .expect("writing into a Vec cannot fail")
+    }
+
+    /// Streams the encoding into `out` (a coordinator writes its checkpoint file this way,
+    /// without a second copy of the frame in memory).
+    pub fn write_to<T: std::io::Write>(&self, out: T) -> std::io::Result<T> {
         let f = &self.frame;
         let n = (f.width * f.height) as usize;
-        let mut w = W(Vec::with_capacity(64 + n * 76));
-        w.0.extend_from_slice(FRAME_MAGIC);
+        let mut w = W::new(out);
+        w.bytes(FRAME_MAGIC);
         w.u32(FRAME_VERSION);
         w.u32(f.width);
         w.u32(f.height);
@@ -377,7 +405,7 @@ impl Checkpoint {
         w.rgb_list(&f.layers);
         w.rgb_list(&f.depths);
         w.optimal(f.optimal.as_ref());
-        w.0
+        w.finish()
     }
 
     /// Parses a checkpoint of a frame rendered with `settings` at `width` x `height`; anything

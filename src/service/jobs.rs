@@ -198,8 +198,10 @@ fn merge_pass(
     }
     let ck = rt.checkpoint.as_mut().expect("loaded above");
     ck.passes = pass + 1;
-    write_atomic(&app.paths.checkpoint(&job.id), &ck.encode())
-        .map_err(|e| format!("cannot write the checkpoint: {e}"))?;
+    store::write_atomic_with(&app.paths.checkpoint(&job.id), |f| {
+        ck.write_to(f).map(|_| ())
+    })
+    .map_err(|e| format!("cannot write the checkpoint: {e}"))?;
     let spp_done = tasks.first().map_or(0, |t| t.s1);
     app.db()
         .pass_merged(&job.id, pass + 1, spp_done, &ck.stats)
