@@ -189,7 +189,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let out = pool.install(|| integrator::render(&scene, &settings, 16, &|_| {}));
         let st = out.stats;
         let secs = out.seconds;
-        let relmse = if k == 0 {
+        let reference = if k == 0 {
             compare_reference(&a, &out.image())?
         } else {
             None
@@ -209,7 +209,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 rays_per_second: st.rays() as f64 / secs,
                 fraction_of_bare: bare / secs,
                 seconds: secs,
-                relmse,
+                reference,
             }),
             (rss_loaded, peak_rss_mib()),
         );
@@ -261,12 +261,20 @@ struct PtRun {
     rays_per_second: f64,
     fraction_of_bare: f64,
     seconds: f64,
-    relmse: Option<f64>,
+    /// Comparison with the reference, when one was given.
+    reference: Option<RefStats>,
 }
 
-/// With --reference: relMSE (eps 0.01) of `img` against the (downsampled) reference, the error
-/// map and the optional EXR outputs.
-fn compare_reference(a: &BenchArgs, img: &Image) -> Result<Option<f64>> {
+/// The path tracer's image against the reference.
+struct RefStats {
+    relmse: f64,
+    mean_rgb: [f64; 3],
+    reference_mean_rgb: [f64; 3],
+}
+
+/// With --reference: relMSE (eps 0.01) of `img` against the (downsampled) reference and both
+/// images' mean RGB; writes the error map and the optional EXR outputs.
+fn compare_reference(a: &BenchArgs, img: &Image) -> Result<Option<RefStats>> {
     if let Some(p) = &a.out {
         exr_io::write_exr(p, img, &[], &[]).map_err(anyhow::Error::msg)?;
     }
@@ -283,7 +291,11 @@ fn compare_reference(a: &BenchArgs, img: &Image) -> Result<Option<f64>> {
         let map = metrics::error_map(img, &reference, 0.01, 1.0).map_err(anyhow::Error::msg)?;
         png::write_rgb8(p, img.width, img.height, &map).map_err(anyhow::Error::msg)?;
     }
-    Ok(Some(e.relmse))
+    Ok(Some(RefStats {
+        relmse: e.relmse,
+        mean_rgb: img.mean(),
+        reference_mean_rgb: reference.mean(),
+    }))
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -311,8 +323,10 @@ fn report(
             j["pt_mrays"] = serde_json::json!(p.rays_per_second / 1e6);
             j["pt_fraction_of_bare_bvh"] = serde_json::json!(p.fraction_of_bare);
             j["pt_seconds"] = serde_json::json!(p.seconds);
-            if let Some(e) = p.relmse {
-                j["pt_relmse"] = serde_json::json!(e);
+            if let Some(r) = &p.reference {
+                j["pt_relmse"] = serde_json::json!(r.relmse);
+                j["pt_mean_rgb"] = serde_json::json!(r.mean_rgb);
+                j["reference_mean_rgb"] = serde_json::json!(r.reference_mean_rgb);
             }
         }
         println!("{j}");
@@ -342,8 +356,11 @@ fn report(
             p.rays_per_second / 1e6,
             p.fraction_of_bare * 100.0
         );
-        if let Some(e) = p.relmse {
-            println!("  relMSE against the reference (eps 0.01): {e:.6}");
+        if let Some(r) = &p.reference {
+            println!(
+                "  relMSE against the reference (eps 0.01): {:.6}; mean RGB {:.4?}, reference {:.4?}",
+                r.relmse, r.mean_rgb, r.reference_mean_rgb
+            );
         }
     }
     println!("  peak memory (VmHWM) so far: {rss_end:.0} MiB");
