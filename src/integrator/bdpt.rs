@@ -1132,9 +1132,22 @@ mod tests {
                     let sum: f64 = w.iter().sum();
                     prop_assert!((sum - 1.0).abs() < 1e-9, "weights sum to {sum}");
                     prop_assert!(w[s as usize] > 0.0);
-                    let pw: Vec<f64> = w.iter().map(|b| b * b).collect();
-                    let psum: f64 = pw.iter().sum();
-                    prop_assert!(((pw.iter().sum::<f64>() / psum) - 1.0).abs() < 1e-12);
+                    // The integrator's power weights: they sum to one, and equal the power
+                    // heuristic of the directly computed densities.
+                    let n = w.len() as u32;
+                    let power: Vec<f64> = (0..n)
+                        .map(|k| crate::integrator::mis_weight(crate::integrator::MisKind::Power, &w, k, n - k))
+                        .collect();
+                    let psum: f64 = power.iter().sum();
+                    prop_assert!((psum - 1.0).abs() < 1e-9, "power weights sum to {psum}");
+                    let rsq: f64 = r.iter().map(|x| x * x).sum();
+                    for (k, p) in power.iter().enumerate() {
+                        let expect = r[k] * r[k] / rsq;
+                        prop_assert!((p - expect).abs() < 4e-3 * (1.0 + expect), "power weight {k}: {p} vs {expect} from densities {r:?}");
+                        if r[k] == 0.0 {
+                            prop_assert!(*p == 0.0);
+                        }
+                    }
                     for (a, b) in w.iter().zip(&r) {
                         if *b == 0.0 {
                             prop_assert!(*a == 0.0, "technique with density 0 weighted {a}: {w:?} vs {r:?}");

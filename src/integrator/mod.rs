@@ -293,6 +293,24 @@ impl LtRecords {
     }
 }
 
+/// The weight of technique (s, t) for a path whose balance weights over all techniques of its
+/// depth are `balance` (n_i p_i / sum_k n_k p_k). Power heuristic, beta = 2 (Veach 1997 eq.
+/// 9.13): (n_s p_s)^2 / sum_k (n_k p_k)^2 = b_s^2 / sum_k b_k^2. Optimal MIS weights its depths
+/// through its own systems; here (depth 0 and deeper than D_opt) it is balance.
+pub fn mis_weight(mis: MisKind, balance: &[f64], s: u32, t: u32) -> f64 {
+    match mis {
+        MisKind::Balance | MisKind::Optimal => balance[s as usize],
+        MisKind::Power => {
+            let b = balance[s as usize];
+            let sq: f64 = balance.iter().map(|x| x * x).sum();
+            if sq > 0.0 { b * b / sq } else { 0.0 }
+        }
+        MisKind::Lt => (t == 1) as u8 as f64,
+        // Depth 0 (an emitter seen directly) has only (0, 2) on the camera side.
+        MisKind::Nee => (s == 1 && t >= 2 || s == 0 && t == 2 && balance.len() == 2) as u8 as f64,
+    }
+}
+
 /// Turns BDPT samples into film: heuristic-weighted contributions (camera ones into the current
 /// pixel sample, light-tracing ones into splat records), and for optimal MIS the per-pixel,
 /// per-depth systems of depths 1 ..= D_opt.
@@ -372,16 +390,7 @@ impl bdpt::SampleSink for FilmSink<'_> {
         if s.contribution == Rgb::ZERO {
             return;
         }
-        let w = match self.mis {
-            MisKind::Balance | MisKind::Optimal => s.balance[s.s as usize],
-            MisKind::Power => {
-                let b = s.balance[s.s as usize];
-                let sq: f64 = s.balance.iter().map(|x| x * x).sum();
-                b * b / sq
-            }
-            MisKind::Lt => (s.t == 1) as u8 as f64,
-            MisKind::Nee => (s.s == 1 && s.t >= 2 || s.s == 0 && s.depth == 0) as u8 as f64,
-        };
+        let w = mis_weight(self.mis, s.balance, s.s, s.t);
         if w == 0.0 {
             return;
         }
