@@ -101,6 +101,8 @@ pub struct Sampler {
     /// hash(seed, x, y, stream): scrambles per pixel.
     pixel_hash: u64,
     index: u32,
+    /// `index.reverse_bits()`, the first step of every Sobol' index scramble.
+    index_reversed: u32,
     /// Stratification block (the requested spp, or the pass size in time-budget renders).
     block: u32,
     dim: u32,
@@ -123,6 +125,7 @@ impl Sampler {
             kind,
             pixel_hash,
             index,
+            index_reversed: index.reverse_bits(),
             block: block.max(1),
             dim: 0,
             rng: Pcg32::new(sample_hash, stream as u64),
@@ -155,7 +158,7 @@ impl Sampler {
             }
             SamplerKind::Sobol => {
                 let h = self.dim_hash(d);
-                let i = nested_uniform_scramble(self.index, h as u32);
+                let i = laine_karras_permutation(self.index_reversed, h as u32).reverse_bits();
                 u32_to_unit(scrambled_dim0(i, (h >> 32) as u32))
             }
         }
@@ -176,9 +179,10 @@ impl Sampler {
             SamplerKind::Sobol => {
                 let h = self.dim_hash(d);
                 let h2 = mix64(h);
-                let i = nested_uniform_scramble(self.index, h as u32);
+                let i = laine_karras_permutation(self.index_reversed, h as u32).reverse_bits();
                 let x = scrambled_dim0(i, (h >> 32) as u32);
-                let y = nested_uniform_scramble(sobol_dim1(i), h2 as u32);
+                // nested_uniform_scramble(sobol_dim1(i), h2) with the reversal inside it cancelled.
+                let y = laine_karras_permutation(sobol_dim1_reversed(i), h2 as u32).reverse_bits();
                 Vec2::new(u32_to_unit(x), u32_to_unit(y))
             }
         }
@@ -195,8 +199,27 @@ fn scrambled_dim0(i: u32, seed: u32) -> u32 {
 }
 
 /// Second Sobol' dimension (primitive polynomial x + 1): direction numbers v_k = v_{k-1} ^ (v_{k-1} >> 1).
+/// Returned bit-reversed: bit j of the result is bit 31 - j of the sample, so that
+/// `sobol_dim1_reversed(i) == sobol_dim1_reference(i).reverse_bits()`.
+///
+/// Bit 31 - j of v_k is C(k, j) mod 2, which by Lucas' theorem is 1 exactly when the bits of j are
+/// a subset of those of k. Bit j of the result is therefore the parity of the set bits k of `i`
+/// with j ⊆ k: a superset-sum transform over the 5-bit positions, five shift-and-xor steps
+/// (branch-free, unlike the loop over the bits of a scrambled, i.e. random, index).
 #[inline]
-fn sobol_dim1(mut i: u32) -> u32 {
+fn sobol_dim1_reversed(i: u32) -> u32 {
+    let mut s = i;
+    s ^= (s >> 1) & 0x5555_5555;
+    s ^= (s >> 2) & 0x3333_3333;
+    s ^= (s >> 4) & 0x0f0f_0f0f;
+    s ^= (s >> 8) & 0x00ff_00ff;
+    s ^= (s >> 16) & 0x0000_ffff;
+    s
+}
+
+/// The definition of [`sobol_dim1_reversed`] (unreversed), kept to test it against.
+#[cfg(test)]
+fn sobol_dim1_reference(mut i: u32) -> u32 {
     let mut v = 1u32 << 31;
     let mut r = 0u32;
     while i != 0 {
@@ -221,7 +244,7 @@ fn laine_karras_permutation(mut x: u32, seed: u32) -> u32 {
     x
 }
 
-#[inline]
+#[cfg(test)]
 fn nested_uniform_scramble(x: u32, seed: u32) -> u32 {
     laine_karras_permutation(x.reverse_bits(), seed).reverse_bits()
 }
@@ -281,6 +304,63 @@ fn cmj(s: u32, n: u32, p: u32, rng: &mut Pcg32) -> Vec2 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sobol_dim1_fast_matches_definition() {
+        let mut x = 0x1234_5678u32;
+        let check = |i: u32| {
+            assert_eq!(
+                sobol_dim1_reversed(i).reverse_bits(),
+                sobol_dim1_reference(i),
+                "{i:#x}"
+            )
+        };
+        for i in 0..(1u32 << 16) {
+            check(i);
+            check(!i);
+            check(i << 16);
+        }
+        for _ in 0..1_000_000 {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            check(x);
+        }
+    }
+
+    /// The Sobol' sampler as first written (scramble of the index, then of the dimension-1 value
+    /// by the loop over its bits); the fast path must reproduce it bit for bit.
+    #[test]
+    fn sobol_matches_reference_formulas() {
+        for (x, y, index) in [
+            (0u32, 0u32, 0u32),
+            (3, 4, 1),
+            (17, 250, 15),
+            (1023, 7, 4095),
+            (5, 9, u32::MAX),
+        ] {
+            let mut s = Sampler::new(SamplerKind::Sobol, 42, x, y, index, 16, Stream::Camera);
+            let reference = Sampler::new(SamplerKind::Sobol, 42, x, y, index, 16, Stream::Camera);
+            for d in 0..40u32 {
+                let h = reference.dim_hash(d);
+                let i = nested_uniform_scramble(index, h as u32);
+                if d % 3 == 0 {
+                    let want = u32_to_unit(scrambled_dim0(i, (h >> 32) as u32));
+                    assert_eq!(s.next_1d().to_bits(), want.to_bits());
+                } else {
+                    let h2 = mix64(h);
+                    let want_x = u32_to_unit(scrambled_dim0(i, (h >> 32) as u32));
+                    let want_y =
+                        u32_to_unit(nested_uniform_scramble(sobol_dim1_reference(i), h2 as u32));
+                    let v = s.next_2d();
+                    assert_eq!(
+                        (v.x.to_bits(), v.y.to_bits()),
+                        (want_x.to_bits(), want_y.to_bits())
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn permute_is_a_permutation() {

@@ -37,10 +37,14 @@ impl Bitmap {
         })
     }
 
-    fn texel(&self, x: i64, y: i64) -> Rgb {
-        let x = x.rem_euclid(self.width as i64) as usize;
-        let y = y.rem_euclid(self.height as i64) as usize;
-        self.texels[y * self.width + x]
+    /// `i` wrapped into [0, n) (repeat), as `i.rem_euclid(n)`; the division only when needed.
+    #[inline]
+    fn wrap(i: i64, n: usize) -> usize {
+        if (0..n as i64).contains(&i) {
+            i as usize
+        } else {
+            i.rem_euclid(n as i64) as usize
+        }
     }
 
     /// Bilinear lookup with repeat wrapping; uv (0,0) is the bottom-left corner (OBJ convention).
@@ -55,8 +59,16 @@ impl Bitmap {
         let fx = x - x0;
         let fy = y - y0;
         let (x0, y0) = (x0 as i64, y0 as i64);
-        let a = self.texel(x0, y0) * (1.0 - fx) + self.texel(x0 + 1, y0) * fx;
-        let b = self.texel(x0, y0 + 1) * (1.0 - fx) + self.texel(x0 + 1, y0 + 1) * fx;
+        // Wrapped columns and rows; x0 + 1 wraps to 0 exactly when x0 wraps to width - 1.
+        let (w, h) = (self.width, self.height);
+        let xa = Self::wrap(x0, w);
+        let xb = if xa + 1 == w { 0 } else { xa + 1 };
+        let ya = Self::wrap(y0, h);
+        let yb = if ya + 1 == h { 0 } else { ya + 1 };
+        let (ra, rb) = (ya * w, yb * w);
+        let t = &self.texels;
+        let a = t[ra + xa] * (1.0 - fx) + t[ra + xb] * fx;
+        let b = t[rb + xa] * (1.0 - fx) + t[rb + xb] * fx;
         a * (1.0 - fy) + b * fy
     }
 
