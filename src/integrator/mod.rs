@@ -617,26 +617,28 @@ impl Frame {
     pub fn depth_images(&self) -> Vec<Image> {
         let nd = self.depth_count;
         let frame_pixels = self.width as u64 * self.height as u64;
-        let mut scratch = SolveScratch::default();
         (0..nd)
             .map(|d| {
                 let mut img = Image::new(self.width as usize, self.height as usize);
-                for (i, p) in img.pixels.iter_mut().enumerate() {
-                    let spp = self.sums.count[i];
-                    let n = spp.max(1) as f64;
-                    let s = self.depths[i * nd + d];
-                    let mut v = [s[0] / n, s[1] / n, s[2] / n];
-                    if let Some(o) = &self.optimal
-                        && d >= 1
-                        && d as u32 <= o.layout.d_opt
-                    {
-                        let f = o.solve(i, d as u32, spp, frame_pixels, self.kappa, &mut scratch);
-                        for c in 0..3 {
-                            v[c] += f[c];
+                img.pixels.par_iter_mut().enumerate().for_each_init(
+                    SolveScratch::default,
+                    |scratch, (i, p)| {
+                        let spp = self.sums.count[i];
+                        let n = spp.max(1) as f64;
+                        let s = self.depths[i * nd + d];
+                        let mut v = [s[0] / n, s[1] / n, s[2] / n];
+                        if let Some(o) = &self.optimal
+                            && d >= 1
+                            && d as u32 <= o.layout.d_opt
+                        {
+                            let f = o.solve(i, d as u32, spp, frame_pixels, self.kappa, scratch);
+                            for c in 0..3 {
+                                v[c] += f[c];
+                            }
                         }
-                    }
-                    *p = Rgb::new(v[0] as f32, v[1] as f32, v[2] as f32);
-                }
+                        *p = Rgb::new(v[0] as f32, v[1] as f32, v[2] as f32);
+                    },
+                );
                 img
             })
             .collect()
@@ -750,23 +752,26 @@ impl Frame {
     pub fn image(&self) -> Image {
         let mut img = Image::new(self.width as usize, self.height as usize);
         let frame_pixels = self.width as u64 * self.height as u64;
-        let mut scratch = SolveScratch::default();
-        for (i, p) in img.pixels.iter_mut().enumerate() {
-            let spp = self.sums.count[i];
-            let n = spp.max(1) as f64;
-            let s = self.sums.sum[i];
-            let l = self.splat[i];
-            let mut v = [(s[0] + l[0]) / n, (s[1] + l[1]) / n, (s[2] + l[2]) / n];
-            if let Some(o) = &self.optimal {
-                for d in 1..=o.layout.d_opt {
-                    let f = o.solve(i, d, spp, frame_pixels, self.kappa, &mut scratch);
-                    for c in 0..3 {
-                        v[c] += f[c];
+        // Pixels are independent: solved in parallel, the same bits as in sequence.
+        img.pixels.par_iter_mut().enumerate().for_each_init(
+            SolveScratch::default,
+            |scratch, (i, p)| {
+                let spp = self.sums.count[i];
+                let n = spp.max(1) as f64;
+                let s = self.sums.sum[i];
+                let l = self.splat[i];
+                let mut v = [(s[0] + l[0]) / n, (s[1] + l[1]) / n, (s[2] + l[2]) / n];
+                if let Some(o) = &self.optimal {
+                    for d in 1..=o.layout.d_opt {
+                        let f = o.solve(i, d, spp, frame_pixels, self.kappa, scratch);
+                        for c in 0..3 {
+                            v[c] += f[c];
+                        }
                     }
                 }
-            }
-            *p = Rgb::new(v[0] as f32, v[1] as f32, v[2] as f32);
-        }
+                *p = Rgb::new(v[0] as f32, v[1] as f32, v[2] as f32);
+            },
+        );
         img
     }
 
