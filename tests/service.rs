@@ -940,3 +940,55 @@ fn a_time_budget_job_renders_passes_until_its_time_is_up() {
     let spp = v["spp"].as_u64().expect("spp");
     assert!(spp >= 2 && spp.is_multiple_of(2), "{v}");
 }
+
+#[test]
+fn upload_and_scene_limits_are_enforced_with_json_errors() {
+    let dir = folder("limits");
+    let (_server, url) = serve(
+        &dir.join("data"),
+        &[
+            "--max-upload-mb",
+            "1",
+            "--max-triangles",
+            "8",
+            "--max-spp",
+            "64",
+        ],
+    );
+    let c = http();
+    // A body over the upload limit: 413, as JSON.
+    let r = c
+        .post(format!("{url}/v1/references"))
+        .body(vec![0u8; 2 << 20])
+        .send()
+        .expect("POST");
+    assert_eq!(r.status().as_u16(), 413);
+    let v: Value = r.json().expect("JSON");
+    assert_eq!(v["field"], "body", "{v}");
+    // A scene over the triangle limit, and spp over the server's limit.
+    let (s, v) = post(
+        &c,
+        &format!("{url}/v1/jobs"),
+        &json!({ "scene": { "library": "cornell-box" } }),
+    );
+    assert_eq!(s, 400, "{v}");
+    assert_eq!(v["field"], "scene.library");
+    assert!(
+        v["error"].as_str().unwrap_or("").contains("triangles"),
+        "{v}"
+    );
+    let (s, v) = post(
+        &c,
+        &format!("{url}/v1/jobs"),
+        &json!({ "scene": { "library": "furnace" }, "settings": { "spp": 65 } }),
+    );
+    assert_eq!(s, 422, "{v}");
+    assert_eq!(v["field"], "settings.spp");
+    // Within the limits the same server accepts a job.
+    let (s, v) = post(
+        &c,
+        &format!("{url}/v1/jobs"),
+        &json!({ "scene": { "library": "furnace" }, "settings": { "spp": 4, "resolution": [8, 8] } }),
+    );
+    assert_eq!(s, 201, "{v}");
+}
