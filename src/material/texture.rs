@@ -8,33 +8,77 @@ use std::sync::Arc;
 pub struct Bitmap {
     pub width: usize,
     pub height: usize,
-    pub texels: Vec<Rgb>,
+    texels: Texels,
+}
+
+/// 8-bit images keep their bytes and a 256-entry decoding table (a third of the memory of f32
+/// texels, and the same values); deeper images keep f32.
+#[derive(Debug)]
+enum Texels {
+    U8 {
+        data: Vec<[u8; 3]>,
+        table: Box<[f32; 256]>,
+    },
+    F32(Vec<Rgb>),
 }
 
 impl Bitmap {
-    /// Decodes an 8-bit image file (PNG, JPEG, TGA, BMP), converting sRGB to linear.
+    /// Decodes an image file (PNG, JPEG, TGA, BMP) whose values are sRGB-encoded, to linear.
     pub fn load(path: &std::path::Path) -> Result<Bitmap, String> {
+        Bitmap::load_with(path, true)
+    }
+
+    /// Decodes an image file; `srgb` says whether its values are sRGB-encoded (converted to
+    /// linear) or already linear (taken as stored, e.g. roughness or bump data).
+    pub fn load_with(path: &std::path::Path, srgb: bool) -> Result<Bitmap, String> {
+        use image::ColorType;
         let img = image::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let rgb = img.to_rgb32f();
-        let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+        let (w, h) = (img.width() as usize, img.height() as usize);
         if w == 0 || h == 0 {
             return Err(format!("{}: empty image", path.display()));
         }
-        let texels = rgb
-            .pixels()
-            .map(|p| {
-                Rgb::new(
-                    srgb_to_linear(p[0]),
-                    srgb_to_linear(p[1]),
-                    srgb_to_linear(p[2]),
-                )
-            })
-            .collect();
+        let decode = |v: f32| if srgb { srgb_to_linear(v) } else { v };
+        let texels = match img.color() {
+            ColorType::L8 | ColorType::La8 | ColorType::Rgb8 | ColorType::Rgba8 => {
+                let mut table = Box::new([0.0f32; 256]);
+                for (k, t) in table.iter_mut().enumerate() {
+                    *t = decode(k as f32 / 255.0);
+                }
+                let data = img.to_rgb8().pixels().map(|p| p.0).collect();
+                Texels::U8 { data, table }
+            }
+            _ => Texels::F32(
+                img.to_rgb32f()
+                    .pixels()
+                    .map(|p| Rgb::new(decode(p[0]), decode(p[1]), decode(p[2])))
+                    .collect(),
+            ),
+        };
         Ok(Bitmap {
             width: w,
             height: h,
             texels,
         })
+    }
+
+    #[inline]
+    fn texel(&self, i: usize) -> Rgb {
+        match &self.texels {
+            Texels::U8 { data, table } => {
+                let [r, g, b] = data[i];
+                Rgb::new(table[r as usize], table[g as usize], table[b as usize])
+            }
+            Texels::F32(t) => t[i],
+        }
+    }
+
+    fn texels(&self) -> impl Iterator<Item = Rgb> + '_ {
+        (0..self.width * self.height).map(|i| self.texel(i))
+    }
+
+    /// Largest value per channel.
+    pub fn max(&self) -> Rgb {
+        self.texels().fold(Rgb::ZERO, |m, t| m.max(t))
     }
 
     /// `i` wrapped into [0, n) (repeat), as `i.rem_euclid(n)`; the division only when needed.
@@ -52,7 +96,7 @@ impl Bitmap {
         let x = uv.x * self.width as f32 - 0.5;
         let y = (1.0 - uv.y) * self.height as f32 - 0.5;
         if !x.is_finite() || !y.is_finite() {
-            return self.texels[0];
+            return self.texel(0);
         }
         let x0 = x.floor();
         let y0 = y.floor();
@@ -66,15 +110,15 @@ impl Bitmap {
         let ya = Self::wrap(y0, h);
         let yb = if ya + 1 == h { 0 } else { ya + 1 };
         let (ra, rb) = (ya * w, yb * w);
-        let t = &self.texels;
-        let a = t[ra + xa] * (1.0 - fx) + t[ra + xb] * fx;
-        let b = t[rb + xa] * (1.0 - fx) + t[rb + xb] * fx;
+        let t = |i| self.texel(i);
+        let a = t(ra + xa) * (1.0 - fx) + t(ra + xb) * fx;
+        let b = t(rb + xa) * (1.0 - fx) + t(rb + xb) * fx;
         a * (1.0 - fy) + b * fy
     }
 
     pub fn average(&self) -> Rgb {
-        let s: Rgb = self.texels.iter().copied().sum();
-        s / self.texels.len() as f32
+        let s: Rgb = self.texels().sum();
+        s / (self.width * self.height) as f32
     }
 }
 
@@ -122,9 +166,52 @@ impl Texture {
     pub fn max_value(&self) -> Rgb {
         match self {
             Texture::Constant(c) => *c,
-            Texture::Bitmap { image, scale } => {
-                image.texels.iter().fold(Rgb::ZERO, |m, t| m.max(*t)) * *scale
+            Texture::Bitmap { image, scale } => image.max() * *scale,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write(path: &std::path::Path, img: image::DynamicImage) {
+        img.save(path).expect("write test image");
+    }
+
+    #[test]
+    fn eight_bit_and_sixteen_bit_images_decode_to_the_same_linear_values() {
+        let dir = std::env::temp_dir().join(format!("omis-tex-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let p8 = dir.join("a8.png");
+        let p16 = dir.join("a16.png");
+        let mut a = image::RgbImage::new(2, 1);
+        a.put_pixel(0, 0, image::Rgb([0, 128, 255]));
+        a.put_pixel(1, 0, image::Rgb([10, 20, 30]));
+        write(&p8, image::DynamicImage::ImageRgb8(a));
+        let mut b = image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::new(2, 1);
+        // 257 * v is v / 255 exactly in 16 bits.
+        b.put_pixel(0, 0, image::Rgb([0, 128 * 257, 65535]));
+        b.put_pixel(1, 0, image::Rgb([10 * 257, 20 * 257, 30 * 257]));
+        write(&p16, image::DynamicImage::ImageRgb16(b));
+        for srgb in [true, false] {
+            let m8 = Bitmap::load_with(&p8, srgb).expect("8-bit");
+            let m16 = Bitmap::load_with(&p16, srgb).expect("16-bit");
+            assert!(matches!(m8.texels, Texels::U8 { .. }));
+            assert!(matches!(m16.texels, Texels::F32(_)));
+            for i in 0..2 {
+                let (x, y) = (m8.texel(i), m16.texel(i));
+                assert!((x - y).abs().max_element() < 1e-6, "{x:?} vs {y:?}");
+            }
+            let mid = m8.texel(0).y;
+            let stored = 128.0 / 255.0;
+            if srgb {
+                assert_eq!(mid, srgb_to_linear(stored));
+            } else {
+                assert_eq!(mid, stored);
             }
         }
+        assert_eq!(Bitmap::load(&p8).expect("load").max().z, 1.0);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -24,7 +24,7 @@ use super::{MeshData, Scene, SceneBuilder, SceneError};
 use crate::camera::Camera;
 use crate::geometry::{Frame, Mat4, Rgb, Transform, Vec2, Vec3};
 use crate::material::microfacet::MIN_ALPHA;
-use crate::material::texture::{linear_to_srgb, srgb_to_linear};
+use crate::material::texture::srgb_to_linear;
 use crate::material::{Bitmap, Material, MaterialKind, Texture};
 use quick_xml::XmlVersion;
 use quick_xml::events::{BytesStart, Event};
@@ -1109,18 +1109,7 @@ impl Ctx {
         if let Some(b) = self.bitmaps.get(&key) {
             return Ok(b.clone());
         }
-        let mut bm = Bitmap::load(&path).map_err(|e| self.err(n, e))?;
-        if !srgb {
-            // Bitmap::load decodes 8-bit values as sRGB; re-encode to get the stored values.
-            for t in &mut bm.texels {
-                *t = Vec3::new(
-                    linear_to_srgb(t.x),
-                    linear_to_srgb(t.y),
-                    linear_to_srgb(t.z),
-                );
-            }
-        }
-        let bm = Arc::new(bm);
+        let bm = Arc::new(Bitmap::load_with(&path, srgb).map_err(|e| self.err(n, e))?);
         self.bitmaps.insert(key, bm.clone());
         Ok(bm)
     }

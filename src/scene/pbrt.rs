@@ -27,7 +27,6 @@ use super::{MeshData, Scene, SceneBuilder, SceneError};
 use crate::camera::Camera;
 use crate::geometry::{Mat4, Rgb, Transform, Vec2, Vec3};
 use crate::material::microfacet::MIN_ALPHA;
-use crate::material::texture::linear_to_srgb;
 use crate::material::{Bitmap, Material, MaterialKind, Texture};
 use std::cell::Cell;
 use std::collections::HashMap;
@@ -863,18 +862,7 @@ impl Parser {
         if let Some(b) = self.bitmaps.get(&key) {
             return Ok(b.clone());
         }
-        let mut bm = Bitmap::load(&path).map_err(|e| self.err(loc, e))?;
-        if !srgb {
-            // Bitmap::load decodes 8-bit values as sRGB; re-encode to get the stored values.
-            for t in &mut bm.texels {
-                *t = Vec3::new(
-                    linear_to_srgb(t.x),
-                    linear_to_srgb(t.y),
-                    linear_to_srgb(t.z),
-                );
-            }
-        }
-        let bm = Arc::new(bm);
+        let bm = Arc::new(Bitmap::load_with(&path, srgb).map_err(|e| self.err(loc, e))?);
         self.bitmaps.insert(key, bm.clone());
         Ok(bm)
     }
