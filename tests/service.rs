@@ -781,27 +781,30 @@ fn cli_clients_submit_wait_download_status_and_cancel() {
     };
     let exr = dir.join("first.exr");
     let s = |p: &Path| p.to_str().expect("utf-8").to_string();
+    // The same small job settings for both submissions.
+    let submit = |scene: &str, extra: &[&str]| {
+        let args = [
+            "submit",
+            scene,
+            "--resolution",
+            "40x32",
+            "--spp",
+            "8",
+            "--pass-size",
+            "4",
+            "--integrator",
+            "bdpt",
+        ];
+        let out = omis(&[&args[..], extra].concat());
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        out
+    };
     // The first job, from the library, becomes the reference of the second.
-    let out = omis(&[
-        "submit",
-        "cornell-box",
-        "--resolution",
-        "40x32",
-        "--spp",
-        "8",
-        "--pass-size",
-        "4",
-        "--integrator",
-        "bdpt",
-        "--wait",
-        "--out",
-        &s(&exr),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = submit("cornell-box", &["--wait", "--out", &s(&exr)]);
     let st: Value = serde_json::from_str(
         String::from_utf8_lossy(&out.stdout)
             .lines()
@@ -813,27 +816,7 @@ fn cli_clients_submit_wait_download_status_and_cancel() {
     exr_io::read_exr(&exr).expect("the downloaded EXR opens");
     // The second job, a scene file uploaded as a bundle, with the first as reference.
     let scene = repo().join("scenes/cornell-box.json");
-    let out = omis(&[
-        "submit",
-        &s(&scene),
-        "--resolution",
-        "40x32",
-        "--spp",
-        "8",
-        "--pass-size",
-        "4",
-        "--integrator",
-        "bdpt",
-        "--seed",
-        "3",
-        "--reference",
-        &s(&exr),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = submit(&s(&scene), &["--seed", "3", "--reference", &s(&exr)]);
     let id = String::from_utf8_lossy(&out.stdout).trim().to_string();
     let c = http();
     let st = wait_state(&c, &url, &id, |s| s["state"] == "done");

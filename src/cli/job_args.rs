@@ -2,7 +2,7 @@
 
 use crate::integrator::path::DirectStrategy;
 use crate::integrator::{self, IntegratorKind, MisKind};
-use crate::job::{self, JobSettings};
+use crate::job::{self, FieldError, JobSettings};
 use crate::sampler::SamplerKind;
 use clap::Args;
 
@@ -86,13 +86,17 @@ impl JobArgs {
             pass_size: self.pass_size,
             eps: self.eps,
         };
-        s.validate(&job::Limits::default()).map_err(|e| {
-            let flag = match e.field.as_str() {
-                "time_budget_s" => "time-budget".to_string(),
-                f => f.replace('_', "-"),
-            };
-            anyhow::anyhow!("--{flag}: {}", e.message)
-        })?;
+        s.validate(&job::Limits::default()).map_err(flag_error)?;
         Ok(s)
     }
+}
+
+/// A job-settings error in the words of the command line: the flag that set the field.
+pub fn flag_error(e: FieldError) -> anyhow::Error {
+    let flag = match e.field.as_str() {
+        "time_budget_s" => "time-budget".to_string(),
+        "scene" => return anyhow::anyhow!("{}", e.message),
+        f => f.replace('_', "-"),
+    };
+    anyhow::anyhow!("--{flag}: {}", e.message)
 }

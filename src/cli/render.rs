@@ -84,7 +84,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
     }
     let resolved = settings
         .resolve(&mut scene, &Limits::default())
-        .map_err(|e| anyhow::anyhow!("--{}: {}", e.field.replace('_', "-"), e.message))?;
+        .map_err(super::job_args::flag_error)?;
     let reference = match &a.reference {
         Some(p) => Some(read_reference(p, &resolved)?),
         None => None,
