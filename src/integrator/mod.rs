@@ -297,6 +297,7 @@ impl LtRecords {
 /// depth are `balance` (n_i p_i / sum_k n_k p_k). Power heuristic, beta = 2 (Veach 1997 eq.
 /// 9.13): (n_s p_s)^2 / sum_k (n_k p_k)^2 = b_s^2 / sum_k b_k^2. Optimal MIS weights its depths
 /// through its own systems; here (depth 0 and deeper than D_opt) it is balance.
+#[inline]
 pub fn mis_weight(mis: MisKind, balance: &[f64], s: u32, t: u32) -> f64 {
     match mis {
         MisKind::Balance | MisKind::Optimal => balance[s as usize],

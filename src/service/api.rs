@@ -957,7 +957,7 @@ struct LeaseRequest {
 
 async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult<Response> {
     let r: LeaseRequest = parse_json(&body)?;
-    if !app.db().touch_worker(&r.worker_id, "idle")? {
+    if !app.db().touch_worker(&r.worker_id, None)? {
         return Err(ApiError::field(
             StatusCode::NOT_FOUND,
             "worker_id",
@@ -974,7 +974,7 @@ async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult<Response> 
             let db = app.db();
             match db.lease(&r.worker_id, app.cfg.lease_s)? {
                 Some(t) => {
-                    db.touch_worker(&r.worker_id, "busy")?;
+                    db.touch_worker(&r.worker_id, Some("busy"))?;
                     let job = db.job(&t.job_id)?;
                     Some((t, job))
                 }
@@ -1036,7 +1036,7 @@ async fn heartbeat(State(app): State<AppState>, body: Bytes) -> ApiResult<Json<V
     let r: HeartbeatRequest = parse_json(&body)?;
     let db = app.db();
     let state = if r.tasks.is_empty() { "idle" } else { "busy" };
-    if !db.touch_worker(&r.worker_id, state)? {
+    if !db.touch_worker(&r.worker_id, Some(state))? {
         return Err(ApiError::field(
             StatusCode::NOT_FOUND,
             "worker_id",
@@ -1062,7 +1062,7 @@ async fn deregister(State(app): State<AppState>, body: Bytes) -> ApiResult<Json<
     let r: DeregisterRequest = parse_json(&body)?;
     let released = {
         let db = app.db();
-        if !db.touch_worker(&r.worker_id, "left")? {
+        if !db.touch_worker(&r.worker_id, Some("left"))? {
             return Err(ApiError::field(
                 StatusCode::NOT_FOUND,
                 "worker_id",

@@ -628,10 +628,12 @@ impl Store {
         Ok(())
     }
 
-    /// Notes that a worker is alive; false when it is unknown.
-    pub fn touch_worker(&self, id: &str, state: &str) -> rusqlite::Result<bool> {
+    /// Notes that a worker is alive, and its state when given (None keeps it, except that a
+    /// worker marked gone is back); false when it is unknown.
+    pub fn touch_worker(&self, id: &str, state: Option<&str>) -> rusqlite::Result<bool> {
         let n = self.conn.execute(
-            "UPDATE workers SET last_seen = ?2, state = ?3 WHERE id = ?1",
+            "UPDATE workers SET last_seen = ?2, state = COALESCE(?3, \
+             CASE state WHEN 'gone' THEN 'idle' ELSE state END) WHERE id = ?1",
             params![id, now(), state],
         )?;
         Ok(n == 1)
