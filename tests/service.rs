@@ -939,8 +939,9 @@ fn upload_and_scene_limits_are_enforced_with_json_errors() {
         ],
     );
     let c = http();
-    // A body over the upload limit: 413, as JSON.
-    let r = c
+    // A body over the upload limit: 413, as JSON. (Its own client: the server answers before
+    // reading the body and closes that connection, which a pooled client must not reuse.)
+    let r = http()
         .post(format!("{url}/v1/references"))
         .body(vec![0u8; 2 << 20])
         .send()
