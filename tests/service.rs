@@ -738,6 +738,15 @@ fn a_local_pool_restarts_a_worker_that_dies_and_workers_drain_on_sigterm() {
     }
     // A job still completes with the restarted worker and an extra one that is told to drain.
     let mut extra = worker(&url, "drainer", &[]);
+    // Registered means its signal handlers are installed (they come first).
+    let start = Instant::now();
+    while !get_json(&c, &format!("{url}/v1/workers"))["workers"]
+        .as_array()
+        .is_some_and(|w| w.iter().any(|w| w["name"] == "drainer"))
+    {
+        assert!(start.elapsed() < WAIT, "the drainer never registered");
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let id = submit(&c, &url, 16);
     wait_state(&c, &url, &id, |s| {
         s["tiles_done"].as_u64().unwrap_or(0) >= 1
