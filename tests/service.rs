@@ -398,20 +398,33 @@ fn a_late_result_of_an_expired_lease_is_refused_and_changes_nothing() {
     let id = submit(&c, &url, 64);
     let a = register(&c, &url, "slow");
     let first = lease(&c, &url, &a);
+    // The results to upload, rendered now: a late one with a wrong seed (it would show), and
+    // one for another tile.
+    let wrong = tile_result(&first["task"], 99);
+    let mut other = first["task"].clone();
+    other["rect"] = json!({ "x0": 16, "y0": 0, "x1": 32, "y1": 16 });
+    let other = tile_result(&other, 7);
     // Silent past its lease: the task goes back to the queue and to the next worker.
-    std::thread::sleep(Duration::from_millis(2500));
+    let expire = Instant::now();
+    while expire.elapsed() < Duration::from_millis(2500) {
+        std::thread::sleep(Duration::from_millis(100));
+    }
     let b = register(&c, &url, "fast");
     let second = lease(&c, &url, &b);
     assert_eq!(first["task"]["id"], second["task"]["id"]);
     assert_eq!(second["task"]["attempt"], 2);
+    // B's lease is current (renewed at once) for the uploads below.
+    let (s, v) = post(
+        &c,
+        &format!("{url}/v1/worker/heartbeat"),
+        &json!({ "worker_id": b, "tasks": [{ "id": second["task"]["id"], "attempt": 2 }] }),
+    );
+    assert_eq!((s, v["lost"].clone()), (200, json!([])), "{v}");
     // The late result (wrong seed, so it would show) is refused, and so is a non-owner's.
-    let wrong = tile_result(&first["task"], 99);
     assert_eq!(upload(&c, &url, &first, &a, wrong.clone()), 409);
     assert_eq!(upload(&c, &url, &second, &a, wrong), 409);
     // A result for another tile is refused as invalid.
-    let mut other = second["task"].clone();
-    other["rect"] = json!({ "x0": 16, "y0": 0, "x1": 32, "y1": 16 });
-    assert_eq!(upload(&c, &url, &second, &b, tile_result(&other, 7)), 400);
+    assert_eq!(upload(&c, &url, &second, &b, other), 400);
     // After the invalid upload the task is back in the queue; the workers finish the job.
     let _w = worker(&url, "w", &[]);
     let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
