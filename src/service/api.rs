@@ -982,8 +982,6 @@ async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult<Response> 
             }
         };
         if let Some((task, Some(job))) = leased {
-            let resolved: Value =
-                serde_json::from_str(&job.resolved).map_err(ApiError::internal)?;
             let res = jobs::resolved_of(&job).map_err(ApiError::internal)?;
             let tile = res
                 .tiles()
@@ -1003,7 +1001,7 @@ async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult<Response> 
                 "job": {
                     "scene_id": job.scene_id,
                     "scene_main": job.scene_main,
-                    "resolved": resolved,
+                    "resolved": res,
                 },
                 "lease_seconds": app.cfg.lease_s,
             }))

@@ -13,7 +13,6 @@ use serde::Deserialize;
 use serde_json::json;
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{OnceCell, watch};
@@ -67,7 +66,6 @@ struct Worker {
     lost: Mutex<HashSet<i64>>,
     scenes: Mutex<HashMap<(String, u32, u32), SceneCell>>,
     drain: watch::Sender<bool>,
-    draining: AtomicBool,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -126,7 +124,7 @@ impl Worker {
                 Ok(r) => tracing::warn!("register: HTTP {}", r.status()),
                 Err(e) => tracing::warn!("register: {e}"),
             }
-            if self.draining.load(Ordering::SeqCst) {
+            if *self.drain.borrow() {
                 anyhow::bail!("stopped before registering");
             }
             tokio::time::sleep(backoff).await;
@@ -375,7 +373,6 @@ pub async fn run(cfg: WorkerConfig) -> Result<()> {
         lost: Mutex::new(HashSet::new()),
         scenes: Mutex::new(HashMap::new()),
         drain,
-        draining: AtomicBool::new(false),
     });
     if cfg.exit_with_parent {
         let parent = std::os::unix::process::parent_id();
@@ -400,7 +397,6 @@ pub async fn run(cfg: WorkerConfig) -> Result<()> {
                 _ = tokio::signal::ctrl_c() => {}
             }
             tracing::info!("draining: finishing the tasks in hand");
-            w.draining.store(true, Ordering::SeqCst);
             let _ = w.drain.send(true);
             tokio::select! {
                 _ = term.recv() => {}
