@@ -73,7 +73,7 @@ fn u32_to_unit(x: u32) -> f32 {
 }
 
 /// Which sample generator a render uses.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum SamplerKind {
     /// Independent uniform numbers from PCG32.

@@ -4,7 +4,8 @@
 //! independent seeds (so that the 4-standard-error bound is a t-test with 31 degrees of freedom).
 
 use omis::film::Image;
-use omis::integrator::{self, IntegratorKind, MisKind, RenderSettings};
+use omis::integrator::{IntegratorKind, RenderSettings, Techniques};
+use omis::mis::MisKind;
 use omis::sampler::SamplerKind;
 use omis::scene::Scene;
 use std::path::Path;
@@ -25,7 +26,11 @@ fn render(scene: &Scene, settings: &RenderSettings, threads: usize) -> Image {
         .num_threads(threads)
         .build()
         .expect("pool");
-    pool.install(|| integrator::render(scene, settings, 8, &|_| {}).image())
+    pool.install(|| {
+        omis::job::Resolved::fixed(scene, settings, 8, 64)
+            .render_in_process(scene, &|_| {})
+            .image()
+    })
 }
 
 const SEEDS: u64 = 32;
@@ -105,6 +110,14 @@ fn bdpt(mis: MisKind, spp: u32, max_depth: u32) -> RenderSettings {
     }
 }
 
+/// BDPT with one technique per depth alone (light tracing or NEE), unweighted.
+fn alone(techniques: Techniques, spp: u32, max_depth: u32) -> RenderSettings {
+    RenderSettings {
+        techniques,
+        ..bdpt(MisKind::Balance, spp, max_depth)
+    }
+}
+
 fn pt(spp: u32, max_depth: u32) -> RenderSettings {
     RenderSettings {
         integrator: IntegratorKind::Pt,
@@ -120,8 +133,8 @@ fn light_tracing_alone_and_nee_alone_equal_the_path_tracer() {
     // The sharpest test of importance and pdf conventions: each strategy unweighted, on its own.
     let scene = load("cornell-box.json", 24, 24);
     let reference = renders(&scene, &pt(16, 5));
-    let lt = renders(&scene, &bdpt(MisKind::Lt, 8, 5));
-    let nee = renders(&scene, &bdpt(MisKind::Nee, 4, 5));
+    let lt = renders(&scene, &alone(Techniques::Lt, 8, 5));
+    let nee = renders(&scene, &alone(Techniques::Nee, 4, 5));
     assert_agree("light tracing vs PT", &lt, &reference, 4);
     assert_agree("NEE vs PT", &nee, &reference, 4);
 }
@@ -214,10 +227,10 @@ fn strategy_layers_sum_to_the_image() {
     let scene = load("cornell-box.json", 16, 16);
     let mut s = bdpt(MisKind::Balance, 4, 3);
     s.strategies = true;
-    let out = integrator::render(&scene, &s, 8, &|_| {});
+    let out = omis::job::Resolved::fixed(&scene, &s, 8, 64).render_in_process(&scene, &|_| {});
     let img = out.image();
-    let layers = out.frame.strategy_images();
-    assert_eq!(layers.len(), integrator::STRATEGY_LAYERS);
+    let layers = out.film.strategy_images();
+    assert_eq!(layers.len(), omis::film::STRATEGY_LAYERS);
     assert!(layers.iter().any(|(n, _)| n == "s1_t1") && layers.iter().any(|(n, _)| n == "s0_t5"));
     for i in 0..img.pixels.len() {
         let sum: omis::geometry::Vec3 = layers.iter().map(|(_, l)| l.pixels[i]).sum();

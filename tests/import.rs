@@ -4,7 +4,7 @@
 
 use omis::film::PixelSums;
 use omis::geometry::{Vec2, Vec3};
-use omis::integrator::{self, RenderSettings};
+use omis::integrator::RenderSettings;
 use omis::light::Light;
 use omis::material::MaterialKind;
 use omis::sampler::SamplerKind;
@@ -96,7 +96,8 @@ fn render(scene: &Scene, spp: u32, max_depth: u32, seed: u64) -> PixelSums {
         sampler: SamplerKind::Independent,
         ..Default::default()
     };
-    integrator::render(scene, &settings, 16, &|_| {})
+    omis::job::Resolved::fixed(scene, &settings, 16, 64)
+        .render_in_process(scene, &|_| {})
         .sums()
         .clone()
 }
@@ -1280,7 +1281,8 @@ fn staircase_relmse_against_tungsten() {
         sampler: SamplerKind::Sobol,
         ..Default::default()
     };
-    let out = integrator::render(&scene, &settings, 16, &|_| {});
+    let out =
+        omis::job::Resolved::fixed(&scene, &settings, 16, 64).render_in_process(&scene, &|_| {});
     let img = out.image();
     let rate = out.stats.samples as f64 / out.seconds;
     let stats = omis::film::metrics::compare(&img, &reference, 0.01).expect("same size");

@@ -1,8 +1,10 @@
 //! Optimal MIS: the accumulators are a mergeable value (tiling and sample-range invariance, also
 //! through the wire encoding), the estimate is unbiased in practice, and it beats balance.
 
-use omis::film::Image;
-use omis::integrator::{self, Frame, IntegratorKind, MisKind, RenderSettings, TileFilm};
+use omis::film::{Film, Image, Tile, TileFilm};
+use omis::integrator::{self, IntegratorKind, RenderSettings};
+use omis::job::{Resolved, make_tiles};
+use omis::mis::MisKind;
 use omis::sampler::SamplerKind;
 use omis::scene::Scene;
 use std::path::Path;
@@ -35,17 +37,16 @@ fn optimal(spp: u32, max_depth: u32, d_opt: u32) -> RenderSettings {
 fn tasks_image(
     scene: &Scene,
     s: &RenderSettings,
-    tasks: &[(integrator::Tile, std::ops::Range<u32>)],
+    tasks: &[(Tile, std::ops::Range<u32>)],
     through_wire: bool,
 ) -> Image {
     let (w, h) = (scene.camera.width, scene.camera.height);
-    let mut frame = Frame::new(w, h, s);
-    let d_opt = s.optimal_layout().map(|l| l.d_opt);
+    let mut frame = Film::new(w, h, &s.film_layout());
     for (tile, range) in tasks {
         let mut film = integrator::render_tile(scene, s, *tile, range.clone());
         if through_wire {
             let bytes = film.encode(range.clone());
-            let (back, r) = TileFilm::decode(&bytes, w, h, d_opt).expect("decodes");
+            let (back, r) = TileFilm::decode(&bytes, w, h, &s.film_layout()).expect("decodes");
             assert_eq!(&r, range);
             assert_eq!(back.encode(range.clone()), bytes, "encoding is canonical");
             film = back;
@@ -74,7 +75,7 @@ fn tiles_and_sample_ranges_merge_to_the_single_pass_image() {
         s.strategies = true;
         s
     }] {
-        let whole = integrator::Tile {
+        let whole = Tile {
             x0: 0,
             y0: 0,
             x1: 32,
@@ -82,7 +83,7 @@ fn tiles_and_sample_ranges_merge_to_the_single_pass_image() {
         };
         let one = tasks_image(&scene, &settings, &[(whole, 0..4)], false);
         // 16 tiles, merged in reverse order.
-        let mut t16: Vec<_> = integrator::make_tiles(32, 32, 8)
+        let mut t16: Vec<_> = make_tiles(32, 32, 8)
             .into_iter()
             .map(|t| (t, 0..4))
             .collect();
@@ -90,10 +91,10 @@ fn tiles_and_sample_ranges_merge_to_the_single_pass_image() {
         let sixteen = tasks_image(&scene, &settings, &t16, false);
         // 64 tiles, each as two sample ranges, interleaved, through the wire encoding.
         let mut t64 = Vec::new();
-        for t in integrator::make_tiles(32, 32, 4) {
+        for t in make_tiles(32, 32, 4) {
             t64.push((t, 2..4));
         }
-        for t in integrator::make_tiles(32, 32, 4).into_iter().rev() {
+        for t in make_tiles(32, 32, 4).into_iter().rev() {
             t64.push((t, 0..2));
         }
         let sixty_four = tasks_image(&scene, &settings, &t64, true);
@@ -105,7 +106,9 @@ fn tiles_and_sample_ranges_merge_to_the_single_pass_image() {
         );
         assert!(d16 <= 1e-6 && d64 <= 1e-6, "{d16} {d64}");
         // And the frame's own render loop agrees as well.
-        let full = integrator::render(&scene, &settings, 16, &|_| {}).image();
+        let full = Resolved::fixed(&scene, &settings, 16, 64)
+            .render_in_process(&scene, &|_| {})
+            .image();
         assert!(max_rel_diff(&one, &full) <= 1e-6);
     }
 }
@@ -114,7 +117,7 @@ fn tiles_and_sample_ranges_merge_to_the_single_pass_image() {
 fn wire_decoding_rejects_damaged_results() {
     let scene = load("cornell-box.json", 16, 16);
     let s = optimal(2, 3, 3);
-    let tile = integrator::Tile {
+    let tile = Tile {
         x0: 0,
         y0: 0,
         x1: 8,
@@ -122,22 +125,32 @@ fn wire_decoding_rejects_damaged_results() {
     };
     let film = integrator::render_tile(&scene, &s, tile, 0..2);
     let bytes = film.encode(0..2);
-    assert!(TileFilm::decode(&bytes, 16, 16, Some(3)).is_ok());
-    assert!(TileFilm::decode(&bytes[..bytes.len() - 1], 16, 16, Some(3)).is_err());
+    let layout = s.film_layout();
+    let shallower = optimal(2, 3, 2).film_layout();
+    assert!(TileFilm::decode(&bytes, 16, 16, &layout).is_ok());
+    assert!(TileFilm::decode(&bytes[..bytes.len() - 1], 16, 16, &layout).is_err());
     assert!(
-        TileFilm::decode(&bytes, 16, 16, Some(2)).is_err(),
+        TileFilm::decode(&bytes, 16, 16, &shallower).is_err(),
         "depth mismatch"
     );
     assert!(
-        TileFilm::decode(&bytes, 4, 4, Some(3)).is_err(),
+        TileFilm::decode(&bytes, 4, 4, &layout).is_err(),
         "tile outside the frame"
     );
     let mut bad = bytes.clone();
     bad[0] = b'X';
-    assert!(TileFilm::decode(&bad, 16, 16, Some(3)).is_err());
+    assert!(TileFilm::decode(&bad, 16, 16, &layout).is_err());
     let mut longer = bytes.clone();
     longer.push(0);
-    assert!(TileFilm::decode(&longer, 16, 16, Some(3)).is_err());
+    assert!(TileFilm::decode(&longer, 16, 16, &layout).is_err());
+    let with_depths = RenderSettings {
+        depth_layers: true,
+        ..s.clone()
+    };
+    assert!(
+        TileFilm::decode(&bytes, 16, 16, &with_depths.film_layout()).is_err(),
+        "depth layers missing"
+    );
 }
 
 #[test]
@@ -147,10 +160,12 @@ fn balance_from_the_optimal_accumulators_equals_balance_weighted_bdpt() {
     // bookkeeping (C W_s W, light-tracing routing, normalisation) end to end.
     let scene = load("cornell-box-small-light.json", 24, 24);
     let mut s = optimal(8, 5, 3);
-    let out = integrator::render(&scene, &s, 8, &|_| {});
+    let out = Resolved::fixed(&scene, &s, 8, 64).render_in_process(&scene, &|_| {});
     s.mis = MisKind::Balance;
-    let bal = integrator::render(&scene, &s, 8, &|_| {}).image();
-    let f = &out.frame;
+    let bal = Resolved::fixed(&scene, &s, 8, 64)
+        .render_in_process(&scene, &|_| {})
+        .image();
+    let f = &out.film;
     let o = f.optimal.as_ref().expect("optimal systems");
     let mut worst: f64 = 0.0;
     for i in 0..bal.pixels.len() {
@@ -190,15 +205,16 @@ fn region_stats(imgs: &[Image], r: (usize, usize, usize, usize), c: usize) -> (f
 fn seeds(scene: &Scene, s: &RenderSettings, n: u64) -> Vec<Image> {
     (0..n)
         .map(|k| {
-            integrator::render(
+            Resolved::fixed(
                 scene,
                 &RenderSettings {
                     seed: 100 + k,
                     ..s.clone()
                 },
                 8,
-                &|_| {},
+                64,
             )
+            .render_in_process(scene, &|_| {})
             .image()
         })
         .collect()
@@ -258,7 +274,9 @@ fn optimal_beats_balance_at_equal_spp_and_is_never_worse_at_low_spp() {
         let mut rs = optimal(4096, 5, 5);
         rs.mis = MisKind::Balance;
         rs.seed = 999;
-        let reference = integrator::render(&scene, &rs, 8, &|_| {}).image();
+        let reference = Resolved::fixed(&scene, &rs, 8, 64)
+            .render_in_process(&scene, &|_| {})
+            .image();
         for spp in [1u32, 2, 4, 16, 64] {
             let mut rel = [0.0f64; 2];
             for (k, mis) in [MisKind::Balance, MisKind::Optimal].into_iter().enumerate() {

@@ -2,8 +2,8 @@
 //! determinism across thread counts. Fixed seeds, tolerances from the measured variance.
 
 use omis::film::PixelSums;
+use omis::integrator::RenderSettings;
 use omis::integrator::path::DirectStrategy;
-use omis::integrator::{self, RenderSettings};
 use omis::sampler::SamplerKind;
 use omis::scene::{Scene, json};
 use std::path::Path;
@@ -29,7 +29,12 @@ fn render(scene: &Scene, settings: &RenderSettings, threads: usize) -> PixelSums
         .num_threads(threads)
         .build()
         .expect("pool");
-    pool.install(|| integrator::render(scene, settings, 8, &|_| {}).frame.sums)
+    pool.install(|| {
+        omis::job::Resolved::fixed(scene, settings, 8, 64)
+            .render_in_process(scene, &|_| {})
+            .film
+            .sums
+    })
 }
 
 /// Mean and standard error of the mean over a pixel region (pixels are independent estimates).

@@ -175,7 +175,7 @@ fn in_process(spp: u32) -> Image {
     s.spp = Some(spp);
     let mut scene = Scene::load(&repo().join("scenes/cornell-box.json")).expect("scene");
     let r = s.resolve(&mut scene, &Limits::default()).expect("resolve");
-    r.render_in_process(&scene, &|_| {}).0.image()
+    r.render_in_process(&scene, &|_| {}).image()
 }
 
 fn assert_equal(a: &Image, b: &Image) {
@@ -348,7 +348,7 @@ fn tile_result(task: &Value, seed: u64) -> Vec<u8> {
     s.seed = seed;
     let mut scene = Scene::load(&repo().join("scenes/cornell-box.json")).expect("scene");
     let r = s.resolve(&mut scene, &Limits::default()).expect("resolve");
-    let rect: omis::integrator::Tile = serde_json::from_value(task["rect"].clone()).expect("rect");
+    let rect: omis::film::Tile = serde_json::from_value(task["rect"].clone()).expect("rect");
     let range = task["samples"][0].as_u64().expect("s0") as u32
         ..task["samples"][1].as_u64().expect("s1") as u32;
     omis::integrator::render_tile(&scene, &r.render, rect, range.clone()).encode(range)
@@ -676,25 +676,33 @@ fn the_router_and_the_openapi_contract_have_the_same_routes() {
 
 #[test]
 fn a_checkpoint_round_trips() {
-    use omis::integrator::wire::Checkpoint;
+    use omis::film::wire::Checkpoint;
     let mut s: JobSettings = serde_json::from_value(settings(8)).expect("settings");
     s.depth_layers = true;
     let mut scene = Scene::load(&repo().join("scenes/cornell-box.json")).expect("scene");
     let r = s.resolve(&mut scene, &Limits::default()).expect("resolve");
-    let (out, _) = r.render_in_process(&scene, &|_| {});
+    let out = r.render_in_process(&scene, &|_| {});
     let ck = Checkpoint {
-        frame: out.frame,
+        frame: out.film,
         passes: 2,
         stats: out.stats,
     };
     let bytes = ck.encode();
-    let back = Checkpoint::decode(&bytes, r.width, r.height, &r.render).expect("decode");
+    let back = Checkpoint::decode(&bytes, r.width, r.height, &r.film_layout()).expect("decode");
     assert_eq!(back.passes, 2);
     assert_eq!(back.stats, ck.stats);
     assert_eq!(back.frame.image(), ck.frame.image());
     assert_eq!(back.frame.depth_images(), ck.frame.depth_images());
-    assert!(Checkpoint::decode(&bytes[..bytes.len() - 1], r.width, r.height, &r.render).is_err());
-    assert!(Checkpoint::decode(&bytes, r.width + 1, r.height, &r.render).is_err());
+    assert!(
+        Checkpoint::decode(
+            &bytes[..bytes.len() - 1],
+            r.width,
+            r.height,
+            &r.film_layout()
+        )
+        .is_err()
+    );
+    assert!(Checkpoint::decode(&bytes, r.width + 1, r.height, &r.film_layout()).is_err());
 }
 
 /// Pids of the children of `pid` (of any of its threads).

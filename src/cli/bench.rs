@@ -7,7 +7,8 @@ use crate::accel::{Accel, SphereGeom};
 use crate::film::{Image, exr_io, metrics, png};
 use crate::geometry::warp::uniform_sphere;
 use crate::geometry::{Ray, Vec2, Vec3};
-use crate::integrator::{self, IntegratorKind, RenderSettings};
+use crate::integrator::{IntegratorKind, RenderSettings};
+use crate::job::Resolved;
 use crate::sampler::{Pcg32, SamplerKind};
 use crate::scene::{Scene, mesh};
 use anyhow::{Context, Result, bail};
@@ -186,7 +187,8 @@ pub fn run(a: BenchArgs) -> Result<()> {
             sampler: SamplerKind::Sobol,
             ..Default::default()
         };
-        let out = pool.install(|| integrator::render(&scene, &settings, 16, &|_| {}));
+        let job = Resolved::fixed(&scene, &settings, 16, 64);
+        let out = pool.install(|| job.render_in_process(&scene, &|_| {}));
         let st = out.stats;
         let secs = out.seconds;
         let reference = if k == 0 {

@@ -146,7 +146,7 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
     let threads = *a.workers.iter().max().unwrap_or(&1);
     let pool = super::thread_pool(threads)?;
     let t0 = Instant::now();
-    let (output, _) = pool.install(|| r.render_in_process(&scene, &|_| {}));
+    let output = pool.install(|| r.render_in_process(&scene, &|_| {}));
     let seconds = t0.elapsed().as_secs_f64();
     let reference = output.image();
     rows.push(json!({

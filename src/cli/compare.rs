@@ -2,14 +2,15 @@
 //! reference: relMSE table, relMSE-vs-spp plot, gain per path depth, time and memory overhead
 //! (the experiments of seed 000, Figs. 5, 7, 8, 9, 10).
 
+use super::choices::{MisArg, SamplerArg};
 use crate::film::{Image, exr_io, metrics, plot};
-use crate::integrator::{self, IntegratorKind, MisKind, RenderSettings};
-use crate::sampler::SamplerKind;
+use crate::integrator::{IntegratorKind, RenderSettings};
+use crate::job::{RenderOutput, Resolved};
+use crate::mis::MisKind;
 use crate::scene::Scene;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::PathBuf;
-use std::time::Duration;
 
 #[derive(Args)]
 pub struct CompareArgs {
@@ -19,7 +20,7 @@ pub struct CompareArgs {
     pub spp: Vec<u32>,
     /// MIS strategies, comma separated (balance, power, optimal).
     #[arg(long, default_value = "balance,power,optimal", value_delimiter = ',')]
-    pub mis: Vec<MisKind>,
+    pub mis: Vec<MisArg>,
     /// Converged reference EXR (its resolution is the render's). Layers named depth0, depth1,
     /// ... (from `omis render --depth-layers`) enable per-depth relMSE.
     #[arg(long)]
@@ -37,10 +38,10 @@ pub struct CompareArgs {
     pub max_depth: u32,
     #[arg(long, default_value_t = 5)]
     pub optimal_max_depth: u32,
-    #[arg(long, default_value_t = integrator::DEFAULT_KAPPA)]
+    #[arg(long, default_value_t = crate::mis::DEFAULT_KAPPA)]
     pub kappa: f64,
-    #[arg(long, value_enum, default_value_t = SamplerKind::Independent)]
-    pub sampler: SamplerKind,
+    #[arg(long, value_enum, default_value_t = SamplerArg::Independent)]
+    pub sampler: SamplerArg,
     #[arg(long, default_value_t = 0.01)]
     pub eps: f64,
     #[arg(long, default_value_t = 0)]
@@ -69,6 +70,11 @@ impl Method {
         }
     }
 }
+
+/// Tiles of the comparison renders.
+const TILE_SIZE: u32 = 16;
+/// Samples per task at equal spp (equal-time renders run passes of one sample).
+const PASS_SIZE: u32 = 64;
 
 const BALANCE: Method = Method::Bdpt(MisKind::Balance);
 const OPTIMAL: Method = Method::Bdpt(MisKind::Optimal);
@@ -152,7 +158,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
         .map_err(anyhow::Error::msg)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let pool = super::thread_pool(a.threads)?;
-    let mut methods: Vec<Method> = a.mis.iter().map(|&m| Method::Bdpt(m)).collect();
+    let mut methods: Vec<Method> = a.mis.iter().map(|&m| Method::Bdpt(m.into())).collect();
     if a.pt {
         methods.push(Method::Pt);
     }
@@ -168,58 +174,57 @@ pub fn run(a: CompareArgs) -> Result<()> {
         spp,
         max_depth: a.max_depth,
         seed,
-        sampler: a.sampler,
+        sampler: a.sampler.into(),
         optimal_max_depth: a.optimal_max_depth,
         optimal_kappa: a.kappa,
         depth_layers: true,
         ..Default::default()
     };
-    let eval =
-        |method: Method, spp: u32, outs: Vec<(integrator::RenderOutput, u32)>| -> Result<Point> {
-            let mut rel = Vec::new();
-            let mut secs = 0.0;
-            let mut depth_imgs: Vec<Vec<Image>> = vec![Vec::new(); a.max_depth as usize + 1];
-            let mut depth_rel: Vec<Vec<f64>> = vec![Vec::new(); a.max_depth as usize + 1];
-            let bytes = outs[0].0.frame.bytes_per_pixel();
-            for (out, _) in &outs {
-                let img = out.image();
-                rel.push(
-                    metrics::compare(&img, &reference, a.eps)
-                        .map_err(anyhow::Error::msg)?
-                        .relmse,
-                );
-                secs += out.seconds;
-                for (d, im) in out.frame.depth_images().into_iter().enumerate() {
-                    if let Some(Some(r)) = ref_depths.get(d) {
-                        depth_rel[d].push(
-                            metrics::compare(&im, r, a.eps)
-                                .map_err(anyhow::Error::msg)?
-                                .relmse,
-                        );
-                    }
-                    depth_imgs[d].push(im);
+    let eval = |method: Method, spp: u32, outs: Vec<RenderOutput>| -> Result<Point> {
+        let mut rel = Vec::new();
+        let mut secs = 0.0;
+        let mut depth_imgs: Vec<Vec<Image>> = vec![Vec::new(); a.max_depth as usize + 1];
+        let mut depth_rel: Vec<Vec<f64>> = vec![Vec::new(); a.max_depth as usize + 1];
+        let bytes = outs[0].film.layout.bytes_per_pixel();
+        for out in &outs {
+            let img = out.image();
+            rel.push(
+                metrics::compare(&img, &reference, a.eps)
+                    .map_err(anyhow::Error::msg)?
+                    .relmse,
+            );
+            secs += out.seconds;
+            for (d, im) in out.film.depth_images().into_iter().enumerate() {
+                if let Some(Some(r)) = ref_depths.get(d) {
+                    depth_rel[d].push(
+                        metrics::compare(&im, r, a.eps)
+                            .map_err(anyhow::Error::msg)?
+                            .relmse,
+                    );
                 }
+                depth_imgs[d].push(im);
             }
-            let (m, sd) = mean_sd(&rel);
-            let per_depth = (0..=a.max_depth as usize)
-                .map(|d| {
-                    if depth_rel[d].is_empty() {
-                        relative_variance(&depth_imgs[d], a.eps)
-                    } else {
-                        mean_sd(&depth_rel[d]).0
-                    }
-                })
-                .collect();
-            Ok(Point {
-                method,
-                spp,
-                relmse: m,
-                relmse_sd: sd,
-                seconds: secs / outs.len() as f64,
-                bytes_per_pixel: bytes,
-                relmse_per_depth: per_depth,
+        }
+        let (m, sd) = mean_sd(&rel);
+        let per_depth = (0..=a.max_depth as usize)
+            .map(|d| {
+                if depth_rel[d].is_empty() {
+                    relative_variance(&depth_imgs[d], a.eps)
+                } else {
+                    mean_sd(&depth_rel[d]).0
+                }
             })
-        };
+            .collect();
+        Ok(Point {
+            method,
+            spp,
+            relmse: m,
+            relmse_sd: sd,
+            seconds: secs / outs.len() as f64,
+            bytes_per_pixel: bytes,
+            relmse_per_depth: per_depth,
+        })
+    };
 
     let mut points = Vec::new();
     for &spp in &a.spp {
@@ -227,8 +232,8 @@ pub fn run(a: CompareArgs) -> Result<()> {
             let outs = (0..a.seeds)
                 .map(|seed| {
                     let s = settings(mis, spp, seed);
-                    let o = pool.install(|| integrator::render(&scene, &s, 16, &|_| {}));
-                    (o, spp)
+                    let job = Resolved::fixed(&scene, &s, TILE_SIZE, PASS_SIZE);
+                    pool.install(|| job.render_in_process(&scene, &|_| {}))
                 })
                 .collect();
             let p = eval(mis, spp, outs)?;
@@ -252,12 +257,11 @@ pub fn run(a: CompareArgs) -> Result<()> {
             let outs: Vec<_> = (0..a.seeds)
                 .map(|seed| {
                     let s = settings(mis, 1, seed);
-                    pool.install(|| {
-                        integrator::render_for(&scene, &s, 16, 1, Duration::from_secs_f64(t))
-                    })
+                    let job = Resolved::timed(&scene, &s, TILE_SIZE, 1, t);
+                    pool.install(|| job.render_in_process(&scene, &|_| {}))
                 })
                 .collect();
-            let spp = outs.iter().map(|o| o.1).min().unwrap_or(0);
+            let spp = outs.iter().map(|o| o.spp).min().unwrap_or(0);
             let p = eval(mis, spp, outs)?;
             eprintln!(
                 "{:>8} equal time {t} s: {} spp, relMSE {:.4e}",

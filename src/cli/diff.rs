@@ -1,7 +1,8 @@
-//! `omis diff`: relMSE and MSE of an image against a reference, and the signed error map.
+//! `omis diff`: relMSE (all pixels, and without the 0.1% worst) and MSE of an image against a
+//! reference, the signed error map, and with `--layers` every EXR layer the two files share.
 
 use crate::film::{exr_io, metrics, png};
-use anyhow::Result;
+use anyhow::{Result, bail};
 use clap::Args;
 use std::path::PathBuf;
 
@@ -18,11 +19,21 @@ pub struct DiffArgs {
     /// Relative error shown at full intensity in the error map.
     #[arg(long, default_value_t = 1.0)]
     pub error_scale: f64,
+    /// Compare every layer the two files share (beauty, variance, strategies, depths), and
+    /// fail unless each is bit-identical when `--eps 0`.
+    #[arg(long)]
+    pub layers: bool,
     #[arg(long)]
     pub json: bool,
 }
 
 pub fn run(a: DiffArgs) -> Result<()> {
+    if !(a.eps >= 0.0 && a.eps.is_finite()) {
+        bail!("--eps must be a finite number >= 0");
+    }
+    if a.layers {
+        return run_layers(&a);
+    }
     let img = exr_io::read_exr(&a.image).map_err(anyhow::Error::msg)?;
     let reference = exr_io::read_exr(&a.reference).map_err(anyhow::Error::msg)?;
     let s = metrics::compare(&img, &reference, a.eps).map_err(anyhow::Error::msg)?;
@@ -35,12 +46,62 @@ pub fn run(a: DiffArgs) -> Result<()> {
         println!("{}", serde_json::to_string(&s)?);
     } else {
         println!(
-            "relMSE {:.6e}  MSE {:.6e}  (eps {})",
-            s.relmse, s.mse, s.eps
+            "relMSE {:.6e}  without the 0.1% worst pixels {:.6e}  MSE {:.6e}  (eps {}){}",
+            s.relmse,
+            s.relmse_trimmed,
+            s.mse,
+            s.eps,
+            if s.identical { "  identical" } else { "" }
         );
         if s.non_finite > 0 {
             println!("{} pixels were not finite and were left out", s.non_finite);
         }
+    }
+    Ok(())
+}
+
+/// Every shared layer, by name; with `--eps 0` an error unless every one is bit-identical.
+fn run_layers(a: &DiffArgs) -> Result<()> {
+    let img = exr_io::read_exr_layers(&a.image).map_err(anyhow::Error::msg)?;
+    let reference = exr_io::read_exr_layers(&a.reference).map_err(anyhow::Error::msg)?;
+    let mut rows = Vec::new();
+    let names =
+        |l: &[(String, crate::film::Image)]| l.iter().map(|(n, _)| n.clone()).collect::<Vec<_>>();
+    if names(&img) != names(&reference) {
+        bail!(
+            "the files have different layers: {:?} vs {:?}",
+            names(&img),
+            names(&reference)
+        );
+    }
+    for ((name, i), (_, r)) in img.iter().zip(&reference) {
+        let s = metrics::compare(i, r, a.eps.max(f64::MIN_POSITIVE))
+            .map_err(|e| anyhow::anyhow!("layer '{name}': {e}"))?;
+        if !a.json {
+            println!(
+                "{:<12} relMSE {:.6e}  max |diff| {:.3e}{}",
+                if name.is_empty() { "beauty" } else { name },
+                s.relmse,
+                s.max_abs,
+                if s.identical { "  identical" } else { "" }
+            );
+        }
+        rows.push((name.clone(), s));
+    }
+    if a.json {
+        let v: serde_json::Map<String, serde_json::Value> = rows
+            .iter()
+            .map(|(n, s)| (n.clone(), serde_json::json!(s)))
+            .collect();
+        println!("{}", serde_json::Value::Object(v));
+    }
+    let differ: Vec<&str> = rows
+        .iter()
+        .filter(|(_, s)| !s.identical)
+        .map(|(n, _)| if n.is_empty() { "beauty" } else { n.as_str() })
+        .collect();
+    if a.eps == 0.0 && !differ.is_empty() {
+        bail!("layers differ: {}", differ.join(", "));
     }
     Ok(())
 }

@@ -1,9 +1,7 @@
 //! The render settings flags shared by `omis render` and `omis submit`.
 
-use crate::integrator::path::DirectStrategy;
-use crate::integrator::{self, IntegratorKind, MisKind};
+use super::choices::{DirectArg, IntegratorArg, MisArg, SamplerArg, TechniquesArg};
 use crate::job::{self, FieldError, JobSettings};
-use crate::sampler::SamplerKind;
 use clap::Args;
 
 #[derive(Args, Clone, Debug)]
@@ -18,11 +16,14 @@ pub struct JobArgs {
     /// scene's, else 5).
     #[arg(long)]
     pub max_depth: Option<u32>,
-    #[arg(long, value_enum, default_value_t = IntegratorKind::Pt)]
-    pub integrator: IntegratorKind,
+    #[arg(long, value_enum, default_value_t = IntegratorArg::Pt)]
+    pub integrator: IntegratorArg,
     /// BDPT technique weights.
-    #[arg(long, value_enum, default_value_t = MisKind::Balance)]
-    pub mis: MisKind,
+    #[arg(long, value_enum, default_value_t = MisArg::Balance)]
+    pub mis: MisArg,
+    /// BDPT: every technique, or light tracing / NEE alone (validation: each is unbiased alone).
+    #[arg(long, value_enum, default_value_t = TechniquesArg::All)]
+    pub techniques: TechniquesArg,
     /// BDPT: write the weighted contribution of every (s, t) up to depth 3 as EXR layers
     /// `s<S>_t<T>`.
     #[arg(long)]
@@ -33,17 +34,18 @@ pub struct JobArgs {
     /// Optimal MIS: weight depths 1..=D optimally, balance above.
     #[arg(long, default_value_t = 5)]
     pub optimal_max_depth: u32,
-    /// Optimal MIS: regularisation toward the balance solution (0 = the seed's direct estimator).
-    #[arg(long, default_value_t = integrator::DEFAULT_KAPPA)]
+    /// Optimal MIS: regularisation toward the balance solution, in pseudo-samples (0 = the
+    /// plain direct estimator).
+    #[arg(long, default_value_t = crate::mis::DEFAULT_KAPPA)]
     pub kappa: f64,
-    #[arg(long, value_enum, default_value_t = SamplerKind::Sobol)]
-    pub sampler: SamplerKind,
+    #[arg(long, value_enum, default_value_t = SamplerArg::Sobol)]
+    pub sampler: SamplerArg,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Path tracer: how emitters are reached. `light` / `bsdf` use one strategy alone (for
     /// validation; both are unbiased, BSDF sampling cannot see point lights).
-    #[arg(long, value_enum, default_value_t = DirectStrategy::Mis)]
-    pub direct: DirectStrategy,
+    #[arg(long, value_enum, default_value_t = DirectArg::Mis)]
+    pub direct: DirectArg,
     /// Override the scene's resolution, e.g. 256x256 (the vertical field of view is kept).
     #[arg(long)]
     pub resolution: Option<String>,
@@ -72,14 +74,15 @@ impl JobArgs {
             resolution,
             spp: self.spp,
             time_budget_s: self.time_budget,
-            integrator: self.integrator,
-            mis: self.mis,
+            integrator: self.integrator.into(),
+            mis: self.mis.into(),
+            techniques: self.techniques.into(),
             optimal_max_depth: self.optimal_max_depth,
             kappa: self.kappa,
             max_depth: self.max_depth,
             seed: self.seed,
-            sampler: self.sampler,
-            direct: self.direct,
+            sampler: self.sampler.into(),
+            direct: self.direct.into(),
             strategies: self.strategies,
             depth_layers: self.depth_layers,
             tile_size: self.tile_size,

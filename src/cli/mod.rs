@@ -2,6 +2,7 @@
 
 mod bench;
 mod bench_service;
+mod choices;
 mod client;
 mod compare;
 mod diff;

@@ -6,8 +6,8 @@
 use super::client::Client;
 use super::job_args::JobArgs;
 use super::service_cmds::{init_logging, runtime, submit_job, wait_job};
+use crate::film::RayStats;
 use crate::film::{Image, exr_io, metrics, png};
-use crate::integrator::RayStats;
 use crate::job::{Limits, Resolved};
 use crate::scene::Scene;
 use crate::service;
@@ -97,7 +97,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
             .unwrap_or_else(|| "render".into());
         PathBuf::from(format!("{stem}.exr"))
     });
-    let bytes_per_pixel = crate::integrator::Frame::new(1, 1, &resolved.render).bytes_per_pixel();
+    let bytes_per_pixel = resolved.film_layout().bytes_per_pixel();
     let done = if a.in_process {
         in_process(&a, &scene, &resolved, &out, bytes_per_pixel)?
     } else {
@@ -125,7 +125,8 @@ fn in_process(
         )
         .expect("valid template"),
     );
-    let (output, spp) = pool.install(|| r.render_in_process(scene, &|n| bar.inc(n as u64)));
+    let output = pool.install(|| r.render_in_process(scene, &|n| bar.inc(n as u64)));
+    let spp = output.spp;
     bar.finish_and_clear();
     let scene_name = a
         .scene
@@ -133,12 +134,8 @@ fn in_process(
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_default();
     let image = output
-        .frame
-        .write_exr(
-            out,
-            r.render.integrator,
-            &r.exr_attributes(&scene_name, spp),
-        )
+        .film
+        .write_exr(out, &r.exr_attributes(&scene_name, spp))
         .map_err(anyhow::Error::msg)?;
     if let Some(p) = &a.png {
         png::write_png(p, &image, 0.0).map_err(anyhow::Error::msg)?;

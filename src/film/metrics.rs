@@ -2,16 +2,31 @@
 
 use super::Image;
 
-/// relMSE (the seed's MRSE) = mean over pixels and channels of (I - R)^2 / (R^2 + eps), and MSE.
+/// relMSE (the MRSE of Cailleau et al.) = mean over pixels and channels of (I - R)^2 / (R^2 +
+/// eps), and MSE; also relMSE without the `TRIM` fraction of pixels with the largest error, where
+/// fireflies show as the difference between the two.
 #[derive(Clone, Copy, Debug, serde::Serialize)]
 pub struct ErrorStats {
+    /// Mean relative squared error.
     pub relmse: f64,
+    /// relMSE over all but the 0.1% of pixels with the largest relative squared error.
+    pub relmse_trimmed: f64,
+    /// Mean squared error.
     pub mse: f64,
+    /// The eps of relMSE.
     pub eps: f64,
+    /// Largest absolute difference of a channel.
+    pub max_abs: f64,
+    /// Every pixel has the same bits in both images.
+    pub identical: bool,
     /// Pixels where either image was not finite (excluded from the means).
     pub non_finite: usize,
 }
 
+/// Fraction of pixels `relmse_trimmed` leaves out.
+pub const TRIM: f64 = 0.001;
+
+/// Compares `img` against `reference` (same size).
 pub fn compare(img: &Image, reference: &Image, eps: f64) -> Result<ErrorStats, String> {
     if img.width != reference.width || img.height != reference.height {
         return Err(format!(
@@ -19,33 +34,53 @@ pub fn compare(img: &Image, reference: &Image, eps: f64) -> Result<ErrorStats, S
             img.width, img.height, reference.width, reference.height
         ));
     }
-    let mut rel = 0.0f64;
+    let mut per_pixel = Vec::with_capacity(img.pixels.len());
     let mut mse = 0.0f64;
-    let mut n = 0usize;
+    let mut max_abs = 0.0f64;
     let mut bad = 0usize;
+    let mut identical = true;
     for (a, r) in img.pixels.iter().zip(&reference.pixels) {
+        for c in 0..3 {
+            identical &= a[c].to_bits() == r[c].to_bits();
+        }
         if !a.is_finite() || !r.is_finite() {
             bad += 1;
             continue;
         }
+        let mut rel = 0.0f64;
         for c in 0..3 {
             let d = a[c] as f64 - r[c] as f64;
             let rr = r[c] as f64;
             rel += d * d / (rr * rr + eps);
             mse += d * d;
+            max_abs = max_abs.max(d.abs());
         }
-        n += 3;
+        per_pixel.push(rel);
     }
-    let n = n.max(1) as f64;
+    let n = per_pixel.len();
+    let total: f64 = per_pixel.iter().sum();
+    let drop = ((n as f64 * TRIM).ceil() as usize).min(n.saturating_sub(1));
+    let trimmed = if drop > 0 {
+        // The `drop` largest values, found in O(n).
+        let k = n - drop;
+        per_pixel.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
+        per_pixel[..k].iter().sum::<f64>()
+    } else {
+        total
+    };
+    let channels = (3 * n).max(1) as f64;
     Ok(ErrorStats {
-        relmse: rel / n,
-        mse: mse / n,
+        relmse: total / channels,
+        relmse_trimmed: trimmed / (3 * (n - drop)).max(1) as f64,
+        mse: mse / channels,
         eps,
+        max_abs,
+        identical,
         non_finite: bad,
     })
 }
 
-/// Signed relative error picture (seed 000, Fig. 5): red where the image is brighter than the
+/// Signed relative error picture (as in Cailleau et al.'s figures): red where the image is brighter than the
 /// reference, green where it is darker; intensity |I - R| / (R + sqrt(eps)) on luminance,
 /// saturating at `scale`.
 pub fn error_map(img: &Image, reference: &Image, eps: f64, scale: f64) -> Result<Vec<u8>, String> {

@@ -1,9 +1,26 @@
-//! Images and pixel accumulators, EXR / PNG output and error metrics.
+//! The film: what samples accumulate into and how results leave a renderer. Per-task
+//! accumulators (`TileFilm`), the whole frame's (`Film`) with merge and solve, their binary wire
+//! format and checkpoints, images, EXR / PNG output, error metrics and plots.
+//!
+//! Integrators add samples to films; the render service moves, merges and stores films and
+//! knows nothing of how the samples were made.
 
 pub mod exr_io;
+mod frame;
+pub mod layers;
 pub mod metrics;
 pub mod plot;
 pub mod png;
+mod tile;
+mod tile_film;
+pub mod wire;
+
+pub use frame::Film;
+pub use layers::{
+    FilmLayout, STRATEGY_DEPTH, STRATEGY_LAYERS, strategy_layer, strategy_layer_name,
+};
+pub use tile::Tile;
+pub use tile_film::{LtRecords, RayStats, Splat, TileFilm};
 
 use crate::geometry::Rgb;
 

@@ -88,23 +88,6 @@ pub fn power_cosine_pdf(cos_t: f32, s: f32) -> f32 {
     }
 }
 
-/// Power heuristic with beta = 2 (Veach 1997, eq. 9.13), written for n_f = n_g = 1.
-#[inline]
-pub fn power_heuristic(pdf_f: f32, pdf_g: f32) -> f32 {
-    let f = pdf_f * pdf_f;
-    let g = pdf_g * pdf_g;
-    if f == 0.0 {
-        return 0.0;
-    }
-    if g.is_infinite() {
-        return 0.0;
-    }
-    if f.is_infinite() {
-        return 1.0;
-    }
-    f / (f + g)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -126,13 +109,5 @@ mod tests {
             let p = power_cosine(q, 20.0);
             assert!((p.length() - 1.0).abs() < 1e-4 && p.z >= 0.0);
         }
-    }
-
-    #[test]
-    fn power_heuristic_limits() {
-        assert_eq!(power_heuristic(0.0, 1.0), 0.0);
-        assert_eq!(power_heuristic(1.0, 0.0), 1.0);
-        assert!((power_heuristic(1.0, 1.0) - 0.5).abs() < 1e-6);
-        assert_eq!(power_heuristic(f32::INFINITY, 3.0), 1.0);
     }
 }

@@ -18,8 +18,8 @@
 //! a subpath continues past its vertex j (j >= RR_START) with a survival probability that
 //! depends only on that vertex, so every technique's exact density is known.
 
-use super::RayStats;
 use crate::camera::Camera;
+use crate::film::RayStats;
 use crate::geometry::{Ray, Rgb, Vec2, Vec3};
 use crate::material::{Bsdf, Lobe, Mode};
 use crate::sampler::Sampler;
@@ -1136,7 +1136,7 @@ mod tests {
                     // heuristic of the directly computed densities.
                     let n = w.len() as u32;
                     let power: Vec<f64> = (0..n)
-                        .map(|k| crate::integrator::mis_weight(crate::integrator::MisKind::Power, &w, k, n - k))
+                        .map(|k| crate::mis::weight(crate::mis::MisKind::Power, &w, k))
                         .collect();
                     let psum: f64 = power.iter().sum();
                     prop_assert!((psum - 1.0).abs() < 1e-9, "power weights sum to {psum}");

@@ -9,10 +9,10 @@
 //! the sum, over every light the ray meets, of (selection probability x that light's density),
 //! and the value of a light-sampled direction is the radiance of the first surface along it.
 
-use super::RayStats;
-use crate::geometry::warp::power_heuristic;
+use crate::film::RayStats;
 use crate::geometry::{Ray, Rgb, Vec3, max_component};
 use crate::material::{Bsdf, Mode};
+use crate::mis::power_heuristic;
 use crate::sampler::Sampler;
 use crate::scene::{NO_LIGHT, Scene, SurfaceHit};
 
@@ -22,17 +22,7 @@ pub const RR_START_DEPTH: u32 = 3;
 /// How emitters are reached at each vertex. `Mis` is the renderer; the single strategies are
 /// unbiased on their own (except that BSDF sampling cannot see point lights) and exist to
 /// validate each other.
-#[derive(
-    Clone,
-    Copy,
-    Debug,
-    PartialEq,
-    Eq,
-    Default,
-    serde::Serialize,
-    serde::Deserialize,
-    clap::ValueEnum,
-)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum DirectStrategy {
     /// Light sampling and BSDF sampling combined with the power heuristic.

@@ -1,7 +1,10 @@
-//! Multiple importance sampling beyond the heuristics: the optimal-MIS accumulators per pixel and
-//! depth, and the small linear solver they need.
+//! Every multiple-importance-sampling weighting rule: the heuristics (balance, power) and the
+//! optimal weights (Kondapaneni et al., "Optimal Multiple Importance Sampling", ACM TOG 38(4),
+//! 2019) with their per-pixel accumulators and the small linear solver they need.
 
+pub mod heuristic;
 pub mod optimal;
 pub mod solve;
 
-pub use optimal::{Layout, OptimalAccum, SolveScratch};
+pub use heuristic::{MisKind, power_heuristic, weight};
+pub use optimal::{DEFAULT_KAPPA, Layout, OptimalAccum, SolveScratch};

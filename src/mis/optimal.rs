@@ -32,6 +32,9 @@
 
 use super::solve::solve_psd;
 
+/// Default regularisation strength kappa (pseudo-samples pulling toward the balance solution).
+pub const DEFAULT_KAPPA: f64 = 1.0;
+
 /// Largest depth the optimal estimator supports (N = d + 2 <= 64 techniques).
 pub const MAX_OPTIMAL_DEPTH: u32 = 62;
 

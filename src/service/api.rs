@@ -3,8 +3,8 @@
 
 use super::store::{self, JobRow};
 use super::{App, Metrics, bundle, jobs};
+use crate::film::TileFilm;
 use crate::film::exr_io;
-use crate::integrator::{Frame, TileFilm};
 use crate::job::{FieldError, JobSettings};
 use crate::scene::Scene;
 use axum::body::Bytes;
@@ -589,7 +589,7 @@ fn create_job_blocking(app: &App, req: JobRequest) -> ApiResult<JobRow> {
         }
     };
     let id = uuid::Uuid::new_v4().to_string();
-    let accum = Frame::new(1, 1, &resolved.render).bytes_per_pixel() as i64
+    let accum = resolved.film_layout().bytes_per_pixel() as i64
         * resolved.width as i64
         * resolved.height as i64;
     let settings = serde_json::to_string(&req.settings).map_err(ApiError::internal)?;
@@ -1162,9 +1162,9 @@ async fn upload_result(
     let n = body.len();
     let checked = tokio::task::spawn_blocking(move || -> ApiResult<Option<String>> {
         let r = jobs::resolved_of(&job).map_err(ApiError::internal)?;
-        let d_opt = r.render.optimal_layout().map(|l| l.d_opt);
+        let layout = r.film_layout();
         let tile = r.tiles().get(t.tile as usize).copied();
-        let problem = match TileFilm::decode(&body, r.width, r.height, d_opt) {
+        let problem = match TileFilm::decode(&body, r.width, r.height, &layout) {
             Err(e) => Some(e.to_string()),
             Ok((f, range)) if Some(f.tile) != tile || range != (t.s0..t.s1) => Some(format!(
                 "result is for tile {:?} samples {range:?}, the task is tile {tile:?} samples {}..{}",

@@ -4,9 +4,9 @@
 
 use super::App;
 use super::store::{self, JobRow, SeriesPoint, TaskRow, write_atomic};
+use crate::film::wire::Checkpoint;
+use crate::film::{Film, RayStats, TileFilm};
 use crate::film::{Image, exr_io, metrics, plot, png};
-use crate::integrator::wire::Checkpoint;
-use crate::integrator::{Frame, RayStats, TileFilm};
 use crate::job::Resolved;
 use serde_json::json;
 use std::sync::{Arc, Mutex};
@@ -137,10 +137,10 @@ fn load_checkpoint<'a>(
         let r = &rt.resolved;
         let path = app.paths.checkpoint(&job.id);
         let ck = match std::fs::read(&path) {
-            Ok(bytes) => Checkpoint::decode(&bytes, r.width, r.height, &r.render)
+            Ok(bytes) => Checkpoint::decode(&bytes, r.width, r.height, &r.film_layout())
                 .map_err(|e| format!("{}: {e}", path.display()))?,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Checkpoint {
-                frame: Frame::new(r.width, r.height, &r.render),
+                frame: Film::new(r.width, r.height, &r.film_layout()),
                 passes: 0,
                 stats: RayStats::default(),
             },
@@ -166,7 +166,7 @@ fn merge_pass(
 ) -> Result<(), String> {
     let t0 = Instant::now();
     let (w, h) = (rt.resolved.width, rt.resolved.height);
-    let d_opt = rt.resolved.render.optimal_layout().map(|l| l.d_opt);
+    let layout = rt.resolved.film_layout();
     // One result at a time (peak memory: the frame and one tile). A result that cannot be read
     // drops the half-merged accumulators (the checkpoint on disk is intact) and is rendered again.
     load_checkpoint(app, job, rt)?;
@@ -174,7 +174,7 @@ fn merge_pass(
         let path = app.paths.result(&job.id, pass, t.tile, t.attempt);
         let film = std::fs::read(&path)
             .map_err(|e| e.to_string())
-            .and_then(|b| TileFilm::decode(&b, w, h, d_opt).map_err(|e| e.to_string()));
+            .and_then(|b| TileFilm::decode(&b, w, h, &layout).map_err(|e| e.to_string()));
         match film {
             Ok((f, _)) => {
                 let ck = rt.checkpoint.as_mut().expect("loaded above");
@@ -254,12 +254,11 @@ fn merge_pass(
 /// The image of the merged passes; writes preview.png, image.exr and (with a reference)
 /// error.png.
 fn write_outputs(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<Image, String> {
-    let integrator = rt.resolved.render.integrator;
     let mut attrs = rt.resolved.exr_attributes(&job.scene_main, job.spp_done);
     attrs.push(("omis.job", job.id.clone()));
     let ck = load_checkpoint(app, job, rt)?;
     let tmp = app.paths.output(&job.id, "image.exr.tmp");
-    let image = ck.frame.write_exr(&tmp, integrator, &attrs)?;
+    let image = ck.frame.write_exr(&tmp, &attrs)?;
     let preview = png::encode_rgb8(image.width, image.height, &png::to_srgb8(&image, 0.0))?;
     write_atomic(&app.paths.output(&job.id, "preview.png"), &preview).map_err(|e| e.to_string())?;
     std::fs::rename(&tmp, app.paths.output(&job.id, "image.exr")).map_err(|e| e.to_string())?;
@@ -347,7 +346,7 @@ pub async fn recover(app: &Arc<App>) -> anyhow::Result<()> {
         let path = app.paths.checkpoint(&job.id);
         if let Ok(bytes) = std::fs::read(&path) {
             let r = resolved_of(&job).map_err(anyhow::Error::msg)?;
-            match Checkpoint::decode(&bytes, r.width, r.height, &r.render) {
+            match Checkpoint::decode(&bytes, r.width, r.height, &r.film_layout()) {
                 Ok(ck) if ck.passes > job.passes_done => {
                     // Stopped between writing the checkpoint and recording it.
                     let spp = r

@@ -394,7 +394,7 @@ impl Store {
         id: &str,
         passes_done: u32,
         spp_done: u32,
-        stats: &crate::integrator::RayStats,
+        stats: &crate::film::RayStats,
     ) -> rusqlite::Result<()> {
         self.conn.execute(
             "UPDATE jobs SET passes_done = ?2, spp_done = ?3, samples = ?4, rays = ?5, \

@@ -3,7 +3,8 @@
 //! downloaded once per bundle and kept loaded (with their BVH) for the tasks that follow.
 //! SIGTERM drains: no new task is taken, the ones in hand are finished and uploaded.
 
-use crate::integrator::{self, Tile};
+use crate::film::Tile;
+use crate::integrator;
 use crate::job::Resolved;
 use crate::scene::Scene;
 use crate::service::bundle;

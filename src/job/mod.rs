@@ -3,8 +3,14 @@
 //! service refuse the same inputs with the same words, and resolve them to the same
 //! `RenderSettings` (the in-process and distributed renders of a job must be equal).
 
+mod schedule;
+
+pub use schedule::{RenderOutput, make_tiles};
+
+use crate::film::FilmLayout;
 use crate::integrator::path::DirectStrategy;
-use crate::integrator::{self, IntegratorKind, MisKind, RenderSettings};
+use crate::integrator::{self, IntegratorKind, RenderSettings, Techniques};
+use crate::mis::MisKind;
 use crate::sampler::SamplerKind;
 use crate::scene::Scene;
 use serde::{Deserialize, Serialize};
@@ -39,9 +45,11 @@ pub struct JobSettings {
     pub time_budget_s: Option<f64>,
     pub integrator: IntegratorKind,
     pub mis: MisKind,
+    /// BDPT: which techniques contribute (all, or light tracing / NEE alone for validation).
+    pub techniques: Techniques,
     /// Optimal MIS: depths 1 ..= D weighted optimally, balance above.
     pub optimal_max_depth: u32,
-    /// Optimal MIS: regularisation toward the balance solution (0 = the seed's direct estimator).
+    /// Optimal MIS: regularisation toward the balance solution (0 = the plain direct estimator).
     pub kappa: f64,
     /// Maximum path depth in bounces; default: the scene's, else 5.
     pub max_depth: Option<u32>,
@@ -74,8 +82,9 @@ impl Default for JobSettings {
             time_budget_s: None,
             integrator: IntegratorKind::Pt,
             mis: MisKind::Balance,
+            techniques: Techniques::All,
             optimal_max_depth: 5,
-            kappa: integrator::DEFAULT_KAPPA,
+            kappa: crate::mis::DEFAULT_KAPPA,
             max_depth: None,
             seed: 0,
             sampler: SamplerKind::Sobol,
@@ -126,25 +135,10 @@ pub struct Resolved {
 }
 
 impl Resolved {
-    /// Sample range of pass `p`, or None when a fixed-spp job has no such pass.
-    pub fn pass_range(&self, p: u32) -> Option<std::ops::Range<u32>> {
-        let s0 = p.checked_mul(self.pass_size)?;
-        match self.spp {
-            Some(spp) if s0 >= spp => None,
-            Some(spp) => Some(s0..(s0 + self.pass_size).min(spp)),
-            None => Some(s0..s0.checked_add(self.pass_size)?),
-        }
-    }
-
-    /// Number of passes of a fixed-spp job.
-    pub fn total_passes(&self) -> Option<u32> {
-        self.spp.map(|s| s.div_ceil(self.pass_size))
-    }
-
     /// Header attributes of the job's EXR (the same in-process and from the service).
     pub fn exr_attributes(&self, scene: &str, spp_done: u32) -> Vec<(&'static str, String)> {
         let r = &self.render;
-        vec![
+        let mut attributes = vec![
             ("omis.scene", scene.to_string()),
             (
                 "omis.integrator",
@@ -154,55 +148,19 @@ impl Resolved {
             ("omis.spp", spp_done.to_string()),
             ("omis.max_depth", r.max_depth.to_string()),
             ("omis.seed", r.seed.to_string()),
-        ]
-    }
-
-    /// Renders the job in this process on the current rayon pool: the same tasks, merged in the
-    /// same order, as the render service (so the same image). Returns the output and the samples
-    /// per pixel rendered.
-    pub fn render_in_process(
-        &self,
-        scene: &Scene,
-        progress: &(dyn Fn(usize) + Sync),
-    ) -> (integrator::RenderOutput, u32) {
-        let start = std::time::Instant::now();
-        let tiles = self.tiles();
-        let mut frame = integrator::Frame::new(self.width, self.height, &self.render);
-        let mut stats = integrator::RayStats::default();
-        let mut spp_done = 0;
-        let mut p = 0;
-        while let Some(range) = self.pass_range(p) {
-            let tasks: Vec<_> = tiles.iter().map(|&t| (t, range.clone())).collect();
-            integrator::run_tasks(
-                scene,
-                &self.render,
-                &tasks,
-                &mut frame,
-                &mut stats,
-                progress,
-            );
-            spp_done = range.end;
-            p += 1;
-            if self
-                .time_budget_s
-                .is_some_and(|b| start.elapsed().as_secs_f64() >= b)
-            {
-                break;
-            }
+        ];
+        if r.techniques != Techniques::All {
+            attributes.push((
+                "omis.techniques",
+                format!("{:?}", r.techniques).to_lowercase(),
+            ));
         }
-        (
-            integrator::RenderOutput {
-                frame,
-                stats,
-                seconds: start.elapsed().as_secs_f64(),
-            },
-            spp_done,
-        )
+        attributes
     }
 
-    /// The tiles of the frame, in the order tasks are created and merged.
-    pub fn tiles(&self) -> Vec<integrator::Tile> {
-        integrator::make_tiles(self.width, self.height, self.tile_size)
+    /// The accumulators the job's films keep.
+    pub fn film_layout(&self) -> FilmLayout {
+        self.render.film_layout()
     }
 }
 
@@ -240,6 +198,18 @@ impl JobSettings {
             return Err(FieldError::new(
                 "mis",
                 "optimal MIS needs the bdpt integrator",
+            ));
+        }
+        if self.techniques != Techniques::All && self.integrator != IntegratorKind::Bdpt {
+            return Err(FieldError::new(
+                "techniques",
+                "selecting techniques needs the bdpt integrator",
+            ));
+        }
+        if self.techniques != Techniques::All && self.mis == MisKind::Optimal {
+            return Err(FieldError::new(
+                "techniques",
+                "light tracing or NEE alone has one technique per depth: nothing for optimal MIS to weight",
             ));
         }
         if self.optimal_max_depth > crate::mis::optimal::MAX_OPTIMAL_DEPTH {
@@ -327,6 +297,7 @@ impl JobSettings {
             sampler: self.sampler,
             direct: self.direct,
             mis: self.mis,
+            techniques: self.techniques,
             strategies: self.strategies,
             optimal_max_depth: self.optimal_max_depth,
             optimal_kappa: self.kappa,

@@ -16,9 +16,10 @@
 //! All sums stay f64: the merged frame must equal a single-process render to 1e-6, and solving
 //! the optimal systems amplifies rounding.
 
-use super::{LtRecords, RayStats, Splat, Tile, TileFilm};
-use crate::film::PixelSums;
-use crate::mis::{Layout, OptimalAccum};
+use super::{
+    Film, FilmLayout, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile, TileFilm,
+};
+use crate::mis::OptimalAccum;
 
 const MAGIC: &[u8; 8] = b"OMISTILE";
 const VERSION: u32 = 2;
@@ -29,14 +30,14 @@ const VERSION: u32 = 2;
 pub struct WireError(pub String);
 
 /// A little-endian writer that keeps the first I/O error (writes into a Vec never fail).
-struct W<T: std::io::Write> {
+struct Writer<T: std::io::Write> {
     out: T,
     err: Option<std::io::Error>,
 }
 
-impl<T: std::io::Write> W<T> {
+impl<T: std::io::Write> Writer<T> {
     fn new(out: T) -> Self {
-        W { out, err: None }
+        Writer { out, err: None }
     }
     fn bytes(&mut self, b: &[u8]) {
         if self.err.is_none()
@@ -68,7 +69,7 @@ impl<T: std::io::Write> W<T> {
     }
 }
 
-impl<T: std::io::Write> W<T> {
+impl<T: std::io::Write> Writer<T> {
     fn stats(&mut self, s: &RayStats) {
         for v in [s.closest, s.shadow, s.samples, s.non_finite] {
             self.u64(v);
@@ -100,12 +101,13 @@ impl<T: std::io::Write> W<T> {
     }
 }
 
-struct R<'a> {
+/// A little-endian reader over a byte slice that names what was truncated.
+struct Reader<'a> {
     b: &'a [u8],
     at: usize,
 }
 
-impl R<'_> {
+impl Reader<'_> {
     fn take(&mut self, n: usize) -> Result<&[u8], WireError> {
         if self.b.len() - self.at < n {
             return Err(WireError(format!(
@@ -175,7 +177,7 @@ impl TileFilm {
     /// Serialises the result for upload.
     pub fn encode(&self, samples: std::ops::Range<u32>) -> Vec<u8> {
         let px = self.tile.pixels();
-        let mut w = W::new(Vec::with_capacity(64 + px * 52));
+        let mut w = Writer::new(Vec::with_capacity(64 + px * 52));
         w.bytes(MAGIC);
         w.u32(VERSION);
         for v in [self.tile.x0, self.tile.y0, self.tile.x1, self.tile.y1] {
@@ -219,14 +221,15 @@ impl TileFilm {
     }
 
     /// Parses and validates an uploaded result for a frame of `width` x `height` pixels whose
-    /// optimal systems (if any) have depth `d_opt`. Returns the film and its sample range.
+    /// films have `layout`. Returns the film and its sample range.
     pub fn decode(
         bytes: &[u8],
         width: u32,
         height: u32,
-        d_opt: Option<u32>,
+        layout: &FilmLayout,
     ) -> Result<(TileFilm, std::ops::Range<u32>), WireError> {
-        let mut r = R { b: bytes, at: 0 };
+        let d_opt = layout.d_opt();
+        let mut r = Reader { b: bytes, at: 0 };
         if r.take(8)? != MAGIC {
             return Err(WireError("bad magic".into()));
         }
@@ -278,7 +281,12 @@ impl TileFilm {
             });
         }
         let n = r.count(24, "layers")?;
-        if n != 0 && n != px * super::STRATEGY_LAYERS {
+        let want = if layout.strategy_layers {
+            px * STRATEGY_LAYERS
+        } else {
+            0
+        };
+        if n != want {
             return Err(WireError(format!(
                 "{n} strategy layer values for {px} pixels"
             )));
@@ -288,7 +296,7 @@ impl TileFilm {
             layers.push([r.f64()?, r.f64()?, r.f64()?]);
         }
         let n = r.count(24, "depth layers")?;
-        if n % px != 0 || n / px > super::bdpt::MAX_DEPTH as usize + 1 {
+        if n != px * layout.depth_layers {
             return Err(WireError(format!("{n} depth layer values for {px} pixels")));
         }
         let mut depths = Vec::with_capacity(n);
@@ -296,16 +304,16 @@ impl TileFilm {
             depths.push([r.f64()?, r.f64()?, r.f64()?]);
         }
         let d = r.u32()?;
-        let optimal = match (d, d_opt) {
+        let optimal = match (d, &layout.optimal) {
             (0, None) => None,
-            (d, Some(e)) if d == e => {
-                let mut acc = OptimalAccum::new(Layout::new(d), px);
+            (d, Some(l)) if d == l.d_opt => {
+                let mut acc = OptimalAccum::new(l.clone(), px);
                 r.optimal_into(&mut acc)?;
                 Some(acc)
             }
-            (d, e) => {
+            (d, _) => {
                 return Err(WireError(format!(
-                    "optimal depth {d} does not match the job's {e:?}"
+                    "optimal depth {d} does not match the job's {d_opt:?}"
                 )));
             }
         };
@@ -368,7 +376,7 @@ const FRAME_VERSION: u32 = 1;
 /// optimal: d_opt u32 (0 = none), then pixels x stride f64, pixels x d_opt u32
 /// ```
 pub struct Checkpoint {
-    pub frame: super::Frame,
+    pub frame: Film,
     pub passes: u32,
     pub stats: RayStats,
 }
@@ -385,7 +393,7 @@ impl Checkpoint {
     pub fn write_to<T: std::io::Write>(&self, out: T) -> std::io::Result<T> {
         let f = &self.frame;
         let n = (f.width * f.height) as usize;
-        let mut w = W::new(out);
+        let mut w = Writer::new(out);
         w.bytes(FRAME_MAGIC);
         w.u32(FRAME_VERSION);
         w.u32(f.width);
@@ -408,15 +416,15 @@ impl Checkpoint {
         w.finish()
     }
 
-    /// Parses a checkpoint of a frame rendered with `settings` at `width` x `height`; anything
+    /// Parses a checkpoint of a frame with `layout` at `width` x `height`; anything
     /// that does not match the layout those imply is an error.
     pub fn decode(
         bytes: &[u8],
         width: u32,
         height: u32,
-        settings: &super::RenderSettings,
+        layout: &FilmLayout,
     ) -> Result<Checkpoint, WireError> {
-        let mut r = R { b: bytes, at: 0 };
+        let mut r = Reader { b: bytes, at: 0 };
         if r.take(8)? != FRAME_MAGIC {
             return Err(WireError("not a frame checkpoint (bad magic)".into()));
         }
@@ -434,7 +442,7 @@ impl Checkpoint {
         }
         let passes = r.u32()?;
         let stats = r.stats()?;
-        let mut frame = super::Frame::new(width, height, settings);
+        let mut frame = Film::new(width, height, layout);
         let n = (width * height) as usize;
         if n.saturating_mul(76) > bytes.len() - r.at {
             return Err(WireError("checkpoint pixels truncated".into()));

@@ -1,0 +1,91 @@
+//! The command line's names for the renderer's choices. The renderer's enums know nothing of
+//! clap; each gets a mirror here with its help text, converted at the edge.
+
+use crate::integrator::path::DirectStrategy;
+use crate::integrator::{IntegratorKind, Techniques};
+use crate::mis::MisKind;
+use crate::sampler::SamplerKind;
+
+/// A clap value enum mirroring a renderer enum variant for variant, with `From` both ways.
+macro_rules! mirror {
+    ($(#[$m:meta])* $name:ident => $core:ident { $($(#[$vm:meta])* $v:ident),+ $(,)? }) => {
+        $(#[$m])*
+        #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+        pub enum $name {
+            $($(#[$vm])* $v),+
+        }
+        impl From<$name> for $core {
+            fn from(v: $name) -> $core {
+                match v {
+                    $($name::$v => $core::$v),+
+                }
+            }
+        }
+        impl From<$core> for $name {
+            fn from(v: $core) -> $name {
+                match v {
+                    $($core::$v => $name::$v),+
+                }
+            }
+        }
+    };
+}
+
+mirror! {
+    /// `--integrator`.
+    IntegratorArg => IntegratorKind {
+        /// Unidirectional path tracing with NEE and MIS (power heuristic).
+        Pt,
+        /// Bidirectional path tracing with every strategy.
+        Bdpt,
+    }
+}
+
+mirror! {
+    /// `--mis`.
+    MisArg => MisKind {
+        /// Balance heuristic (Veach 1997 eq. 9.6).
+        Balance,
+        /// Power heuristic, beta = 2 (Veach 1997 eq. 9.13).
+        Power,
+        /// Optimal weights per pixel and depth for depths 1 ..= --optimal-max-depth
+        /// (Kondapaneni et al., ACM TOG 2019), balance for depth 0 and above.
+        Optimal,
+    }
+}
+
+mirror! {
+    /// `--techniques`.
+    TechniquesArg => Techniques {
+        /// Every (s, t), weighted by --mis.
+        All,
+        /// Validation: light tracing alone (every t = 1 technique, unweighted).
+        Lt,
+        /// Validation: next-event estimation alone (every (1, t >= 2), unweighted; depth 0 by (0, 2)).
+        Nee,
+    }
+}
+
+mirror! {
+    /// `--sampler`.
+    SamplerArg => SamplerKind {
+        /// Independent uniform numbers from PCG32.
+        Independent,
+        /// Jittered strata in 1D, correlated multi-jittered (Kensler 2013) in 2D.
+        Stratified,
+        /// Owen-scrambled Sobol' (0,2)-sequence, padded per dimension pair (Burley 2020).
+        Sobol,
+    }
+}
+
+mirror! {
+    /// `--direct`.
+    DirectArg => DirectStrategy {
+        /// Light sampling and BSDF sampling combined with the power heuristic.
+        Mis,
+        /// Next-event estimation only.
+        Light,
+        /// BSDF sampling only (cannot see point lights).
+        Bsdf,
+    }
+}
