@@ -1,6 +1,8 @@
 //! The `omis` binary's command-line contract: render and diff, their JSON summaries, EXRs that
 //! OpenEXR's own tools read, and one-line errors with a non-zero exit.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -13,10 +15,7 @@ fn omis(args: &[&str]) -> Output {
 }
 
 fn folder(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("omis-cli-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).expect("temp dir");
-    d
+    common::folder("cli", name)
 }
 
 fn s(p: &Path) -> &str {
@@ -270,11 +269,11 @@ fn render_through_the_service_equals_the_in_process_render() {
 
 #[test]
 fn pbrt_and_mitsuba_scenes_render_through_the_service_with_their_files() {
-    let shared = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/scenes");
-    if !shared.is_dir() {
-        eprintln!("skipped: no ../shared/scenes in this checkout");
+    let Some(shared) = common::shared_scenes(
+        "pbrt_and_mitsuba_scenes_render_through_the_service_with_their_files",
+    ) else {
         return;
-    }
+    };
     let d = folder("formats");
     // veach-bidir reads binary PLY meshes beside it: the bundle must carry them.
     for (k, scene) in [

@@ -1,24 +1,15 @@
 //! Optimal MIS: the accumulators are a mergeable value (tiling and sample-range invariance, also
 //! through the wire encoding), the estimate is unbiased in practice, and it beats balance.
 
+mod common;
+
+use common::load;
 use omis::film::{Film, Image, Tile, TileFilm};
 use omis::integrator::{self, IntegratorKind, RenderSettings};
 use omis::job::{Resolved, make_tiles};
 use omis::mis::MisKind;
 use omis::sampler::SamplerKind;
 use omis::scene::Scene;
-use std::path::Path;
-
-fn load(name: &str, w: u32, h: u32) -> Scene {
-    let mut s = Scene::load(
-        &Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("scenes")
-            .join(name),
-    )
-    .expect(name);
-    s.camera = s.camera.with_resolution(w, h).expect("resolution");
-    s
-}
 
 fn optimal(spp: u32, max_depth: u32, d_opt: u32) -> RenderSettings {
     RenderSettings {

@@ -1,6 +1,8 @@
 //! Statistical proofs of the path tracer: analytic furnace, light sampling vs BSDF sampling,
 //! determinism across thread counts. Fixed seeds, tolerances from the measured variance.
 
+mod common;
+
 use omis::film::PixelSums;
 use omis::integrator::RenderSettings;
 use omis::integrator::path::DirectStrategy;
@@ -15,26 +17,8 @@ fn scene_from_json(text: &str) -> Scene {
         .expect("scene builds")
 }
 
-fn load(name: &str) -> Scene {
-    Scene::load(
-        &Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("scenes")
-            .join(name),
-    )
-    .expect(name)
-}
-
 fn render(scene: &Scene, settings: &RenderSettings, threads: usize) -> PixelSums {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .expect("pool");
-    pool.install(|| {
-        omis::job::Resolved::fixed(scene, settings, 8, 64)
-            .render_in_process(scene, &|_| {})
-            .film
-            .sums
-    })
+    common::render_on(scene, settings, 8, threads).film.sums
 }
 
 /// Mean and standard error of the mean over a pixel region (pixels are independent estimates).
@@ -61,7 +45,7 @@ fn furnace_every_pixel_matches_the_analytic_sum() {
     // Closed sphere, albedo 0.5, emission 1, seen from inside: L_D = sum_{d=0}^{D} 0.5^d.
     // 1024 samples per pixel: Russian roulette makes the per-sample distribution skewed, and
     // the per-pixel standard error is only trustworthy once the rare long paths are sampled.
-    let mut scene = load("furnace.json");
+    let mut scene = common::load_as_is("furnace.json");
     scene.camera = scene.camera.with_resolution(16, 16).expect("resolution");
     for max_depth in [0u32, 1, 2, 5, 12] {
         let expected: f64 = (0..=max_depth).map(|d| 0.5f64.powi(d as i32)).sum();
@@ -176,7 +160,7 @@ fn light_sampling_equals_bsdf_sampling_for_direct_light() {
 
 #[test]
 fn renders_are_bit_identical_for_any_thread_count() {
-    let mut scene = load("cornell-box.json");
+    let mut scene = common::load_as_is("cornell-box.json");
     scene.camera = scene.camera.with_resolution(40, 30).expect("resolution");
     for sampler in [
         SamplerKind::Independent,

@@ -1,6 +1,7 @@
 //! `omis compare`: MIS strategies at equal sample counts (and optionally equal time) against a
 //! reference: relMSE table, relMSE-vs-spp plot, gain per path depth, time and memory overhead
-//! (the experiments of seed 000, Figs. 5, 7, 8, 9, 10).
+//! (the experiments of Cailleau et al., "Optimal Multiple Importance Sampling for
+//! Bidirectional Path Tracing", Figs. 5, 7, 8, 9, 10).
 
 use super::choices::{MisArg, SamplerArg};
 use crate::film::{Image, exr_io, metrics, plot};

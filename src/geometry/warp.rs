@@ -43,7 +43,7 @@ pub fn uniform_sphere(u: Vec2) -> Vec3 {
 
 pub const UNIFORM_SPHERE_PDF: f32 = INV_4PI;
 
-/// Uniform direction in the cone of half-angle acos(cos_max) around +z (seed 003, sphere lights):
+/// Uniform direction in the cone of half-angle acos(cos_max) around +z (Lambers, "Path Tracing", sphere lights):
 /// cos(theta) = (1 - u0) + u0 cos_max, density 1 / (2 pi (1 - cos_max)).
 pub fn uniform_cone(u: Vec2, cos_max: f32) -> Vec3 {
     let cos_t = (1.0 - u.x) + u.x * cos_max;
@@ -71,7 +71,7 @@ pub fn uniform_triangle(u: Vec2) -> (f32, f32) {
 }
 
 /// Direction around +z with density (s + 1)/(2 pi) cos^s (theta): the modified-Phong lobe
-/// (seed 003, "Material Importance Sampling for Phong": cos theta = (1 - u0)^(1/(s+1))).
+/// (Lambers, "Path Tracing", "Material Importance Sampling for Phong": cos theta = (1 - u0)^(1/(s+1))).
 pub fn power_cosine(u: Vec2, s: f32) -> Vec3 {
     let cos_t = (1.0 - u.x).powf(1.0 / (s + 1.0));
     let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();

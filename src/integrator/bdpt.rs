@@ -1,4 +1,5 @@
-//! Bidirectional path tracing with every strategy (Veach 1997 ch. 10; seed 000 §IV-D).
+//! Bidirectional path tracing with every strategy (Veach 1997 ch. 10; Cailleau et al., "Optimal Multiple Importance Sampling for
+//! Bidirectional Path Tracing", §IV-D).
 //!
 //! For each pixel sample a camera subpath z_0 (the pinhole) .. z_{nC-1} and a light subpath
 //! y_0 (on a light) .. y_{nL-1} are traced; every pair (s, t) with s light and t camera vertices
@@ -550,7 +551,7 @@ fn hit_emitter(
     };
     if contribution == Rgb::ZERO {
         // A camera subpath that does not end on (the front of) an emitter: a zero-contribution
-        // sample only this technique could make (seed 000 §V-C, Fig. 4 bottom left).
+        // sample only this technique could make (Cailleau et al. §V-C, Fig. 4 bottom left).
         if zero {
             weights_alone(ws, 0, t);
             sink.sample(&PathSample {

@@ -5,7 +5,7 @@
 //! k - 2. Depth 0 is an emitter seen directly, depth 1 direct lighting. `max_depth` D keeps
 //! every path of depth <= D.
 //!
-//! Light sampling is treated in the direction domain (seed 004): its density for a direction is
+//! Light sampling is treated in the direction domain (as "Demystifying multiple importance sampling" explains): its density for a direction is
 //! the sum, over every light the ray meets, of (selection probability x that light's density),
 //! and the value of a light-sampled direction is the radiance of the first surface along it.
 

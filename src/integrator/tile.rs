@@ -27,6 +27,8 @@ struct FilmSink<'a> {
     records: &'a mut LtRecords,
     /// Index of the current camera pixel in the tile.
     pixel: usize,
+    /// Samples whose contribution or weights were NaN or infinite.
+    non_finite: u64,
 }
 
 impl FilmSink<'_> {
@@ -41,9 +43,19 @@ impl bdpt::SampleSink for FilmSink<'_> {
     }
 
     fn sample(&mut self, s: &bdpt::PathSample) {
+        // A non-finite sample is counted and dropped the same way in every mode: its
+        // contribution becomes zero; if its weights are not finite either, nothing of it is kept
+        // (one NaN in an optimal system would spoil its pixel for the rest of the job).
+        let mut c = s.contribution;
+        if !c.is_finite() || !s.balance.iter().all(|w| w.is_finite()) {
+            self.non_finite += 1;
+            if !s.balance.iter().all(|w| w.is_finite()) {
+                return;
+            }
+            c = Rgb::ZERO;
+        }
         if s.depth >= 1 && s.depth <= self.d_opt() {
             let ws = s.balance[s.s as usize];
-            let c = s.contribution;
             if s.t == 1 {
                 // Light tracing: the same f32 values whichever tile the pixel belongs to, so that
                 // the image does not depend on the tiling.
@@ -80,7 +92,7 @@ impl bdpt::SampleSink for FilmSink<'_> {
             }
             return;
         }
-        if s.contribution == Rgb::ZERO {
+        if c == Rgb::ZERO {
             return;
         }
         let w = if self.techniques == Techniques::All {
@@ -91,7 +103,7 @@ impl bdpt::SampleSink for FilmSink<'_> {
         if w == 0.0 {
             return;
         }
-        let v = s.contribution * w as f32;
+        let v = c * w as f32;
         let layer = strategy_layer(s.depth, s.s);
         if s.t == 1 {
             self.splats.push(Splat {
@@ -208,6 +220,7 @@ pub fn render_tile(
                             optimal: film.optimal.as_mut(),
                             records: &mut film.records,
                             pixel: idx,
+                            non_finite: 0,
                         };
                         bdpt::pixel_sample(
                             scene,
@@ -221,6 +234,7 @@ pub fn render_tile(
                             &mut sink,
                             stats,
                         );
+                        stats.non_finite += sink.non_finite;
                         sink.value
                     }
                 };
@@ -241,4 +255,84 @@ pub fn render_tile(
         ok
     });
     film
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mis::Layout;
+    use bdpt::{PathSample, SampleSink};
+
+    fn sample(depth: u32, s: u32, pixel: (u32, u32), c: Rgb, balance: &[f64]) -> PathSample<'_> {
+        PathSample {
+            depth,
+            s,
+            t: depth + 2 - s,
+            pixel,
+            contribution: c,
+            balance,
+        }
+    }
+
+    /// Feeds a finite sample, then one with contribution `bad` and otherwise finite, one with NaN
+    /// weights, and a light-tracing splat of contribution `bad` outside the tile, through a sink
+    /// of `mis`.
+    fn feed(mis: MisKind, bad: Rgb) -> (Option<OptimalAccum>, LtRecords, Vec<Splat>, Rgb, u64) {
+        let tile = Tile {
+            x0: 0,
+            y0: 0,
+            x1: 2,
+            y1: 2,
+        };
+        let mut optimal = (mis == MisKind::Optimal).then(|| OptimalAccum::new(Layout::new(2), 4));
+        let mut splats = Vec::new();
+        let mut records = LtRecords::default();
+        let mut sink = FilmSink {
+            mis,
+            techniques: Techniques::All,
+            frame_width: 8,
+            tile,
+            value: Rgb::ZERO,
+            splats: &mut splats,
+            layers: None,
+            depths: None,
+            optimal: optimal.as_mut(),
+            records: &mut records,
+            pixel: 0,
+            non_finite: 0,
+        };
+        let w = [0.2, 0.5, 0.3];
+        let nan_w = [0.2, f64::NAN, 0.3];
+        sink.sample(&sample(1, 1, (0, 0), Rgb::splat(1.0), &w));
+        sink.sample(&sample(1, 0, (0, 0), bad, &w));
+        sink.sample(&sample(1, 1, (0, 0), Rgb::splat(1.0), &nan_w));
+        sink.sample(&sample(1, 2, (5, 5), bad, &w));
+        let (value, n) = (sink.value, sink.non_finite);
+        (optimal, records, splats, value, n)
+    }
+
+    #[test]
+    fn non_finite_samples_are_counted_and_dropped_in_every_mode() {
+        for mis in [MisKind::Balance, MisKind::Power, MisKind::Optimal] {
+            for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+                let (optimal, records, splats, value, n) = feed(mis, Rgb::new(bad, 0.0, 1.0));
+                assert_eq!(n, 3, "{mis:?} {bad}: every non-finite sample is counted");
+                assert!(value.is_finite(), "{mis:?}: {value:?}");
+                assert!(splats.iter().all(|s| s.value.iter().all(|v| v.is_finite())));
+                assert!(records.values.iter().all(|v| v.is_finite()), "{mis:?}");
+                // A non-finite contribution counts as a zero-contribution sample of its weights:
+                // the same accumulators as if it had been zero.
+                let (zero, zero_records, ..) = feed(mis, Rgb::ZERO);
+                assert_eq!(records, zero_records, "{mis:?} {bad}");
+                if let (Some(o), Some(z)) = (optimal, zero) {
+                    assert!(
+                        o.data.iter().all(|v| v.is_finite()),
+                        "{mis:?}: system poisoned"
+                    );
+                    assert_eq!(o.data, z.data, "{bad}");
+                    assert_eq!(o.hits, z.hits, "{bad}");
+                }
+            }
+        }
+    }
 }

@@ -106,7 +106,7 @@ impl Light {
         }
     }
 
-    /// Samples a direction toward the light from `p_ref` (seed 003: sphere lights by uniform cone
+    /// Samples a direction toward the light from `p_ref` (Lambers, "Path Tracing": sphere lights by uniform cone
     /// sampling from outside, uniform area sampling from inside; triangles by uniform area).
     pub fn sample_li(&self, p_ref: Vec3, u: Vec2) -> Option<LightSample> {
         match *self {
@@ -235,7 +235,7 @@ impl Light {
     }
 
     /// Solid-angle density with which `sample_li(p_ref, ..)` produces direction `wi`, whether or
-    /// not the light is the first thing the ray meets (seed 004: the light-sampling pdf of a
+    /// not the light is the first thing the ray meets ("Demystifying multiple importance sampling": the light-sampling pdf of a
     /// direction sums over every light the ray reaches). Zero for point lights.
     pub fn pdf_li(&self, p_ref: Vec3, wi: Vec3) -> f32 {
         match *self {

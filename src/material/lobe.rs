@@ -21,7 +21,7 @@ pub enum Lobe {
         r: Rgb,
     },
     /// Modified Phong (Lafortune & Willems 1994), energy-normalised: kd/pi + ks (n+2)/(2 pi) cos^n a.
-    /// The specular lobe is chosen with probability `q` from the albedos (seed 003).
+    /// The specular lobe is chosen with probability `q` from the albedos (Lambers, "Path Tracing" lecture notes).
     Phong {
         kd: Rgb,
         ks: Rgb,

@@ -1,5 +1,5 @@
 //! Anisotropic GGX (Trowbridge–Reitz) microfacet distribution with visible-normal sampling
-//! (seed 004, "VNDF"; Heitz 2018, "Sampling the GGX Distribution of Visible Normals", JCGT 7(4)).
+//! (Heitz 2018, "Sampling the GGX Distribution of Visible Normals", JCGT 7(4)).
 //! All directions are in the local shading frame (+z = normal).
 
 use crate::geometry::{PI, Vec2, Vec3};
@@ -88,7 +88,7 @@ impl Ggx {
 
     /// Density of the reflected direction wi = reflect(wo, h) when h is VNDF-sampled:
     /// p(h) / (4 |wo.h|). Zero for any configuration reflection sampling cannot produce, never
-    /// negative (the guard seed 000 §V-D asks for).
+    /// negative (the guard Cailleau et al. §V-D ask for).
     #[inline]
     pub fn reflection_pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
         if wo.z <= 0.0 || wi.z <= 0.0 {

@@ -1,5 +1,7 @@
-//! The optimal-MIS direct estimator per pixel and per path depth (seed 000 §V-A, Algorithm 1 and
-//! Appendix A; Kondapaneni et al. 2019).
+//! The optimal-MIS direct estimator per pixel and per path depth (Cailleau, Kerbiriou, Pipelin,
+//! Salaün et al., "Optimal Multiple Importance Sampling for Bidirectional Path Tracing", §V-A,
+//! Algorithm 1 and Appendix A; Kondapaneni et al., "Optimal Multiple Importance Sampling", ACM
+//! TOG 38(4), 2019).
 //!
 //! For pixel p and depth d (N = d + 2 techniques, (s, t = d + 2 - s) for s = 0 ..= d + 1, the last
 //! one light tracing) we accumulate, over every full-path sample X with balance-weight vector W:
@@ -22,8 +24,8 @@
 //!
 //! One technique reduces to plain Monte Carlo: A = S, b = sum C, F = sum C / S.
 //!
-//! Beyond the seed: at low sample counts A is estimated from few samples and its solution is
-//! noisy ("salt and pepper", seed 000 Fig. 7): a technique that never dominated has a tiny A_ii
+//! Beyond the paper: at low sample counts A is estimated from few samples and its solution is
+//! noisy ("salt and pepper", Cailleau et al. Fig. 7): a technique that never dominated has a tiny A_ii
 //! and a wild x_i. We regularise toward the balance-heuristic solution x_bal (x_bal,i = b_i /
 //! n_i, which gives exactly the balance estimate sum_i b_i / S) with kappa pseudo-samples:
 //! solve (A + kappa M) x = b + kappa M x_bal, M = diag(n_i / S). E[A_ii] <= n_i, so the prior
