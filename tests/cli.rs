@@ -317,3 +317,116 @@ fn pbrt_and_mitsuba_scenes_render_through_the_service_with_their_files() {
         );
     }
 }
+
+#[test]
+fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
+    let d = folder("compare");
+    let reference = d.join("ref.exr");
+    let out = omis(&[
+        "render",
+        "scenes/cornell-box-small-light.json",
+        "--in-process",
+        "--resolution",
+        "24x24",
+        "--spp",
+        "256",
+        "--integrator",
+        "pt",
+        "--out",
+        s(&reference),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let outdir = d.join("out");
+    let out = omis(&[
+        "compare",
+        "scenes/cornell-box-small-light.json",
+        "--reference",
+        s(&reference),
+        "--spp",
+        "1,8",
+        "--mis",
+        "balance,optimal",
+        "--seeds",
+        "2",
+        "--threads",
+        "1",
+        "--equal-time",
+        "0.3",
+        "--out",
+        s(&outdir),
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j = last_json(&out);
+    let file: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(outdir.join("results.json")).expect("results.json"))
+            .expect("results.json is JSON");
+    assert_eq!(j, file, "stdout and results.json agree");
+    let points = j["equal_spp"].as_array().expect("equal_spp");
+    assert_eq!(points.len(), 4, "2 spp x 2 strategies");
+    let get = |m: &str, spp: u64| {
+        points
+            .iter()
+            .find(|p| p["method"] == m && p["spp"] == spp)
+            .unwrap_or_else(|| panic!("no {m} at {spp} spp"))
+    };
+    for p in points {
+        let f = |k: &str| p[k].as_f64().unwrap_or_else(|| panic!("{k} in {p}"));
+        assert!(f("relmse") > 0.0 && f("relmse_trimmed") > 0.0, "{p}");
+        assert!(f("relmse_trimmed") <= f("relmse"), "{p}");
+        assert!(f("seconds") > 0.0 && f("cpu_seconds") > 0.0, "{p}");
+        assert_eq!(
+            p["relmse_per_depth"].as_array().expect("per depth").len(),
+            6
+        );
+    }
+    for m in ["balance", "optimal"] {
+        // Eight times the samples: several times lower error (an unbiased estimator's relMSE
+        // falls as 1/spp; a wide margin against the noise of two seeds).
+        let (lo, hi) = (get(m, 8)["relmse"].as_f64(), get(m, 1)["relmse"].as_f64());
+        assert!(
+            lo.expect("relmse") * 3.0 < hi.expect("relmse"),
+            "{m}: {lo:?} vs {hi:?}"
+        );
+    }
+    assert!(
+        get("optimal", 1)["bytes_per_pixel"].as_u64()
+            > get("balance", 1)["bytes_per_pixel"].as_u64(),
+        "optimal MIS keeps per-pixel systems"
+    );
+    let timed = j["equal_time"].as_array().expect("equal_time");
+    assert_eq!(timed.len(), 2);
+    for p in timed {
+        assert!(p["spp"].as_u64().expect("spp") >= 1, "{p}");
+        let wall = p["seconds"].as_f64().expect("seconds");
+        let cpu = p["cpu_seconds"].as_f64().expect("cpu_seconds");
+        // At least the budget of wall time; one thread, so CPU time cannot exceed it by much.
+        assert!(wall >= 0.3 && cpu > 0.0 && cpu <= wall * 1.5 + 0.1, "{p}");
+    }
+    for f in [
+        "relmse_vs_spp.svg",
+        "gain_per_depth.svg",
+        "time_overhead.svg",
+        "memory.svg",
+    ] {
+        let text = std::fs::read_to_string(outdir.join(f)).expect(f);
+        assert!(
+            text.starts_with("<svg") && text.trim_end().ends_with("</svg>"),
+            "{f}"
+        );
+    }
+    // The table goes to stderr with --json: both strategies and the equal-time rows.
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("optimal") && err.contains("equal time"),
+        "{err}"
+    );
+}

@@ -57,17 +57,6 @@ pub struct BenchArgs {
     pub json: bool,
 }
 
-/// Peak resident memory of this process so far (VmHWM), in MiB; NaN where unavailable.
-fn peak_rss_mib() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
-            line.split_whitespace().nth(1)?.parse::<f64>().ok()
-        })
-        .map_or(f64::NAN, |kb| kb / 1024.0)
-}
-
 /// Box-downsamples `img` to `w` x `h` (its size must be an integer multiple of it).
 fn downsample(img: &Image, w: usize, h: usize) -> Result<Image> {
     if img.width == w && img.height == h {
@@ -172,7 +161,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let t0 = Instant::now();
         let mut scene = Scene::load(path).map_err(anyhow::Error::msg)?;
         let load = t0.elapsed().as_secs_f64();
-        let rss_loaded = peak_rss_mib();
+        let rss_loaded = super::procstat::peak_rss_mib();
         scene.camera = scene
             .camera
             .with_resolution(w, h)
@@ -213,7 +202,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
                 seconds: secs,
                 reference,
             }),
-            (rss_loaded, peak_rss_mib()),
+            (rss_loaded, super::procstat::peak_rss_mib()),
         );
     }
     for dir in &a.obj_dir {
@@ -233,7 +222,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let accel = Accel::build(&tris, &ids, &[] as &[SphereGeom], &[]);
         // As for scenes: the load time includes the BVH build.
         let load = t0.elapsed().as_secs_f64();
-        let rss_loaded = peak_rss_mib();
+        let rss_loaded = super::procstat::peak_rss_mib();
         let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
         for t in &tris {
             for v in t {
@@ -251,7 +240,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
             &rates,
             threads,
             None,
-            (rss_loaded, peak_rss_mib()),
+            (rss_loaded, super::procstat::peak_rss_mib()),
         );
     }
     Ok(())

@@ -30,19 +30,6 @@ pub struct BenchServiceArgs {
     pub json: bool,
 }
 
-/// (VmRSS, VmHWM) of process `pid` in bytes.
-fn memory(pid: u32) -> (u64, u64) {
-    let text = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
-    let get = |key: &str| {
-        text.lines()
-            .find(|l| l.starts_with(key))
-            .and_then(|l| l.split_whitespace().nth(1))
-            .and_then(|v| v.parse::<u64>().ok())
-            .map_or(0, |kb| kb * 1024)
-    };
-    (get("VmRSS:"), get("VmHWM:"))
-}
-
 pub fn run(a: BenchServiceArgs) -> Result<()> {
     if a.workers.is_empty() || a.workers.contains(&0) {
         bail!("--workers needs counts >= 1");
@@ -80,7 +67,7 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
                 .context("the coordinator did not print its address")?
                 .to_string()
         };
-        let (rss0, _) = memory(pid);
+        let (rss0, _) = super::procstat::memory(Some(pid));
         let result = runtime()?.block_on(async {
             // Let the workers start and register before the clock starts.
             let c = Client::new(&url, None)?;
@@ -115,7 +102,7 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
             c.download(&id, "image.exr", &out).await?;
             Ok::<_, anyhow::Error>(((st, seconds), latencies))
         });
-        let (_, hwm) = memory(pid);
+        let (_, hwm) = super::procstat::memory(Some(pid));
         // SAFETY: kill(2) on our own child; SIGTERM drains its workers.
         unsafe {
             libc::kill(pid as libc::pid_t, libc::SIGTERM);

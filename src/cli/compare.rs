@@ -88,7 +88,12 @@ struct Point {
     /// relMSE averaged over seeds, and its standard deviation across seeds.
     relmse: f64,
     relmse_sd: f64,
+    /// relMSE without the 0.1% worst pixels, averaged over seeds.
+    relmse_trimmed: f64,
+    /// Wall seconds per render.
     seconds: f64,
+    /// CPU seconds per render (every thread of the pool).
+    cpu_seconds: f64,
     bytes_per_pixel: usize,
     /// relMSE of each depth 0 ..= max_depth (against reference depth layers, or the relative
     /// variance across seeds when the reference has none).
@@ -181,20 +186,21 @@ pub fn run(a: CompareArgs) -> Result<()> {
         depth_layers: true,
         ..Default::default()
     };
-    let eval = |method: Method, spp: u32, outs: Vec<RenderOutput>| -> Result<Point> {
+    let eval = |method: Method, spp: u32, outs: Vec<(RenderOutput, f64)>| -> Result<Point> {
         let mut rel = Vec::new();
+        let mut trimmed = Vec::new();
         let mut secs = 0.0;
+        let mut cpu = 0.0;
         let mut depth_imgs: Vec<Vec<Image>> = vec![Vec::new(); a.max_depth as usize + 1];
         let mut depth_rel: Vec<Vec<f64>> = vec![Vec::new(); a.max_depth as usize + 1];
-        let bytes = outs[0].film.layout.bytes_per_pixel();
-        for out in &outs {
+        let bytes = outs[0].0.film.layout.bytes_per_pixel();
+        for (out, out_cpu) in &outs {
             let img = out.image();
-            rel.push(
-                metrics::compare(&img, &reference, a.eps)
-                    .map_err(anyhow::Error::msg)?
-                    .relmse,
-            );
+            let e = metrics::compare(&img, &reference, a.eps).map_err(anyhow::Error::msg)?;
+            rel.push(e.relmse);
+            trimmed.push(e.relmse_trimmed);
             secs += out.seconds;
+            cpu += out_cpu;
             for (d, im) in out.film.depth_images().into_iter().enumerate() {
                 if let Some(Some(r)) = ref_depths.get(d) {
                     depth_rel[d].push(
@@ -221,7 +227,9 @@ pub fn run(a: CompareArgs) -> Result<()> {
             spp,
             relmse: m,
             relmse_sd: sd,
+            relmse_trimmed: mean_sd(&trimmed).0,
             seconds: secs / outs.len() as f64,
+            cpu_seconds: cpu / outs.len() as f64,
             bytes_per_pixel: bytes,
             relmse_per_depth: per_depth,
         })
@@ -234,7 +242,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
                 .map(|seed| {
                     let s = settings(mis, spp, seed);
                     let job = Resolved::fixed(&scene, &s, TILE_SIZE, PASS_SIZE);
-                    pool.install(|| job.render_in_process(&scene, &|_| {}))
+                    timed_render(&pool, &job, &scene)
                 })
                 .collect();
             let p = eval(mis, spp, outs)?;
@@ -259,10 +267,10 @@ pub fn run(a: CompareArgs) -> Result<()> {
                 .map(|seed| {
                     let s = settings(mis, 1, seed);
                     let job = Resolved::timed(&scene, &s, TILE_SIZE, 1, t);
-                    pool.install(|| job.render_in_process(&scene, &|_| {}))
+                    timed_render(&pool, &job, &scene)
                 })
                 .collect();
-            let spp = outs.iter().map(|o| o.spp).min().unwrap_or(0);
+            let spp = outs.iter().map(|o| o.0.spp).min().unwrap_or(0);
             let p = eval(mis, spp, outs)?;
             eprintln!(
                 "{:>8} equal time {t} s: {} spp, relMSE {:.4e}",
@@ -293,6 +301,13 @@ pub fn run(a: CompareArgs) -> Result<()> {
         println!("{result}");
     }
     Ok(())
+}
+
+/// Renders `job` on `pool`; returns the output and the CPU seconds it took.
+fn timed_render(pool: &rayon::ThreadPool, job: &Resolved, scene: &Scene) -> (RenderOutput, f64) {
+    let cpu0 = super::procstat::cpu_seconds(None);
+    let out = pool.install(|| job.render_in_process(scene, &|_| {}));
+    (out, super::procstat::cpu_seconds(None) - cpu0)
 }
 
 fn print_table(points: &[Point], timed: &[Point], a: &CompareArgs) {
@@ -349,12 +364,18 @@ fn print_table(points: &[Point], timed: &[Point], a: &CompareArgs) {
         for p in timed {
             let _ = writeln!(
                 out,
-                "{:>9} {:>6} spp {:>12.4e} {:>10} {:>8.2} s",
+                "{:>9} {:>6} spp {:>12.4e} {:>10} trimmed {:>11.4e} {:>10} {:>8.2} s wall {:>8.2} s CPU",
                 p.method.name(),
                 p.spp,
                 p.relmse,
                 bal.map_or("-".into(), |b| format!("{:.3}x", p.relmse / b.relmse)),
-                p.seconds
+                p.relmse_trimmed,
+                bal.map_or("-".into(), |b| format!(
+                    "{:.3}x",
+                    p.relmse_trimmed / b.relmse_trimmed
+                )),
+                p.seconds,
+                p.cpu_seconds
             );
         }
     }

@@ -7,6 +7,7 @@ mod client;
 mod compare;
 mod diff;
 mod job_args;
+mod procstat;
 mod render;
 mod service_cmds;
 

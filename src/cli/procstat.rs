@@ -1,0 +1,80 @@
+//! What the benchmarks read about processes from Linux's /proc: CPU time and memory, of this
+//! process or of another one (a coordinator or worker the benchmark started).
+
+/// (VmRSS, VmHWM) of process `pid` (or this process for `None`) in bytes; 0 where unavailable.
+pub fn memory(pid: Option<u32>) -> (u64, u64) {
+    let path = match pid {
+        Some(p) => format!("/proc/{p}/status"),
+        None => "/proc/self/status".to_string(),
+    };
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let get = |key: &str| {
+        text.lines()
+            .find(|l| l.starts_with(key))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|v| v.parse::<u64>().ok())
+            .map_or(0, |kb| kb * 1024)
+    };
+    (get("VmRSS:"), get("VmHWM:"))
+}
+
+/// Peak resident memory of this process so far (VmHWM), in MiB; NaN where unavailable.
+pub fn peak_rss_mib() -> f64 {
+    match memory(None).1 {
+        0 => f64::NAN,
+        b => b as f64 / (1024.0 * 1024.0),
+    }
+}
+
+/// User + system CPU seconds of process `pid` (from /proc/PID/stat, in clock ticks), or of this
+/// process and all its threads for `None` (getrusage, in microseconds); NaN where unavailable.
+pub fn cpu_seconds(pid: Option<u32>) -> f64 {
+    let Some(pid) = pid else {
+        // SAFETY: getrusage writes into the zeroed struct we own.
+        let mut r: libc::rusage = unsafe { std::mem::zeroed() };
+        if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut r) } != 0 {
+            return f64::NAN;
+        }
+        let t = |v: libc::timeval| v.tv_sec as f64 + v.tv_usec as f64 * 1e-6;
+        return t(r.ru_utime) + t(r.ru_stime);
+    };
+    let Ok(text) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+        return f64::NAN;
+    };
+    // Fields after the command name (which may contain spaces) start after the last ')'.
+    let Some(rest) = text.rsplit_once(')').map(|(_, r)| r) else {
+        return f64::NAN;
+    };
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    // utime and stime are fields 14 and 15 of the whole line, 12 and 13 after the name.
+    let ticks = |i: usize| fields.get(i).and_then(|v| v.parse::<f64>().ok());
+    // SAFETY: sysconf has no preconditions.
+    let hz = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
+    match (ticks(11), ticks(12)) {
+        (Some(u), Some(s)) if hz > 0 => (u + s) / hz as f64,
+        _ => f64::NAN,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn this_process_uses_cpu_and_memory() {
+        let t0 = cpu_seconds(None);
+        let mut x = 0u64;
+        let start = std::time::Instant::now();
+        while start.elapsed().as_millis() < 200 {
+            x = x.wrapping_mul(6364136223846793005).wrapping_add(1);
+        }
+        std::hint::black_box(x);
+        let t1 = cpu_seconds(None);
+        assert!(t1 > t0, "{t0} -> {t1}");
+        assert!(peak_rss_mib() > 0.5);
+        let (rss, hwm) = memory(Some(std::process::id()));
+        assert!(rss > 0 && hwm >= rss);
+        // /proc counts ticks: at least 0.1 s of the 0.2 s spun above.
+        assert!(cpu_seconds(Some(std::process::id())) >= 0.1);
+    }
+}
