@@ -796,7 +796,12 @@ fn connect_to_camera(
     stats: &mut RayStats,
 ) {
     let y = ws.light[s - 1];
-    if y.delta || (s >= 2 && y.bsdf.is_black()) {
+    // A point light seen directly through the pinhole, (1, 1) with y_0 a delta in position, is a
+    // path of two fixed points: no other technique can make it (the camera cannot hit a point,
+    // so the path tracer and (0, t) never see point lights), and it would put the light's
+    // intensity into one pixel that only light tracing brightens. Point lights are invisible to
+    // the camera, as in pbrt-v3, whose BDPT never runs (1, 1) (PBR 3rd ed. §16.3).
+    if y.delta || y.delta_pos || (s >= 2 && y.bsdf.is_black()) {
         return;
     }
     let cam: &Camera = &scene.camera;
@@ -813,7 +818,7 @@ fn connect_to_camera(
     let w_yc = -w_cy;
     let (f, cos_y, wo_y) = if s == 1 {
         let light = &scene.lights[y.light as usize];
-        (light.emitted(y.ng, w_yc), y.abs_cos_ng(w_yc), Vec3::ZERO)
+        (light.le(y.ng, w_yc), y.abs_cos_ng(w_yc), Vec3::ZERO)
     } else {
         let yp = ws.light[s - 2];
         let (wo_y, _) = dir_to(y.p, yp.p);
