@@ -599,6 +599,12 @@ impl Frame {
         }
     }
 
+    /// Light paths traced for the frame so far: one per pixel sample (N_L of the optimal-MIS
+    /// systems; W H spp once every pass has covered the whole frame).
+    pub fn light_paths(&self) -> u64 {
+        self.sums.count.iter().map(|&c| c as u64).sum()
+    }
+
     /// Bytes of accumulator memory per pixel (camera sums, splats, optimal systems).
     pub fn bytes_per_pixel(&self) -> usize {
         let base = 2 * 24 + 4 + 24;
@@ -617,7 +623,7 @@ impl Frame {
     /// The image of each path depth 0 ..= max_depth (when depth layers are kept).
     pub fn depth_images(&self) -> Vec<Image> {
         let nd = self.depth_count;
-        let frame_pixels = self.width as u64 * self.height as u64;
+        let light_paths = self.light_paths();
         (0..nd)
             .map(|d| {
                 let mut img = Image::new(self.width as usize, self.height as usize);
@@ -632,7 +638,7 @@ impl Frame {
                             && d >= 1
                             && d as u32 <= o.layout.d_opt
                         {
-                            let f = o.solve(i, d as u32, spp, frame_pixels, self.kappa, scratch);
+                            let f = o.solve(i, d as u32, spp, light_paths, self.kappa, scratch);
                             for c in 0..3 {
                                 v[c] += f[c];
                             }
@@ -752,7 +758,7 @@ impl Frame {
     /// The image: (camera sums + splats) / samples per pixel, plus the solved optimal depths.
     pub fn image(&self) -> Image {
         let mut img = Image::new(self.width as usize, self.height as usize);
-        let frame_pixels = self.width as u64 * self.height as u64;
+        let light_paths = self.light_paths();
         // Pixels are independent: solved in parallel, the same bits as in sequence.
         img.pixels.par_iter_mut().enumerate().for_each_init(
             SolveScratch::default,
@@ -764,7 +770,7 @@ impl Frame {
                 let mut v = [(s[0] + l[0]) / n, (s[1] + l[1]) / n, (s[2] + l[2]) / n];
                 if let Some(o) = &self.optimal {
                     for d in 1..=o.layout.d_opt {
-                        let f = o.solve(i, d, spp, frame_pixels, self.kappa, scratch);
+                        let f = o.solve(i, d, spp, light_paths, self.kappa, scratch);
                         for c in 0..3 {
                             v[c] += f[c];
                         }
