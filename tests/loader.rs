@@ -364,3 +364,56 @@ fn coincident_and_degenerate_triangles_load_with_a_shallow_bvh() {
         assert!((hit.p.z - z).abs() < 1e-5, "{name}: hit at {:?}", hit.p);
     }
 }
+
+#[test]
+fn non_finite_vertices_are_refused_naming_the_mesh_in_every_format() {
+    let d = folder("nonfinite");
+    std::fs::write(d.join("bad.obj"), "v 0 0 0\nv 1 0 0\nv 0 inf 0\nf 1 2 3\n").unwrap();
+    // Binary PLY carries a NaN as it is (the ASCII parser refuses the word).
+    let mut ply = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n".to_vec();
+    for c in [0.0f32, 0.0, 0.0, 1.0, 0.0, 0.0, f32::NAN, 1.0, 0.0] {
+        ply.extend_from_slice(&c.to_le_bytes());
+    }
+    ply.push(3);
+    for i in [0i32, 1, 2] {
+        ply.extend_from_slice(&i.to_le_bytes());
+    }
+    std::fs::write(d.join("bad.ply"), ply).unwrap();
+    for mesh in ["bad.obj", "bad.ply"] {
+        let p = scene_with_shapes(
+            &d,
+            &format!(r#"{{"type": "mesh", "file": "{mesh}", "material": "m"}}"#),
+        );
+        assert_has(
+            &load_err(&p),
+            &["shapes[0]", mesh, "vertex 2 is not finite"],
+        );
+        let ty = &mesh[4..];
+        let xml = d.join(format!("scene-{ty}.xml"));
+        std::fs::write(
+            &xml,
+            format!(
+                r#"<scene version="0.5.0">
+  <sensor type="perspective"><float name="fov" value="40"/>
+    <transform name="toWorld"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
+  </sensor>
+  <shape type="{ty}"><string name="filename" value="{mesh}"/></shape>
+</scene>
+"#
+            ),
+        )
+        .unwrap();
+        assert_has(&load_err(&xml), &["line 6", mesh, "vertex 2 is not finite"]);
+    }
+    let pbrt = d.join("scene.pbrt");
+    std::fs::write(
+        &pbrt,
+        "LookAt 0 0 5  0 0 0  0 1 0\nCamera \"perspective\" \"float fov\" [40]\nFilm \"image\" \"integer xresolution\" [8] \"integer yresolution\" [8]\nWorldBegin\nShape \"plymesh\" \"string filename\" \"bad.ply\"\nWorldEnd\n",
+    )
+    .unwrap();
+    assert_has(
+        &load_err(&pbrt),
+        &["line 5", "bad.ply", "vertex 2 is not finite"],
+    );
+}
