@@ -269,3 +269,151 @@ fn the_documented_example_scene_loads() {
     // Two emitting triangles of the quad light and the point light.
     assert_eq!(scene.lights.len(), 3);
 }
+
+/// Loads `path` on a thread with a 256 KiB stack, so that recursion as deep as the input is long
+/// (a degenerate BVH: the BVH2 -> CWBVH conversion recurses per level) fails the test.
+fn load_on_small_stack(path: PathBuf) -> Scene {
+    std::thread::Builder::new()
+        .stack_size(256 * 1024)
+        .spawn(move || Scene::load(&path).unwrap_or_else(|e| panic!("{e}")))
+        .expect("spawn")
+        .join()
+        .expect("loading panicked")
+}
+
+/// `n` faces over the vertices `v` (OBJ text): face k uses vertices f(k).
+fn obj(v: &[[f32; 3]], n: usize, f: impl Fn(usize) -> [usize; 3]) -> String {
+    let mut s = String::new();
+    for p in v {
+        s += &format!("v {} {} {}\n", p[0], p[1], p[2]);
+    }
+    for k in 0..n {
+        let [a, b, c] = f(k);
+        s += &format!("f {} {} {}\n", a + 1, b + 1, c + 1);
+    }
+    s
+}
+
+#[test]
+fn coincident_and_degenerate_triangles_load_with_a_shallow_bvh() {
+    // Each case: 30,000 triangles that PLOC cannot pair (one centroid for all), and how many
+    // survive loading. Before the coincident groups, 30,000 copies took ~50 s to load and
+    // built a chain of that depth.
+    const N: usize = 30_000;
+    let d = folder("coincident");
+    let copies = obj(
+        &[[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]],
+        N,
+        |_| [0, 1, 2],
+    );
+    // Zero area (collinear): dropped by the loader.
+    let flat = obj(
+        &[[-1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]],
+        N,
+        |_| [0, 1, 2],
+    );
+    // Slivers of area ~1e-20 (kept: the cross product does not underflow), all alike.
+    let slivers = obj(
+        &[[-1.0, -1e-20, 0.0], [1.0, -1e-20, 0.0], [0.0, 1e-20, 0.0]],
+        N,
+        |_| [0, 1, 2],
+    );
+    // Nested triangles symmetric about the origin: different bounds, one centroid.
+    let nested: Vec<[f32; 3]> = (0..N)
+        .flat_map(|k| {
+            let s = 1.0 + k as f32 * 1e-3;
+            [[-s, -s, 0.0], [s, -s, 0.0], [0.0, s, 0.0]]
+        })
+        .collect();
+    let nested = obj(&nested, N, |k| [3 * k, 3 * k + 1, 3 * k + 2]);
+    for (name, text, kept) in [
+        ("copies", copies, N),
+        ("flat", flat, 0),
+        ("slivers", slivers, N),
+        ("nested", nested, N),
+    ] {
+        std::fs::write(d.join(format!("{name}.obj")), text).unwrap();
+        // One ordinary triangle besides, behind the others.
+        let p = scene_with_shapes(
+            &d,
+            &format!(
+                r#"{{"type": "mesh", "file": "{name}.obj", "material": "m"}},
+                   {{"type": "triangles", "positions": [[-2, -2, -1], [2, -2, -1], [0, 2, -1]], "indices": [[0, 1, 2]], "material": "m"}}"#
+            ),
+        );
+        let scene = load_on_small_stack(p);
+        assert_eq!(scene.triangles.len(), kept + 1, "{name}");
+        let stats = scene.accel().stats;
+        // A balanced wide BVH over 30,001 primitives has ~5 levels; CWBVH traversal keeps a
+        // 32-entry stack.
+        assert!(stats.depth <= 12, "{name}: BVH depth {}", stats.depth);
+        assert_eq!(stats.coincident, kept, "{name}");
+        // Rays find the nearest surface: the group at z = 0 where it has area, else the
+        // triangle behind.
+        let hit = scene
+            .intersect(&omis::geometry::Ray::new(
+                omis::geometry::Vec3::new(0.0, -0.5, 5.0),
+                omis::geometry::Vec3::NEG_Z,
+            ))
+            .expect("hit");
+        let z = if name == "copies" || name == "nested" {
+            0.0
+        } else {
+            -1.0
+        };
+        assert!((hit.p.z - z).abs() < 1e-5, "{name}: hit at {:?}", hit.p);
+    }
+}
+
+#[test]
+fn non_finite_vertices_are_refused_naming_the_mesh_in_every_format() {
+    let d = folder("nonfinite");
+    std::fs::write(d.join("bad.obj"), "v 0 0 0\nv 1 0 0\nv 0 inf 0\nf 1 2 3\n").unwrap();
+    // Binary PLY carries a NaN as it is (the ASCII parser refuses the word).
+    let mut ply = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n".to_vec();
+    for c in [0.0f32, 0.0, 0.0, 1.0, 0.0, 0.0, f32::NAN, 1.0, 0.0] {
+        ply.extend_from_slice(&c.to_le_bytes());
+    }
+    ply.push(3);
+    for i in [0i32, 1, 2] {
+        ply.extend_from_slice(&i.to_le_bytes());
+    }
+    std::fs::write(d.join("bad.ply"), ply).unwrap();
+    for mesh in ["bad.obj", "bad.ply"] {
+        let p = scene_with_shapes(
+            &d,
+            &format!(r#"{{"type": "mesh", "file": "{mesh}", "material": "m"}}"#),
+        );
+        assert_has(
+            &load_err(&p),
+            &["shapes[0]", mesh, "vertex 2 is not finite"],
+        );
+        let ty = &mesh[4..];
+        let xml = d.join(format!("scene-{ty}.xml"));
+        std::fs::write(
+            &xml,
+            format!(
+                r#"<scene version="0.5.0">
+  <sensor type="perspective"><float name="fov" value="40"/>
+    <transform name="toWorld"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
+  </sensor>
+  <shape type="{ty}"><string name="filename" value="{mesh}"/></shape>
+</scene>
+"#
+            ),
+        )
+        .unwrap();
+        assert_has(&load_err(&xml), &["line 6", mesh, "vertex 2 is not finite"]);
+    }
+    let pbrt = d.join("scene.pbrt");
+    std::fs::write(
+        &pbrt,
+        "LookAt 0 0 5  0 0 0  0 1 0\nCamera \"perspective\" \"float fov\" [40]\nFilm \"image\" \"integer xresolution\" [8] \"integer yresolution\" [8]\nWorldBegin\nShape \"plymesh\" \"string filename\" \"bad.ply\"\nWorldEnd\n",
+    )
+    .unwrap();
+    assert_has(
+        &load_err(&pbrt),
+        &["line 5", "bad.ply", "vertex 2 is not finite"],
+    );
+}

@@ -295,3 +295,42 @@ fn optimal_beats_balance_at_equal_spp_and_is_never_worse_at_low_spp() {
         }
     }
 }
+
+#[test]
+fn camera_techniques_survive_a_light_tracing_count_1e13_times_larger() {
+    // One pixel's depth-1 system (techniques (0, 3), (1, 2), (2, 1)) with kappa = 0, after 4
+    // camera samples, in a frame that traced N_L = 1e13 light paths of which none landed here
+    // (4K at ~1.2M spp): A_lt,lt = 1e13 while the camera block is O(1). The light-tracing row is
+    // decoupled, so the estimate is the camera block's own solution, x_0 + x_1.
+    use omis::mis::{Layout, OptimalAccum, SolveScratch};
+    let samples: [([f64; 3], f64); 4] = [
+        ([0.5, 0.5, 0.0], 2.0),
+        ([0.8, 0.2, 0.0], 1.0),
+        ([0.1, 0.9, 0.0], 0.5),
+        ([1.0, 0.0, 0.0], 0.0),
+    ];
+    let mut acc = OptimalAccum::new(Layout::new(1), 1);
+    let (mut a, mut b) = ([[0.0f64; 2]; 2], [0.0f64; 2]);
+    for (w, c) in samples {
+        acc.add_sample(0, 1, &w, [c, 2.0 * c, 0.0]);
+        for i in 0..2 {
+            for j in 0..2 {
+                a[i][j] += w[i] * w[j];
+            }
+            b[i] += c * w[i];
+        }
+    }
+    let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
+    let x0 = (b[0] * a[1][1] - a[0][1] * b[1]) / det;
+    let x1 = (a[0][0] * b[1] - a[1][0] * b[0]) / det;
+    let expected = x0 + x1;
+    let mut sc = SolveScratch::default();
+    let light_paths = 10_000_000_000_000u64;
+    let f = acc.solve(0, 1, 4, light_paths, 0.0, &mut sc);
+    assert!(
+        (f[0] - expected).abs() <= 1e-9 * expected.abs(),
+        "{f:?} vs {expected}"
+    );
+    assert!((f[1] - 2.0 * expected).abs() <= 1e-9 * expected.abs());
+    assert_eq!(f[2], 0.0);
+}

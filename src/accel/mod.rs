@@ -7,7 +7,9 @@ use crate::geometry::{Ray, Vec2, Vec3};
 use obvhs::{
     Boundable, BvhBuildParams,
     aabb::Aabb,
-    cwbvh::{CwBvh, builder::build_cwbvh},
+    bvh2::{Bvh2, node::Bvh2Node, reinsertion::ReinsertionOptimizer},
+    cwbvh::{CwBvh, builder::build_cwbvh, bvh2_to_cwbvh::bvh2_to_cwbvh},
+    ploc::PlocBuilder,
     ray::{Ray as BvhRay, RayHit},
     rt_triangle::RtTriangle,
 };
@@ -94,6 +96,169 @@ impl Boundable for BoundsOnly {
 pub struct BuildStats {
     pub primitives: usize,
     pub seconds: f64,
+    /// Levels of the wide BVH (root = 1; 0 when empty).
+    pub depth: usize,
+    /// Primitives built into balanced subtrees of coincident groups (see [`COINCIDENT_MIN`]).
+    pub coincident: usize,
+}
+
+/// Groups of at least this many primitives whose bounds have one centroid are kept out of PLOC
+/// and built into balanced subtrees of their own. PLOC (Meister & Bittner 2018) merges two nodes
+/// only when each is the other's nearest neighbour in Morton order. Equal centroids share a Morton
+/// code, and equal (or nested) bounds make every neighbour equally near (or the smaller one
+/// nearer): ties go one way, so only one pair of such a run agrees per iteration, the run of k
+/// needs k iterations over all nodes (O(n k) time: 30,000 copies of a triangle took 22 s) and
+/// its parents, as large as their children, form a chain k deep, which overflows the recursive
+/// BVH2 -> CWBVH conversion and the 32-entry traversal stack. Shorter runs cost little, and
+/// leaving them alone keeps the BVH (and so the images) of ordinary scenes exactly as PLOC builds
+/// them.
+pub const COINCIDENT_MIN: usize = 16;
+
+/// Primitives sorted by their bounds' centroid, split into the runs of equal centroid with at
+/// least [`COINCIDENT_MIN`] members (each run in index order). Primitives with non-finite bounds
+/// are returned apart: they cannot be hit, and PLOC needs finite bounds.
+fn coincident_groups(bounds: &[BoundsOnly]) -> (Vec<Vec<u32>>, Vec<u32>) {
+    let key = |i: u32| {
+        let b = &bounds[i as usize].0;
+        let c = b.min + b.max;
+        (c.x.to_bits(), c.y.to_bits(), c.z.to_bits())
+    };
+    let finite = |i: u32| {
+        let b = &bounds[i as usize].0;
+        b.min.is_finite() && b.max.is_finite()
+    };
+    let (mut order, bad): (Vec<u32>, Vec<u32>) = (0..bounds.len() as u32).partition(|&i| finite(i));
+    order.sort_unstable_by_key(|&i| (key(i), i));
+    let mut groups = Vec::new();
+    let mut start = 0;
+    while start < order.len() {
+        let k = key(order[start]);
+        let mut end = start + 1;
+        while end < order.len() && key(order[end]) == k {
+            end += 1;
+        }
+        if end - start >= COINCIDENT_MIN {
+            groups.push(order[start..end].to_vec());
+        }
+        start = end;
+    }
+    (groups, bad)
+}
+
+/// PLOC + reinsertion + CWBVH conversion as `build_cwbvh` does them, over `bounds` in which each
+/// coincident group of `groups` stands as one proxy; each proxy leaf then becomes a balanced
+/// subtree of its group (median split of the members ordered by surface area, so nested bounds
+/// stay together), O(k log k) for k members and log2(k) levels deep.
+fn build_grouped(
+    bounds: &[BoundsOnly],
+    groups: &[Vec<u32>],
+    excluded: &[u32],
+    params: BvhBuildParams,
+) -> CwBvh {
+    let mut grouped = vec![false; bounds.len()];
+    for &i in groups.iter().flatten().chain(excluded) {
+        grouped[i as usize] = true;
+    }
+    // Proxy p stands for members[p]: a single primitive, or a whole group.
+    let mut members: Vec<Vec<u32>> = (0..bounds.len() as u32)
+        .filter(|&i| !grouped[i as usize])
+        .map(|i| vec![i])
+        .collect();
+    for g in groups {
+        let mut g = g.clone();
+        g.sort_by(|&a, &b| {
+            let (ha, hb) = (
+                bounds[a as usize].0.half_area(),
+                bounds[b as usize].0.half_area(),
+            );
+            ha.total_cmp(&hb).then(a.cmp(&b))
+        });
+        members.push(g);
+    }
+    if members.is_empty() {
+        return CwBvh::default();
+    }
+    let union = |m: &[u32]| {
+        m.iter()
+            .fold(Aabb::empty(), |acc, &i| acc.union(&bounds[i as usize].0))
+    };
+    let proxies: Vec<BoundsOnly> = members.iter().map(|m| BoundsOnly(union(m))).collect();
+    let mut bvh2 = PlocBuilder::with_capacity(proxies.len()).build(
+        params.ploc_search_distance,
+        &proxies,
+        (0..proxies.len() as u32).collect(),
+        params.sort_precision,
+        params.search_depth_threshold,
+    );
+    ReinsertionOptimizer::default().run(&mut bvh2, params.reinsertion_batch_ratio, None);
+    // Expand the proxy leaves; leaves index `prims`, which names the scene's primitives.
+    let mut prims: Vec<u32> = Vec::with_capacity(bounds.len());
+    let mut work: Vec<(usize, usize, usize, usize)> = Vec::new(); // (node, proxy, lo, hi)
+    for node in 0..bvh2.nodes.len() {
+        let n = bvh2.nodes[node];
+        if !n.is_leaf() {
+            continue;
+        }
+        let proxy = bvh2.primitive_indices[n.first_index as usize] as usize;
+        work.push((node, proxy, 0, members[proxy].len()));
+        while let Some((node, proxy, lo, hi)) = work.pop() {
+            let m = &members[proxy][lo..hi];
+            if m.len() == 1 {
+                bvh2.nodes[node] = Bvh2Node::new(bounds[m[0] as usize].0, 1, prims.len() as u32);
+                prims.push(m[0]);
+                continue;
+            }
+            let first = bvh2.nodes.len();
+            bvh2.nodes[node] = Bvh2Node::new(union(m), 0, first as u32);
+            let mid = lo + m.len() / 2;
+            let placeholder = Bvh2Node::new(Aabb::empty(), 1, 0);
+            bvh2.nodes.push(placeholder);
+            bvh2.nodes.push(placeholder);
+            work.push((first + 1, proxy, mid, hi));
+            work.push((first, proxy, lo, mid));
+        }
+    }
+    bvh2.primitive_indices = prims;
+    bvh2.parents.clear();
+    bvh2.primitives_to_nodes.clear();
+    bvh2.max_depth = bvh2.max_depth.max(bvh2_depth(&bvh2));
+    bvh2_to_cwbvh(&bvh2, params.max_prims_per_leaf.clamp(1, 3), true, false)
+}
+
+/// Levels of a BVH2 (iteratively: the tree may be degenerate).
+fn bvh2_depth(bvh: &Bvh2) -> usize {
+    if bvh.nodes.is_empty() {
+        return 0;
+    }
+    let mut deepest = 0;
+    let mut stack = vec![(0usize, 1usize)];
+    while let Some((i, d)) = stack.pop() {
+        deepest = deepest.max(d);
+        let n = &bvh.nodes[i];
+        if !n.is_leaf() {
+            stack.push((n.first_index as usize, d + 1));
+            stack.push((n.first_index as usize + 1, d + 1));
+        }
+    }
+    deepest
+}
+
+/// Levels of a CWBVH: the `imask` internal children of a node are stored consecutively from
+/// `child_base_idx` (the node format of Ylitie et al. 2017).
+fn cwbvh_depth(bvh: &CwBvh) -> usize {
+    if bvh.nodes.is_empty() {
+        return 0;
+    }
+    let mut deepest = 0;
+    let mut stack = vec![(0usize, 1usize)];
+    while let Some((i, d)) = stack.pop() {
+        deepest = deepest.max(d);
+        let n = &bvh.nodes[i];
+        for k in 0..n.imask.count_ones() as usize {
+            stack.push((n.child_base_idx as usize + k, d + 1));
+        }
+    }
+    deepest
 }
 
 pub struct Accel {
@@ -129,14 +294,14 @@ impl Accel {
             bounds.push(BoundsOnly(s.aabb()));
         }
         let n = bounds.len();
+        let params = BvhBuildParams::medium_build();
+        let (groups, excluded) = coincident_groups(&bounds);
         let bvh = if n == 0 {
             CwBvh::default()
+        } else if groups.is_empty() && excluded.is_empty() {
+            build_cwbvh(&bounds, params, &mut Duration::default())
         } else {
-            build_cwbvh(
-                &bounds,
-                BvhBuildParams::medium_build(),
-                &mut Duration::default(),
-            )
+            build_grouped(&bounds, &groups, &excluded, params)
         };
         let mut tris = Vec::with_capacity(bvh.primitive_indices.len());
         let mut slots = Vec::with_capacity(bvh.primitive_indices.len());
@@ -162,6 +327,7 @@ impl Accel {
                 k += 1;
             }
         }
+        let depth = cwbvh_depth(&bvh);
         Accel {
             bvh,
             tris,
@@ -171,6 +337,8 @@ impl Accel {
             stats: BuildStats {
                 primitives: n,
                 seconds: start.elapsed().as_secs_f64(),
+                depth,
+                coincident: groups.iter().map(Vec::len).sum(),
             },
         }
     }

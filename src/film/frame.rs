@@ -45,10 +45,16 @@ impl Film {
         }
     }
 
+    /// Light paths traced for the frame so far: one per pixel sample (N_L of the optimal-MIS
+    /// systems; W H spp once every pass has covered the whole frame).
+    pub fn light_paths(&self) -> u64 {
+        self.sums.count.iter().map(|&c| c as u64).sum()
+    }
+
     /// The image of each path depth 0 ..= max_depth (when depth layers are kept).
     pub fn depth_images(&self) -> Vec<Image> {
         let nd = self.layout.depth_layers;
-        let frame_pixels = self.width as u64 * self.height as u64;
+        let light_paths = self.light_paths();
         (0..nd)
             .map(|d| {
                 let mut img = Image::new(self.width as usize, self.height as usize);
@@ -64,7 +70,7 @@ impl Film {
                             && d as u32 <= o.layout.d_opt
                         {
                             let f =
-                                o.solve(i, d as u32, spp, frame_pixels, self.layout.kappa, scratch);
+                                o.solve(i, d as u32, spp, light_paths, self.layout.kappa, scratch);
                             for c in 0..3 {
                                 v[c] += f[c];
                             }
@@ -183,7 +189,7 @@ impl Film {
     /// The image: (camera sums + splats) / samples per pixel, plus the solved optimal depths.
     pub fn image(&self) -> Image {
         let mut img = Image::new(self.width as usize, self.height as usize);
-        let frame_pixels = self.width as u64 * self.height as u64;
+        let light_paths = self.light_paths();
         // Pixels are independent: solved in parallel, the same bits as in sequence.
         img.pixels.par_iter_mut().enumerate().for_each_init(
             SolveScratch::default,
@@ -195,7 +201,7 @@ impl Film {
                 let mut v = [(s[0] + l[0]) / n, (s[1] + l[1]) / n, (s[2] + l[2]) / n];
                 if let Some(o) = &self.optimal {
                     for d in 1..=o.layout.d_opt {
-                        let f = o.solve(i, d, spp, frame_pixels, self.layout.kappa, scratch);
+                        let f = o.solve(i, d, spp, light_paths, self.layout.kappa, scratch);
                         for c in 0..3 {
                             v[c] += f[c];
                         }

@@ -649,18 +649,6 @@ fn next_event(
         }
         return true;
     }
-    if !visible {
-        weights_alone(ws, 1, t + 1);
-        sink.sample(&PathSample {
-            depth,
-            s: 1,
-            t: t as u32,
-            pixel,
-            contribution,
-            balance: &ws.weights[..t + 1],
-        });
-        return true;
-    }
     let mut v0 = Vertex::endpoint(Kind::Light, ls.p, ls.n, Rgb::ONE, 0.0);
     v0.light = li;
     v0.delta_pos = ls.delta;
@@ -746,18 +734,6 @@ fn connect(
         }
         return true;
     }
-    if !visible {
-        weights_alone(ws, s, s + t);
-        sink.sample(&PathSample {
-            depth,
-            s: s as u32,
-            t: t as u32,
-            pixel,
-            contribution,
-            balance: &ws.weights[..s + t],
-        });
-        return true;
-    }
     let c = Connection {
         pe_y1: z.area_density(z.bsdf.pdf(wo_z, -w_yz), &y),
         pe_y2: y.area_density(y.bsdf.pdf(w_yz, wo_y), &yp),
@@ -797,7 +773,12 @@ fn connect_to_camera(
     stats: &mut RayStats,
 ) {
     let y = ws.light[s - 1];
-    if y.delta || (s >= 2 && y.bsdf.is_black()) {
+    // A point light seen directly through the pinhole, (1, 1) with y_0 a delta in position, is a
+    // path of two fixed points: no other technique can make it (the camera cannot hit a point,
+    // so the path tracer and (0, t) never see point lights), and it would put the light's
+    // intensity into one pixel that only light tracing brightens. Point lights are invisible to
+    // the camera, as in pbrt-v3, whose BDPT never runs (1, 1) (PBR 3rd ed. §16.3).
+    if y.delta || y.delta_pos || (s >= 2 && y.bsdf.is_black()) {
         return;
     }
     let cam: &Camera = &scene.camera;
@@ -814,7 +795,7 @@ fn connect_to_camera(
     let w_yc = -w_cy;
     let (f, cos_y, wo_y) = if s == 1 {
         let light = &scene.lights[y.light as usize];
-        (light.emitted(y.ng, w_yc), y.abs_cos_ng(w_yc), Vec3::ZERO)
+        (light.le(y.ng, w_yc), y.abs_cos_ng(w_yc), Vec3::ZERO)
     } else {
         let yp = ws.light[s - 2];
         let (wo_y, _) = dir_to(y.p, yp.p);

@@ -81,7 +81,9 @@ impl Light {
     }
 
     /// Radiance leaving a point of the light with oriented normal `n` (the emitting side, as in
-    /// [`LightSample::n`] and `SurfaceHit::ng`) toward direction `w`: one-sided emission.
+    /// [`LightSample::n`] and `SurfaceHit::ng`) toward direction `w`: one-sided emission. Zero for
+    /// point lights, which emit no radiance (a delta): they light surfaces through `sample_li` /
+    /// `sample_le` and are never seen directly.
     #[inline]
     pub fn le(&self, n: Vec3, w: Vec3) -> Rgb {
         match self {
@@ -93,16 +95,6 @@ impl Light {
                 }
             }
             Light::Point { .. } => Rgb::ZERO,
-        }
-    }
-
-    /// What leaves a light point toward `w`: radiance for area lights (one-sided), the intensity
-    /// for point lights.
-    #[inline]
-    pub fn emitted(&self, n: Vec3, w: Vec3) -> Rgb {
-        match self {
-            Light::Point { intensity, .. } => *intensity,
-            _ => self.le(n, w),
         }
     }
 

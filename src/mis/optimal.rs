@@ -174,15 +174,17 @@ impl OptimalAccum {
         }
     }
 
-    /// Solves depth d's system of `pixel`. `spp` samples per pixel have been taken and the frame
-    /// has `frame_pixels` pixels (so N_L = frame_pixels * spp). `kappa` is the regularisation
-    /// strength toward the balance solution (0 = the plain direct estimator).
+    /// Solves depth d's system of `pixel`. `spp` samples of this pixel have been taken, and
+    /// `light_paths` light paths for the whole frame (N_L: one per pixel sample of the frame, so
+    /// W H spp when every pixel has `spp`, which the balance weights of the samples assume).
+    /// `kappa` is the regularisation strength toward the balance solution (0 = the plain direct
+    /// estimator).
     pub fn solve(
         &self,
         pixel: usize,
         d: u32,
         spp: u32,
-        frame_pixels: u64,
+        light_paths: u64,
         kappa: f64,
         scratch: &mut SolveScratch,
     ) -> [f64; 3] {
@@ -192,8 +194,10 @@ impl OptimalAccum {
         let (ap, bp) = blk.split_at(n * (n + 1) / 2);
         let s = spp.max(1) as f64;
         let lt = n - 1;
-        // Technique counts relative to S: 1 for camera techniques, W H for light tracing.
-        let m = |i: usize| if i == lt { frame_pixels as f64 } else { 1.0 };
+        // Technique counts relative to S: 1 for camera techniques, N_L / S (= W H) for light
+        // tracing.
+        let n_l = light_paths as f64;
+        let m = |i: usize| if i == lt { n_l / s } else { 1.0 };
         scratch.a.clear();
         scratch.a.resize(n * n, 0.0);
         let a = &mut scratch.a;
@@ -205,7 +209,6 @@ impl OptimalAccum {
             }
         }
         let hits = self.hits[pixel * self.layout.d_opt as usize + d as usize - 1] as f64;
-        let n_l = frame_pixels as f64 * s;
         a[lt * n + lt] += (n_l - hits).max(0.0);
         scratch.b.clear();
         scratch.b.extend_from_slice(bp);
@@ -290,7 +293,7 @@ mod tests {
             acc.add_sample(0, 1, &[1.0, 0.0, 0.0], [v, 2.0 * v, 0.0]);
         }
         let mut sc = SolveScratch::default();
-        let f = acc.solve(0, 1, spp, 16, 0.0, &mut sc);
+        let f = acc.solve(0, 1, spp, 16 * spp as u64, 0.0, &mut sc);
         let mean = values.iter().sum::<f64>() / spp as f64;
         assert!(
             (f[0] - mean).abs() < 1e-12 && (f[1] - 2.0 * mean).abs() < 1e-12,
@@ -298,7 +301,7 @@ mod tests {
         );
         assert_eq!(f[2], 0.0);
         // Regularisation toward balance cannot move a one-technique estimate.
-        let g = acc.solve(0, 1, spp, 16, 4.0, &mut sc);
+        let g = acc.solve(0, 1, spp, 16 * spp as u64, 4.0, &mut sc);
         assert!((g[0] - mean).abs() < 1e-12);
     }
 
@@ -338,12 +341,12 @@ mod tests {
         }
         let expected = x[0] + x[1] + 4.0 * x[2]; // W H = 4 for light tracing
         let mut sc = SolveScratch::default();
-        let f = acc.solve(0, 1, 2, 4, 0.0, &mut sc);
+        let f = acc.solve(0, 1, 2, 8, 0.0, &mut sc);
         assert!((f[0] - expected).abs() < 1e-12, "{f:?} vs {expected}");
         // The balance estimate from the same accumulators: sum b / S = 5 / 2.
         assert!((acc.balance(0, 1, 2)[0] - 2.5).abs() < 1e-12);
         // Infinite regularisation gives the balance estimate back.
-        let g = acc.solve(0, 1, 2, 4, 1e12, &mut sc);
+        let g = acc.solve(0, 1, 2, 8, 1e12, &mut sc);
         assert!((g[0] - 2.5).abs() < 1e-6, "{g:?}");
     }
 }

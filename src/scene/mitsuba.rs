@@ -1615,7 +1615,7 @@ impl Ctx {
         let p = Props::new(n);
         let ty = n.attr("type").unwrap_or("");
         let what = format!("shape \"{ty}\"");
-        let loc = format!("line {}", n.line);
+        let mut loc = format!("line {}", n.line);
         let material = self.shape_material(n, &p)?;
         let mut emission = None;
         for e in p.objects("emitter") {
@@ -1656,6 +1656,8 @@ impl Ctx {
                     .string(&p, "filename")?
                     .ok_or_else(|| self.err(n, format!("{what} has no filename")))?;
                 let path = resolve_in_folder(&self.file, &file, &loc)?;
+                // Errors in the mesh's data name its file.
+                loc = format!("{loc} ({})", path.display());
                 // Preloaded meshes are taken (a file used twice is read again).
                 let mut mesh = match self.meshes.remove(&path) {
                     Some(Ok(m)) => m,

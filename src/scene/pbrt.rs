@@ -1400,7 +1400,7 @@ impl Parser {
                 format!("{what}: the transform is singular or not finite"),
             )
         })?;
-        let place = if loc.file == 0 {
+        let mut place = if loc.file == 0 {
             format!("line {}", loc.line)
         } else {
             format!(
@@ -1485,6 +1485,8 @@ impl Parser {
                 };
                 let path = resolve_in_folder(&self.files[0], &file, "plymesh")
                     .map_err(|e| self.at(loc, e))?;
+                // Errors in the mesh's data name its file.
+                place = format!("{place} ({})", path.display());
                 load_ply(&path).map_err(|e| self.err(loc, format!("{}: {e}", path.display())))?
             }
             "sphere" => {
