@@ -1070,6 +1070,59 @@ fn mitsuba_unknown_bsdf_falls_back_with_a_warning() {
 }
 
 // ------------------------------------------------------------------------------------------
+// The files a scene reads.
+
+#[test]
+fn every_file_a_scene_reads_is_in_its_file_list() {
+    let d = folder("files");
+    write_plys(&d);
+    write_obj(&d);
+    write_png(&d);
+    write(
+        &d,
+        "part.pbrt",
+        "Shape \"plymesh\" \"string filename\" \"models/quad-bin.ply\"\n",
+    );
+    let p = write(
+        &d,
+        "scene.pbrt",
+        r#"Camera "perspective"
+WorldBegin
+Texture "t" "spectrum" "imagemap" "string filename" "tex.png"
+Material "matte" "texture Kd" "t"
+Include "part.pbrt"
+Shape "plymesh" "string filename" "quad.ply"
+Shape "plymesh" "string filename" "./quad.ply"
+WorldEnd
+"#,
+    );
+    let canon = |n: &str| d.join(n).canonicalize().expect("canonical");
+    let s = load(&p);
+    assert_eq!(
+        s.files,
+        ["models/quad-bin.ply", "part.pbrt", "quad.ply", "tex.png"].map(canon)
+    );
+    let p = write(
+        &d,
+        "scene.xml",
+        r#"<scene version="0.5.0">
+  <sensor type="perspective"/>
+  <bsdf type="diffuse" id="m">
+    <texture type="bitmap" name="reflectance"><string name="filename" value="tex.png"/></texture>
+  </bsdf>
+  <shape type="obj"><string name="filename" value="quad.obj"/><ref id="m"/></shape>
+  <shape type="ply"><string name="filename" value="models/quad-bin.ply"/></shape>
+</scene>
+"#,
+    );
+    let s = load(&p);
+    assert_eq!(
+        s.files,
+        ["models/quad-bin.ply", "quad.obj", "tex.png"].map(canon)
+    );
+}
+
+// ------------------------------------------------------------------------------------------
 // The public scenes.
 
 #[test]

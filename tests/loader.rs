@@ -269,3 +269,33 @@ fn the_documented_example_scene_loads() {
     // Two emitting triangles of the quad light and the point light.
     assert_eq!(scene.lights.len(), 3);
 }
+
+#[test]
+fn the_file_list_holds_every_file_the_scene_reads() {
+    let d = folder("file-list");
+    std::fs::create_dir_all(d.join("models")).unwrap();
+    std::fs::write(
+        d.join("models/tri.obj"),
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    )
+    .unwrap();
+    image::RgbImage::from_pixel(2, 2, image::Rgb([200, 150, 100]))
+        .save(d.join("wood.png"))
+        .unwrap();
+    let p = d.join("scene.json");
+    std::fs::write(
+        &p,
+        format!(
+            "{{\n{CAMERA},\n\"materials\": {{\"w\": {{\"type\": \"lambert\", \"albedo\": {{\"texture\": \"wood.png\"}}}}}},\n\
+             \"shapes\": [{{\"type\": \"mesh\", \"file\": \"models/tri.obj\", \"material\": \"w\"}},\n\
+             {{\"type\": \"mesh\", \"file\": \"./models/../models/tri.obj\", \"material\": \"w\"}}]\n}}\n"
+        ),
+    )
+    .unwrap();
+    let scene = Scene::load(&p).unwrap_or_else(|e| panic!("{e}"));
+    let canon = |n: &str| d.join(n).canonicalize().unwrap();
+    assert_eq!(
+        scene.files,
+        vec![canon("models/tri.obj"), canon("wood.png")]
+    );
+}
