@@ -271,6 +271,45 @@ fn the_documented_example_scene_loads() {
 }
 
 #[test]
+fn a_path_outside_the_folder_gets_one_answer_whether_or_not_it_exists() {
+    // The answer must not tell whether a file outside the scene's folder exists.
+    let root = folder("oracle");
+    let inner = root.join("inner");
+    std::fs::create_dir_all(&inner).unwrap();
+    let secret = root.join("secret.obj");
+    let abs = secret.display().to_string();
+    let mut paths = vec![
+        "../secret.obj".to_string(),
+        abs,
+        "a/../../secret.obj".into(),
+    ];
+    #[cfg(unix)]
+    {
+        std::os::unix::fs::symlink(&root, inner.join("up")).unwrap();
+        paths.push("up/secret.obj".into());
+    }
+    for rel in &paths {
+        let p = scene_with_shapes(
+            &inner,
+            &format!(r#"{{"type": "mesh", "file": "{rel}", "material": "m"}}"#),
+        );
+        std::fs::write(&secret, "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
+        let exists = load_err(&p);
+        std::fs::remove_file(&secret).unwrap();
+        let missing = load_err(&p);
+        assert_eq!(exists, missing, "'{rel}'");
+        assert_has(&exists, &["shapes[0].file", rel]);
+        assert!(!exists.contains("not found"), "{exists}");
+    }
+    // Inside the folder a missing file is simply not found.
+    let p = scene_with_shapes(
+        &inner,
+        r#"{"type": "mesh", "file": "sub/../gone.obj", "material": "m"}"#,
+    );
+    assert_has(&load_err(&p), &["shapes[0].file", "gone.obj", "not found"]);
+}
+
+#[test]
 fn the_file_list_holds_every_file_the_scene_reads() {
     let d = folder("file-list");
     std::fs::create_dir_all(d.join("models")).unwrap();
