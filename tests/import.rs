@@ -1070,7 +1070,131 @@ fn mitsuba_unknown_bsdf_falls_back_with_a_warning() {
 }
 
 // ------------------------------------------------------------------------------------------
-// The files a scene reads.
+// The pbrt dialect, and the files a scene reads.
+
+#[test]
+fn pbrt_v4_files_are_refused_naming_file_line_and_construct() {
+    let d = folder("pbrt-v4");
+    let head = "LookAt 0 0 5  0 0 0  0 1 0\nCamera \"perspective\" \"float fov\" 40\n";
+    // (body after the header, line of the construct, how the error names it)
+    let cases = [
+        ("ColorSpace \"srgb\"\nWorldBegin", 3, "ColorSpace \"srgb\""),
+        (
+            "Option \"bool disablepixeljitter\" true\nWorldBegin",
+            3,
+            "Option",
+        ),
+        (
+            "Film \"rgb\" \"integer xresolution\" 8\nWorldBegin",
+            3,
+            "Film \"rgb\"",
+        ),
+        ("Sampler \"zsobol\"\nWorldBegin", 3, "Sampler \"zsobol\""),
+        (
+            "WorldBegin\nAttribute \"shape\" \"float radius\" 2\nShape \"sphere\"",
+            4,
+            "Attribute \"shape\"",
+        ),
+        (
+            "WorldBegin\nMaterial \"diffuse\" \"rgb reflectance\" [ 0.5 0.5 0.5 ]\nShape \"sphere\"",
+            4,
+            "Material \"diffuse\"",
+        ),
+        (
+            "WorldBegin\nMakeNamedMaterial \"c\"\n  \"string type\" \"coateddiffuse\"\nNamedMaterial \"c\"",
+            5,
+            "of type \"coateddiffuse\"",
+        ),
+        (
+            "WorldBegin\nMaterial \"metal\"\n  \"spectrum eta\" \"metal-Cu-eta\"\n  \"spectrum k\" \"metal-Cu-k\"",
+            5,
+            "named spectrum \"metal-Cu-eta\"",
+        ),
+        (
+            "WorldBegin\nShape \"bilinearmesh\" \"point3 P\" [ 0 0 0 1 0 0 0 1 0 1 1 0 ]",
+            4,
+            "Shape \"bilinearmesh\"",
+        ),
+        (
+            "WorldBegin\nAreaLightSource \"diffuse\" \"rgb L\" [ 1 1 1 ]\n  \"float scale\" 4\nShape \"sphere\"",
+            5,
+            "\"float scale\"",
+        ),
+        (
+            "WorldBegin\nLightSource \"point\" \"float power\" 100",
+            4,
+            "\"float power\"",
+        ),
+        (
+            "WorldBegin\nMaterial \"mix\" \"string materials\" [ \"a\" \"b\" ] \"float amount\" 0.5",
+            4,
+            "\"string materials\"",
+        ),
+        (
+            "WorldBegin\nTexture \"t\" \"spectrum\" \"imagemap\" \"string filename\" \"a.png\"\n  \"string encoding\" \"linear\"",
+            5,
+            "\"string encoding\"",
+        ),
+        ("WorldBegin\nImport \"more.pbrt\"", 4, "Import"),
+    ];
+    for (i, (body, line, what)) in cases.iter().enumerate() {
+        let name = format!("v4-{i}.pbrt");
+        let e = load_err(&write(&d, &name, &format!("{head}{body}\n")));
+        assert_has(
+            &e,
+            &[
+                &name,
+                &format!("line {line}: pbrt-v4 file (line {line}: "),
+                what,
+                "pbrt-v3",
+            ],
+        );
+    }
+    // A pbrt-v4 file included from a pbrt-v3 one: the error names the included file.
+    write(&d, "v4-part.pbrt", "# pbrt-v4\n\nShape \"bilinearmesh\"\n");
+    let e = load_err(&write(
+        &d,
+        "v3-main.pbrt",
+        &format!("{head}WorldBegin\nInclude \"v4-part.pbrt\"\nWorldEnd\n"),
+    ));
+    assert_has(
+        &e,
+        &[
+            "v4-part.pbrt",
+            "line 3",
+            "pbrt-v4 file (line 3: Shape \"bilinearmesh\")",
+        ],
+    );
+    // A whole pbrt-v4 scene (as pbrt-v4 writes them: no WorldEnd) is refused at its first
+    // pbrt-v4 construct, before anything is read.
+    let e = load_err(&write(
+        &d,
+        "v4-scene.pbrt",
+        "LookAt 0 1 5  0 1 0  0 1 0\nCamera \"perspective\" \"float fov\" 40\n\
+         Sampler \"halton\" \"integer pixelsamples\" 16\n\
+         Film \"rgb\" \"string filename\" \"out.exr\"\n\
+         WorldBegin\nMaterial \"diffuse\"\nShape \"plymesh\" \"string filename\" \"missing.ply\"\n",
+    ));
+    assert_has(
+        &e,
+        &[
+            "v4-scene.pbrt",
+            "line 4",
+            "pbrt-v4 file (line 4: Film \"rgb\")",
+        ],
+    );
+    // pbrt-v3 declarations that pbrt-v4 shares are not taken for pbrt-v4.
+    let s = load(&write(
+        &d,
+        "v3.pbrt",
+        &format!(
+            "{head}WorldBegin\nAttributeBegin\nAreaLightSource \"diffuse\" \"rgb L\" [ 1 1 1 ]\n\
+             Shape \"sphere\"\nAttributeEnd\nLightSource \"point\" \"rgb I\" [ 1 1 1 ]\n\
+             \"rgb scale\" [ 2 2 2 ]\nWorldEnd\n"
+        ),
+    ));
+    assert_eq!(s.lights.len(), 2);
+}
 
 #[test]
 fn every_file_a_scene_reads_is_in_its_file_list() {

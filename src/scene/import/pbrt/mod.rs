@@ -1,7 +1,8 @@
 //! pbrt-v3 scene importer: a tokenizer whose tokens carry file and line (`lexer`), parameter
 //! lists (`params`), and a parser for the subset of the format that maps onto our scene model
 //! (see `scenes/README.md`, "Importers"): camera and options, materials, textures, shapes,
-//! lights, one module each.
+//! lights, one module each. pbrt-v4 files, which share the extension, are told from their
+//! contents (`dialect`) and refused with the construct that gave them away.
 //!
 //! Conventions of pbrt-v3 that matter here (Pharr, Jakob, Humphreys, *Physically Based
 //! Rendering*, 3rd ed., and the pbrt-v3 sources):
@@ -24,6 +25,7 @@
 //! shapes, partial spheres) it is an error instead.
 
 mod camera;
+mod dialect;
 mod lexer;
 mod lights;
 mod materials;
@@ -41,7 +43,7 @@ use camera::{CameraDef, look_at};
 use lexer::{Loc, Tok, Token, describe, tokenize};
 use shapes::ShapeCall;
 use std::collections::HashMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::rc::Rc;
 use textures::{FloatTex, SpecTex};
 
@@ -98,10 +100,11 @@ struct Parser {
 
 type R<T> = Result<T, SceneError>;
 
-/// Parses pbrt-v3 text, reading the files it names through `resolver`.
+/// Parses pbrt-v3 text, reading the files it names through `resolver`; pbrt-v4 text is refused.
 pub(crate) fn parse_with(text: &str, resolver: Resolver) -> Result<SceneBuilder, SceneError> {
     let file = resolver.scene_file().to_path_buf();
     let tokens = tokenize(text, 0, &file)?;
+    refuse_v4(&tokens, &file)?;
     let mut p = Parser {
         files: vec![file],
         sources: vec![Source { tokens, pos: 0 }],
@@ -136,6 +139,23 @@ pub(crate) fn parse_with(text: &str, resolver: Resolver) -> Result<SceneBuilder,
     let Parser { mut b, warn, .. } = p;
     warn.flush(&mut b);
     Ok(b)
+}
+
+/// Refuses the tokens of a pbrt-v4 file with the first construct that shows it.
+fn refuse_v4(tokens: &[Token], file: &Path) -> R<()> {
+    match dialect::first_v4_construct(tokens) {
+        None => Ok(()),
+        Some((loc, what)) => Err(SceneError::new(
+            file,
+            format!("line {}", loc.line),
+            format!(
+                "pbrt-v4 file (line {}: {what}): only pbrt-v3 is imported, and pbrt-v4 renames \
+                 materials and changes the meaning of shared parameters; the file is refused \
+                 rather than read as pbrt-v3",
+                loc.line
+            ),
+        )),
+    }
 }
 
 impl Parser {
@@ -323,13 +343,7 @@ impl Parser {
             || self.object_directive(name, loc)?
             || self.medium_directive(name, loc)?;
         if !handled {
-            let hint = match name {
-                "ColorSpace" | "Option" | "Attribute" | "Import" | "MakeNamedMaterialInstance" => {
-                    " (a pbrt-v4 directive; this is a pbrt-v3 importer)"
-                }
-                _ => "",
-            };
-            return Err(self.err(loc, format!("unknown directive '{name}'{hint}")));
+            return Err(self.err(loc, format!("unknown directive '{name}'")));
         }
         Ok(())
     }
@@ -507,6 +521,7 @@ impl Parser {
                 let path = file.path().to_path_buf();
                 self.files.push(path.clone());
                 let tokens = tokenize(&text, idx as u16, &path)?;
+                refuse_v4(&tokens, &path)?;
                 self.sources.push(Source { tokens, pos: 0 });
             }
             _ => return Ok(false),
