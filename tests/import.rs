@@ -2,6 +2,8 @@
 //! temporary folder, errors that name file and line, and the public scenes in
 //! `../shared/scenes` loaded, rendered and compared with our own scenes and between formats.
 
+mod common;
+
 use omis::film::PixelSums;
 use omis::geometry::{Vec2, Vec3};
 use omis::integrator::RenderSettings;
@@ -15,18 +17,8 @@ use std::time::Instant;
 // ------------------------------------------------------------------------------------------
 // Helpers.
 
-/// A fresh folder for one test's files.
 fn folder(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("omis-import-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).expect("temp dir");
-    d
-}
-
-fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
-    let p = dir.join(name);
-    std::fs::write(&p, text).expect("write file");
-    p
+    common::folder("import", name)
 }
 
 fn load(path: &Path) -> Scene {
@@ -72,20 +64,6 @@ fn material<'a>(scene: &'a Scene, name: &str) -> &'a omis::material::Material {
 
 fn close(a: f32, b: f32, tol: f32) -> bool {
     (a - b).abs() <= tol * (1.0 + a.abs().max(b.abs()))
-}
-
-/// `../shared/scenes`, or `None` (with a message) when this checkout has no shared scenes.
-fn shared(test: &str) -> Option<PathBuf> {
-    let d = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/scenes");
-    if d.is_dir() {
-        Some(d)
-    } else {
-        eprintln!(
-            "SKIPPED {test}: {} is absent (public test scenes are not part of the repository)",
-            d.display()
-        );
-        None
-    }
 }
 
 fn render(scene: &Scene, spp: u32, max_depth: u32, seed: u64) -> PixelSums {
@@ -192,7 +170,7 @@ Camera "perspective" "float fov" [ 30 ]
 #[test]
 fn pbrt_options_camera_and_world_directives() {
     let d = folder("pbrt-directives");
-    let p = write(
+    let p = common::write(
         &d,
         "scene.pbrt",
         &format!(
@@ -392,7 +370,7 @@ fn pbrt_fov_is_on_the_shorter_axis() {
         ),
         (30, 30, 30.0),
     ] {
-        let p = write(
+        let p = common::write(
             &d,
             "fov.pbrt",
             &format!(
@@ -414,7 +392,7 @@ fn pbrt_camera_handedness_decides_mirroring() {
     // A camera at the origin looking down +z with +y up. In pbrt-v3, camera +x = up x dir = +x
     // is on the image's right; our right-handed camera would show -x there.
     let right_of = |prefix: &str| {
-        let p = write(
+        let p = common::write(
             &d,
             "h.pbrt",
             &format!(
@@ -473,12 +451,12 @@ fn write_plys(d: &Path) {
 fn pbrt_plymesh_ascii_and_binary_include_and_instances() {
     let d = folder("pbrt-ply");
     write_plys(&d);
-    write(
+    common::write(
         &d,
         "geometry.pbrt",
         "# included\nShape \"plymesh\" \"string filename\" \"quad.ply\"\n",
     );
-    let p = write(
+    let p = common::write(
         &d,
         "scene.pbrt",
         r#"Film "image" "integer xresolution" 8 "integer yresolution" 8
@@ -512,7 +490,7 @@ WorldEnd
 fn pbrt_errors_name_file_and_line() {
     let d = folder("pbrt-errors");
     let case = |name: &str, body: &str| -> String {
-        let p = write(&d, name, body);
+        let p = common::write(&d, name, body);
         load_err(&p)
     };
     let world = |body: &str| format!("Camera \"perspective\"\nWorldBegin\n{body}\nWorldEnd\n");
@@ -608,7 +586,7 @@ fn pbrt_errors_name_file_and_line() {
     );
     assert_has(&e, &["line 3", "out of range"]);
     // Errors in an included file name that file.
-    write(
+    common::write(
         &d,
         "inc.pbrt",
         "\nShape \"sphere\" \"float radius\" [ x ]\n",
@@ -620,7 +598,7 @@ fn pbrt_errors_name_file_and_line() {
 #[test]
 fn pbrt_unsupported_features_are_reported_once_by_name_and_line() {
     let d = folder("pbrt-warn");
-    let p = write(
+    let p = common::write(
         &d,
         "warn.pbrt",
         r#"Integrator "bdpt" "integer maxdepth" 3
@@ -667,7 +645,7 @@ fn pbrt_emission_side_follows_winding_normals_and_reverse_orientation() {
     let tri =
         r#"Shape "trianglemesh" "point P" [ 0 1 0  1 1 0  0 1 1 ] "integer indices" [ 0 1 2 ]"#;
     let normal_of = |prefix: &str, extra: &str| {
-        let p = write(
+        let p = common::write(
             &d,
             "o.pbrt",
             &format!(
@@ -693,7 +671,7 @@ fn pbrt_emission_side_follows_winding_normals_and_reverse_orientation() {
 
 fn write_obj(d: &Path) {
     // A unit quad in the xy plane facing +z, with uvs (v = 0 at the bottom).
-    write(
+    common::write(
         d,
         "quad.obj",
         "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvn 0 0 1\nf 1/1/1 2/2/1 3/3/1 4/4/1\n",
@@ -796,7 +774,7 @@ fn mitsuba_elements_build_the_expected_scene() {
   <emitter type="point"><point name="position" x="0" y="3" z="0"/><rgb name="intensity" value="7"/></emitter>
 </scene>
 "##;
-    let p = write(&d, "scene.xml", text);
+    let p = common::write(&d, "scene.xml", text);
     let line_of = |what: &str| 1 + text.lines().position(|l| l.contains(what)).expect("line");
     let s = load(&p);
     for w in &s.warnings {
@@ -934,7 +912,7 @@ fn mitsuba_elements_build_the_expected_scene() {
 fn mitsuba_fov_axes_and_depths() {
     let d = folder("mitsuba-fov");
     let scene = |w: u32, h: u32, fov_axis: &str, depth: i32| {
-        write(
+        common::write(
             &d,
             "f.xml",
             &format!(
@@ -980,7 +958,7 @@ fn mitsuba_errors_name_file_and_line() {
     let d = folder("mitsuba-errors");
     write_obj(&d);
     let case = |name: &str, body: &str| -> String {
-        let p = write(
+        let p = common::write(
             &d,
             name,
             &format!(
@@ -1050,7 +1028,7 @@ fn mitsuba_errors_name_file_and_line() {
 #[test]
 fn mitsuba_unknown_bsdf_falls_back_with_a_warning() {
     let d = folder("mitsuba-fallback");
-    let p = write(
+    let p = common::write(
         &d,
         "f.xml",
         r#"<scene version="0.5.0">
@@ -1071,11 +1049,188 @@ fn mitsuba_unknown_bsdf_falls_back_with_a_warning() {
 }
 
 // ------------------------------------------------------------------------------------------
+// The pbrt dialect, and the files a scene reads.
+
+#[test]
+fn pbrt_v4_files_are_refused_naming_file_line_and_construct() {
+    let d = folder("pbrt-v4");
+    let head = "LookAt 0 0 5  0 0 0  0 1 0\nCamera \"perspective\" \"float fov\" 40\n";
+    // (body after the header, line of the construct, how the error names it)
+    let cases = [
+        ("ColorSpace \"srgb\"\nWorldBegin", 3, "ColorSpace \"srgb\""),
+        (
+            "Option \"bool disablepixeljitter\" true\nWorldBegin",
+            3,
+            "Option",
+        ),
+        (
+            "Film \"rgb\" \"integer xresolution\" 8\nWorldBegin",
+            3,
+            "Film \"rgb\"",
+        ),
+        ("Sampler \"zsobol\"\nWorldBegin", 3, "Sampler \"zsobol\""),
+        (
+            "WorldBegin\nAttribute \"shape\" \"float radius\" 2\nShape \"sphere\"",
+            4,
+            "Attribute \"shape\"",
+        ),
+        (
+            "WorldBegin\nMaterial \"diffuse\" \"rgb reflectance\" [ 0.5 0.5 0.5 ]\nShape \"sphere\"",
+            4,
+            "Material \"diffuse\"",
+        ),
+        (
+            "WorldBegin\nMakeNamedMaterial \"c\"\n  \"string type\" \"coateddiffuse\"\nNamedMaterial \"c\"",
+            5,
+            "of type \"coateddiffuse\"",
+        ),
+        (
+            "WorldBegin\nMaterial \"metal\"\n  \"spectrum eta\" \"metal-Cu-eta\"\n  \"spectrum k\" \"metal-Cu-k\"",
+            5,
+            "named spectrum \"metal-Cu-eta\"",
+        ),
+        (
+            "WorldBegin\nShape \"bilinearmesh\" \"point3 P\" [ 0 0 0 1 0 0 0 1 0 1 1 0 ]",
+            4,
+            "Shape \"bilinearmesh\"",
+        ),
+        (
+            "WorldBegin\nAreaLightSource \"diffuse\" \"rgb L\" [ 1 1 1 ]\n  \"float scale\" 4\nShape \"sphere\"",
+            5,
+            "\"float scale\"",
+        ),
+        (
+            "WorldBegin\nLightSource \"point\" \"float power\" 100",
+            4,
+            "\"float power\"",
+        ),
+        (
+            "WorldBegin\nMaterial \"mix\" \"string materials\" [ \"a\" \"b\" ] \"float amount\" 0.5",
+            4,
+            "\"string materials\"",
+        ),
+        (
+            "WorldBegin\nTexture \"t\" \"spectrum\" \"imagemap\" \"string filename\" \"a.png\"\n  \"string encoding\" \"linear\"",
+            5,
+            "\"string encoding\"",
+        ),
+        ("WorldBegin\nImport \"more.pbrt\"", 4, "Import"),
+    ];
+    for (i, (body, line, what)) in cases.iter().enumerate() {
+        let name = format!("v4-{i}.pbrt");
+        let e = load_err(&common::write(&d, &name, &format!("{head}{body}\n")));
+        assert_has(
+            &e,
+            &[
+                &name,
+                &format!("line {line}: pbrt-v4 file (line {line}: "),
+                what,
+                "pbrt-v3",
+            ],
+        );
+    }
+    // A pbrt-v4 file included from a pbrt-v3 one: the error names the included file.
+    common::write(&d, "v4-part.pbrt", "# pbrt-v4\n\nShape \"bilinearmesh\"\n");
+    let e = load_err(&common::write(
+        &d,
+        "v3-main.pbrt",
+        &format!("{head}WorldBegin\nInclude \"v4-part.pbrt\"\nWorldEnd\n"),
+    ));
+    assert_has(
+        &e,
+        &[
+            "v4-part.pbrt",
+            "line 3",
+            "pbrt-v4 file (line 3: Shape \"bilinearmesh\")",
+        ],
+    );
+    // A whole pbrt-v4 scene (as pbrt-v4 writes them: no WorldEnd) is refused at its first
+    // pbrt-v4 construct, before anything is read.
+    let e = load_err(&common::write(
+        &d,
+        "v4-scene.pbrt",
+        "LookAt 0 1 5  0 1 0  0 1 0\nCamera \"perspective\" \"float fov\" 40\n\
+         Sampler \"halton\" \"integer pixelsamples\" 16\n\
+         Film \"rgb\" \"string filename\" \"out.exr\"\n\
+         WorldBegin\nMaterial \"diffuse\"\nShape \"plymesh\" \"string filename\" \"missing.ply\"\n",
+    ));
+    assert_has(
+        &e,
+        &[
+            "v4-scene.pbrt",
+            "line 4",
+            "pbrt-v4 file (line 4: Film \"rgb\")",
+        ],
+    );
+    // pbrt-v3 declarations that pbrt-v4 shares are not taken for pbrt-v4.
+    let s = load(&common::write(
+        &d,
+        "v3.pbrt",
+        &format!(
+            "{head}WorldBegin\nAttributeBegin\nAreaLightSource \"diffuse\" \"rgb L\" [ 1 1 1 ]\n\
+             Shape \"sphere\"\nAttributeEnd\nLightSource \"point\" \"rgb I\" [ 1 1 1 ]\n\
+             \"rgb scale\" [ 2 2 2 ]\nWorldEnd\n"
+        ),
+    ));
+    assert_eq!(s.lights.len(), 2);
+}
+
+#[test]
+fn every_file_a_scene_reads_is_in_its_file_list() {
+    let d = folder("files");
+    write_plys(&d);
+    write_obj(&d);
+    write_png(&d);
+    common::write(
+        &d,
+        "part.pbrt",
+        "Shape \"plymesh\" \"string filename\" \"models/quad-bin.ply\"\n",
+    );
+    let p = common::write(
+        &d,
+        "scene.pbrt",
+        r#"Camera "perspective"
+WorldBegin
+Texture "t" "spectrum" "imagemap" "string filename" "tex.png"
+Material "matte" "texture Kd" "t"
+Include "part.pbrt"
+Shape "plymesh" "string filename" "quad.ply"
+Shape "plymesh" "string filename" "./quad.ply"
+WorldEnd
+"#,
+    );
+    let canon = |n: &str| d.join(n).canonicalize().expect("canonical");
+    let s = load(&p);
+    assert_eq!(
+        s.files,
+        ["models/quad-bin.ply", "part.pbrt", "quad.ply", "tex.png"].map(canon)
+    );
+    let p = common::write(
+        &d,
+        "scene.xml",
+        r#"<scene version="0.5.0">
+  <sensor type="perspective"/>
+  <bsdf type="diffuse" id="m">
+    <texture type="bitmap" name="reflectance"><string name="filename" value="tex.png"/></texture>
+  </bsdf>
+  <shape type="obj"><string name="filename" value="quad.obj"/><ref id="m"/></shape>
+  <shape type="ply"><string name="filename" value="models/quad-bin.ply"/></shape>
+</scene>
+"#,
+    );
+    let s = load(&p);
+    assert_eq!(
+        s.files,
+        ["models/quad-bin.ply", "quad.obj", "tex.png"].map(canon)
+    );
+}
+
+// ------------------------------------------------------------------------------------------
 // The public scenes.
 
 #[test]
 fn shared_scenes_load_and_render() {
-    let Some(dir) = shared("shared_scenes_load_and_render") else {
+    let Some(dir) = common::shared_scenes("shared_scenes_load_and_render") else {
         return;
     };
     for (rel, w, h) in [
@@ -1117,7 +1272,7 @@ fn shared_scenes_load_and_render() {
 
 #[test]
 fn cornell_box_pbrt_matches_our_json_scene() {
-    let Some(dir) = shared("cornell_box_pbrt_matches_our_json_scene") else {
+    let Some(dir) = common::shared_scenes("cornell_box_pbrt_matches_our_json_scene") else {
         return;
     };
     let mut pbrt = load(&dir.join("cornell-box/pbrt-v3/scene.pbrt"));
@@ -1149,7 +1304,8 @@ fn cornell_box_pbrt_matches_our_json_scene() {
 
 #[test]
 fn veach_mis_pbrt_matches_mitsuba_where_the_models_agree() {
-    let Some(dir) = shared("veach_mis_pbrt_matches_mitsuba_where_the_models_agree") else {
+    let Some(dir) = common::shared_scenes("veach_mis_pbrt_matches_mitsuba_where_the_models_agree")
+    else {
         return;
     };
     let mut pbrt = load(&dir.join("veach-mis/pbrt-v3/scene.pbrt"));
@@ -1245,7 +1401,7 @@ fn upscale(data: &[u8], w: usize, h: usize, f: usize) -> Vec<u8> {
 #[test]
 #[ignore]
 fn staircase_relmse_against_tungsten() {
-    let Some(dir) = shared("staircase_relmse_against_tungsten") else {
+    let Some(dir) = common::shared_scenes("staircase_relmse_against_tungsten") else {
         return;
     };
     let scene_path = dir.join("staircase/mitsuba/scene.xml");

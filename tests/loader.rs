@@ -1,15 +1,13 @@
 //! Scene loading: every bad input is a clear error naming the file and the place, never a panic;
 //! meshes load from OBJ and PLY (ASCII and binary).
 
+mod common;
+
 use omis::scene::Scene;
 use std::path::{Path, PathBuf};
 
-/// A fresh folder for one test's files.
 fn folder(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("omis-loader-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).expect("temp dir");
-    d
+    common::folder("loader", name)
 }
 
 const CAMERA: &str =
@@ -268,6 +266,75 @@ fn the_documented_example_scene_loads() {
     assert_eq!(scene.spheres.len(), 1);
     // Two emitting triangles of the quad light and the point light.
     assert_eq!(scene.lights.len(), 3);
+}
+
+#[test]
+fn a_path_outside_the_folder_gets_one_answer_whether_or_not_it_exists() {
+    // The answer must not tell whether a file outside the scene's folder exists.
+    let root = folder("oracle");
+    let inner = root.join("inner");
+    std::fs::create_dir_all(&inner).unwrap();
+    let secret = root.join("secret.obj");
+    let abs = secret.display().to_string();
+    let mut paths = vec![
+        "../secret.obj".to_string(),
+        abs,
+        "a/../../secret.obj".into(),
+    ];
+    #[cfg(unix)]
+    {
+        std::os::unix::fs::symlink(&root, inner.join("up")).unwrap();
+        paths.push("up/secret.obj".into());
+    }
+    for rel in &paths {
+        let p = scene_with_shapes(
+            &inner,
+            &format!(r#"{{"type": "mesh", "file": "{rel}", "material": "m"}}"#),
+        );
+        std::fs::write(&secret, "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
+        let exists = load_err(&p);
+        std::fs::remove_file(&secret).unwrap();
+        let missing = load_err(&p);
+        assert_eq!(exists, missing, "'{rel}'");
+        assert_has(&exists, &["shapes[0].file", rel]);
+        assert!(!exists.contains("not found"), "{exists}");
+    }
+    // Inside the folder a missing file is simply not found.
+    let p = scene_with_shapes(
+        &inner,
+        r#"{"type": "mesh", "file": "sub/../gone.obj", "material": "m"}"#,
+    );
+    assert_has(&load_err(&p), &["shapes[0].file", "gone.obj", "not found"]);
+}
+
+#[test]
+fn the_file_list_holds_every_file_the_scene_reads() {
+    let d = folder("file-list");
+    std::fs::create_dir_all(d.join("models")).unwrap();
+    std::fs::write(
+        d.join("models/tri.obj"),
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    )
+    .unwrap();
+    image::RgbImage::from_pixel(2, 2, image::Rgb([200, 150, 100]))
+        .save(d.join("wood.png"))
+        .unwrap();
+    let p = d.join("scene.json");
+    std::fs::write(
+        &p,
+        format!(
+            "{{\n{CAMERA},\n\"materials\": {{\"w\": {{\"type\": \"lambert\", \"albedo\": {{\"texture\": \"wood.png\"}}}}}},\n\
+             \"shapes\": [{{\"type\": \"mesh\", \"file\": \"models/tri.obj\", \"material\": \"w\"}},\n\
+             {{\"type\": \"mesh\", \"file\": \"./models/../models/tri.obj\", \"material\": \"w\"}}]\n}}\n"
+        ),
+    )
+    .unwrap();
+    let scene = Scene::load(&p).unwrap_or_else(|e| panic!("{e}"));
+    let canon = |n: &str| d.join(n).canonicalize().unwrap();
+    assert_eq!(
+        scene.files,
+        vec![canon("models/tri.obj"), canon("wood.png")]
+    );
 }
 
 /// Loads `path` on a thread with a 256 KiB stack, so that recursion as deep as the input is long

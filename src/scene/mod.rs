@@ -1,12 +1,14 @@
-//! The scene model (world-space triangles, spheres, materials, lights, camera) and its loaders.
+//! The scene model (world-space triangles, spheres, materials, lights, camera); its loaders are
+//! in [`import`].
 //!
 //! Every loader (JSON, pbrt-v3, Mitsuba 0.5) feeds a [`SceneBuilder`]; [`SceneBuilder::build`]
 //! validates, builds the BVHs and the light-selection distribution.
 
-pub mod json;
-pub mod mesh;
-pub mod mitsuba;
-pub mod pbrt;
+pub mod import;
+
+use import::Resolver;
+pub(crate) use import::mesh;
+pub use import::{json, pbrt};
 
 use crate::accel::{Accel, Prim, SphereGeom};
 use crate::camera::Camera;
@@ -112,7 +114,8 @@ pub struct Scene {
     /// What the loader could not represent exactly (each reported once, with its location).
     pub warnings: Vec<String>,
     /// Every file besides the scene file that the loader read (meshes, textures, includes),
-    /// canonical paths inside the scene's folder: with the scene file, a complete bundle.
+    /// canonical paths inside the scene's folder, as its `Resolver` handed them out: with the
+    /// scene file, a complete bundle.
     pub files: Vec<PathBuf>,
     accel: Accel,
     /// BVH over the emitting primitives only, for summing light pdfs along a ray.
@@ -126,26 +129,10 @@ pub struct Scene {
 const EMITTER_BVH_THRESHOLD: usize = 8;
 
 impl Scene {
-    /// Loads a scene file, choosing the loader by extension.
+    /// Loads a scene file, choosing the loader by extension (and the pbrt dialect by contents);
+    /// see `import::load`.
     pub fn load(path: &Path) -> Result<Scene, SceneError> {
-        let ext = path
-            .extension()
-            .and_then(|e| e.to_str())
-            .unwrap_or("")
-            .to_ascii_lowercase();
-        let _recording = json::FileRecorder::start();
-        let mut scene = match ext.as_str() {
-            "json" => json::load(path),
-            "pbrt" => pbrt::load(path),
-            "xml" => mitsuba::load(path),
-            other => Err(SceneError::new(
-                path,
-                "file",
-                format!("unknown scene format '.{other}' (expected .json, .pbrt or .xml)"),
-            )),
-        }?;
-        scene.files = json::FileRecorder::take();
-        Ok(scene)
+        import::load(path)
     }
 
     #[inline]
@@ -267,7 +254,7 @@ impl Scene {
     }
 
     /// Solid-angle density with which light sampling (select by power, then sample the light)
-    /// produces direction `wi` from `p`: the sum over every light the ray meets (seed 004).
+    /// produces direction `wi` from `p`: the sum over every light the ray meets ("Demystifying multiple importance sampling").
     pub fn light_pdf_dir(&self, p: Vec3, wi: Vec3) -> f32 {
         let Some(sel) = &self.light_select else {
             return 0.0;
@@ -332,9 +319,10 @@ pub struct MeshData {
     pub indices: Vec<[u32; 3]>,
 }
 
-/// Collects geometry, materials and lights in world space; `build` makes the [`Scene`].
+/// Collects geometry, materials and lights in world space; `build` makes the [`Scene`], whose
+/// `files` are those the builder's `Resolver` handed out.
 pub struct SceneBuilder {
-    file: PathBuf,
+    resolver: Resolver,
     camera: Option<Camera>,
     materials: Vec<Material>,
     positions: Vec<Vec3>,
@@ -350,9 +338,10 @@ pub struct SceneBuilder {
 }
 
 impl SceneBuilder {
-    pub fn new(file: &Path) -> Self {
+    /// An empty builder for the scene whose files `resolver` resolves.
+    pub(crate) fn new(resolver: Resolver) -> Self {
         SceneBuilder {
-            file: file.to_path_buf(),
+            resolver,
             camera: None,
             materials: Vec::new(),
             positions: Vec::new(),
@@ -376,8 +365,14 @@ impl SceneBuilder {
         }
     }
 
+    /// The scene file (for messages).
     pub fn file(&self) -> &Path {
-        &self.file
+        self.resolver.scene_file()
+    }
+
+    /// The resolver through which every file the scene reads is reached.
+    pub(crate) fn resolver(&mut self) -> &mut Resolver {
+        &mut self.resolver
     }
 
     pub fn set_camera(&mut self, camera: Camera) {
@@ -394,7 +389,7 @@ impl SceneBuilder {
     }
 
     fn err(&self, location: &str, message: impl Into<String>) -> SceneError {
-        SceneError::new(&self.file, location, message)
+        SceneError::new(self.file(), location, message)
     }
 
     /// Adds a mesh transformed to world space. `location` names it in errors.
@@ -652,7 +647,7 @@ impl SceneBuilder {
             defaults: self.defaults,
             stats,
             warnings: self.warnings,
-            files: Vec::new(),
+            files: self.resolver.files(),
             accel,
             emitter_accel,
             area_lights,

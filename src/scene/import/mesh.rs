@@ -1,36 +1,56 @@
 //! Triangle mesh files: Wavefront OBJ (tobj) and PLY, ASCII or binary (ply-rs-bw).
+//!
+//! A scene's meshes are read from the [`SceneFile`]s its resolver hands out; [`load_obj`] reads
+//! a standalone file that belongs to no scene (benchmarks).
 
-use super::MeshData;
+use super::resolve::SceneFile;
 use crate::geometry::{Vec2, Vec3};
+use crate::scene::MeshData;
+use std::io::BufRead;
 use std::path::Path;
 
-/// Loads an OBJ or PLY file by extension. Polygons are triangulated as fans.
-pub fn load_mesh(path: &Path) -> Result<MeshData, String> {
-    let ext = path
+/// Loads an OBJ or PLY file of a scene by extension. Polygons are triangulated as fans.
+pub fn load_mesh(file: &SceneFile) -> Result<MeshData, String> {
+    let ext = file
+        .path()
         .extension()
         .and_then(|e| e.to_str())
         .unwrap_or("")
         .to_ascii_lowercase();
     match ext.as_str() {
-        "obj" => load_obj(path),
-        "ply" => load_ply(path),
+        "obj" => read_obj(file),
+        "ply" => read_ply(file),
         other => Err(format!(
             "unknown mesh format '.{other}' (expected .obj or .ply)"
         )),
     }
 }
 
+/// Loads a scene's OBJ file.
+pub fn read_obj(file: &SceneFile) -> Result<MeshData, String> {
+    obj_from(&mut file.open().map_err(|e| format!("cannot open: {e}"))?)
+}
+
+/// Loads a scene's PLY file.
+pub fn read_ply(file: &SceneFile) -> Result<MeshData, String> {
+    ply_from(&mut file.open().map_err(|e| format!("cannot open: {e}"))?)
+}
+
+/// Loads an OBJ file that is not part of a scene (a scene's files go through its resolver).
 pub fn load_obj(path: &Path) -> Result<MeshData, String> {
+    let file = std::fs::File::open(path).map_err(|e| format!("cannot open: {e}"))?;
+    obj_from(&mut std::io::BufReader::new(file))
+}
+
+fn obj_from(reader: &mut impl BufRead) -> Result<MeshData, String> {
     let opts = tobj::LoadOptions {
         triangulate: true,
         single_index: true,
         ignore_points: true,
         ignore_lines: true,
     };
-    let file = std::fs::File::open(path).map_err(|e| format!("cannot open: {e}"))?;
-    let mut reader = std::io::BufReader::new(file);
     // Materials come from the scene file, never from .mtl files.
-    let (models, _) = tobj::load_obj_buf(&mut reader, &opts, |_| Ok(Default::default()))
+    let (models, _) = tobj::load_obj_buf(reader, &opts, |_| Ok(Default::default()))
         .map_err(|e| format!("malformed OBJ: {e}"))?;
     let mut out = MeshData::default();
     let all_normals = models
@@ -73,13 +93,11 @@ pub fn load_obj(path: &Path) -> Result<MeshData, String> {
     Ok(out)
 }
 
-pub fn load_ply(path: &Path) -> Result<MeshData, String> {
+fn ply_from(reader: &mut impl BufRead) -> Result<MeshData, String> {
     use ply_rs_bw::parser::Parser;
     use ply_rs_bw::ply::{DefaultElement, Property};
-    let file = std::fs::File::open(path).map_err(|e| format!("cannot open: {e}"))?;
-    let mut reader = std::io::BufReader::new(file);
     let ply = Parser::<DefaultElement>::new()
-        .read_ply(&mut reader)
+        .read_ply(reader)
         .map_err(|e| format!("malformed PLY: {e}"))?;
     let verts = ply
         .payload

@@ -1,15 +1,17 @@
 //! The native scene format: JSON, documented in scenes/README.md.
 
-use super::{MeshData, SceneBuilder, SceneError};
+use super::common::Bitmaps;
+use super::resolve::Resolver;
+pub(crate) use super::resolve::scene_folder;
 use crate::camera::Camera;
 use crate::geometry::{Mat4, Rgb, Transform, Vec2, Vec3};
-use crate::material::{Bitmap, Material, MaterialKind, Texture};
+use crate::material::{Material, MaterialKind, Texture};
+use crate::scene::{MeshData, SceneBuilder, SceneError};
 use serde::Deserialize;
 use serde::de::DeserializeOwned;
 use serde_json::Value;
 use std::collections::{BTreeMap, HashMap};
-use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::path::Path;
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -284,74 +286,6 @@ struct PointLight {
     intensity: Color,
 }
 
-thread_local! {
-    static RESOLVED: std::cell::RefCell<Option<Vec<PathBuf>>> = const { std::cell::RefCell::new(None) };
-}
-
-/// Records every path `resolve_in_folder` hands out on this thread while it lives, so that
-/// `Scene::load` knows the files a scene consists of (the loaders resolve on the calling thread).
-pub(super) struct FileRecorder;
-
-impl FileRecorder {
-    pub(super) fn start() -> FileRecorder {
-        RESOLVED.with(|r| *r.borrow_mut() = Some(Vec::new()));
-        FileRecorder
-    }
-
-    /// The recorded paths, sorted and without repeats.
-    pub(super) fn take() -> Vec<PathBuf> {
-        let mut v = RESOLVED.with(|r| r.borrow_mut().take()).unwrap_or_default();
-        v.sort();
-        v.dedup();
-        v
-    }
-}
-
-impl Drop for FileRecorder {
-    fn drop(&mut self) {
-        RESOLVED.with(|r| *r.borrow_mut() = None);
-    }
-}
-
-/// The canonical folder of a scene file (the current folder for a bare file name).
-pub fn scene_folder(scene_file: &Path) -> std::io::Result<PathBuf> {
-    match scene_file.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.canonicalize(),
-        _ => Path::new(".").canonicalize(),
-    }
-}
-
-/// Resolves `rel` against the scene's folder, refusing absolute paths and any path that leaves
-/// the folder (after following links), and missing files.
-pub fn resolve_in_folder(
-    scene_file: &Path,
-    rel: &str,
-    location: &str,
-) -> Result<PathBuf, SceneError> {
-    let err = |m: String| SceneError::new(scene_file, location, m);
-    let relp = Path::new(rel);
-    if relp.is_absolute() {
-        return Err(err(format!(
-            "'{rel}' is an absolute path; paths must be relative to the scene's folder"
-        )));
-    }
-    let base = scene_folder(scene_file)
-        .map_err(|e| err(format!("cannot resolve the scene's folder: {e}")))?;
-    let joined = base.join(relp);
-    let canon = joined
-        .canonicalize()
-        .map_err(|e| err(format!("'{rel}' not found ({e})")))?;
-    if !canon.starts_with(&base) {
-        return Err(err(format!("'{rel}' leaves the scene's folder; refused")));
-    }
-    RESOLVED.with(|r| {
-        if let Some(v) = r.borrow_mut().as_mut() {
-            v.push(canon.clone());
-        }
-    });
-    Ok(canon)
-}
-
 fn build_transform(ops: &[TransformOp], file: &Path, loc: &str) -> Result<Transform, SceneError> {
     let mut t = Transform::IDENTITY;
     for (i, op) in ops.iter().enumerate() {
@@ -385,11 +319,16 @@ fn build_transform(ops: &[TransformOp], file: &Path, loc: &str) -> Result<Transf
 
 struct Loader<'a> {
     file: &'a Path,
-    textures: HashMap<PathBuf, Arc<Bitmap>>,
+    textures: Bitmaps,
 }
 
 impl Loader<'_> {
-    fn texture(&mut self, v: &ColorOrTexture, loc: &str) -> Result<Texture, SceneError> {
+    fn texture(
+        &mut self,
+        resolver: &mut Resolver,
+        v: &ColorOrTexture,
+        loc: &str,
+    ) -> Result<Texture, SceneError> {
         match v {
             ColorOrTexture::Color(c) => {
                 let c = c.rgb();
@@ -397,17 +336,12 @@ impl Loader<'_> {
                 Ok(Texture::Constant(c))
             }
             ColorOrTexture::Texture { texture, scale } => {
-                let path = resolve_in_folder(self.file, texture, &format!("{loc}.texture"))?;
-                let image = match self.textures.get(&path) {
-                    Some(b) => b.clone(),
-                    None => {
-                        let b = Arc::new(Bitmap::load(&path).map_err(|e| {
-                            SceneError::new(self.file, format!("{loc}.texture"), e)
-                        })?);
-                        self.textures.insert(path, b.clone());
-                        b
-                    }
-                };
+                let at = format!("{loc}.texture");
+                let f = resolver.resolve(texture, &at)?;
+                let image = self
+                    .textures
+                    .load(&f, true)
+                    .map_err(|e| SceneError::new(self.file, at, e))?;
                 let scale = scale.map(Color::rgb).unwrap_or(Rgb::ONE);
                 check_color(self.file, &format!("{loc}.scale"), scale)?;
                 Ok(Texture::Bitmap { image, scale })
@@ -436,7 +370,12 @@ fn check_positive(file: &Path, loc: &str, v: f32) -> Result<(), SceneError> {
     }
 }
 
-fn material(loader: &mut Loader, name: &str, desc: &MaterialDesc) -> Result<Material, SceneError> {
+fn material(
+    loader: &mut Loader,
+    resolver: &mut Resolver,
+    name: &str,
+    desc: &MaterialDesc,
+) -> Result<Material, SceneError> {
     let file = loader.file;
     let loc = format!("materials.{name}");
     let at = |f: &str| format!("{loc}.{f}");
@@ -445,7 +384,7 @@ fn material(loader: &mut Loader, name: &str, desc: &MaterialDesc) -> Result<Mate
             albedo, two_sided, ..
         }) => (
             MaterialKind::Lambert {
-                albedo: loader.texture(albedo, &at("albedo"))?,
+                albedo: loader.texture(resolver, albedo, &at("albedo"))?,
             },
             *two_sided,
         ),
@@ -558,7 +497,7 @@ fn material(loader: &mut Loader, name: &str, desc: &MaterialDesc) -> Result<Mate
             check_color(file, &at("specular"), specular.rgb())?;
             (
                 MaterialKind::Plastic {
-                    diffuse: loader.texture(diffuse, &at("diffuse"))?,
+                    diffuse: loader.texture(resolver, diffuse, &at("diffuse"))?,
                     specular: specular.rgb(),
                     ior: *ior,
                     alpha: *alpha,
@@ -639,8 +578,15 @@ fn v3(a: [f32; 3]) -> Vec3 {
     Vec3::from_array(a)
 }
 
-/// Parses JSON scene text; `file` names the source in errors and anchors relative paths.
+/// Parses JSON scene text; `file` names the source in errors and anchors relative paths (the
+/// builder's resolver records the files the text names).
 pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
+    parse_with(text, Resolver::new(file))
+}
+
+/// Parses JSON scene text, reading the files it names through `resolver`.
+pub(crate) fn parse_with(text: &str, resolver: Resolver) -> Result<SceneBuilder, SceneError> {
+    let file = &resolver.scene_file().to_path_buf();
     let de = &mut serde_json::Deserializer::from_str(text);
     let desc: SceneFile = serde_path_to_error::deserialize(de).map_err(|e| {
         let path = e.path().to_string();
@@ -652,7 +598,7 @@ pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
         };
         SceneError::new(file, location, inner.to_string())
     })?;
-    let mut b = SceneBuilder::new(file);
+    let mut b = SceneBuilder::new(resolver);
     b.defaults.spp = desc.render.spp;
     b.defaults.max_depth = desc.render.max_depth;
     if desc.render.spp == Some(0) {
@@ -673,12 +619,12 @@ pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
 
     let mut loader = Loader {
         file,
-        textures: HashMap::new(),
+        textures: Bitmaps::default(),
     };
     let mut ids: HashMap<&str, u32> = HashMap::new();
     for (name, v) in &desc.materials {
         let m = material_desc(file, &format!("materials.{name}"), v)?;
-        let mat = material(&mut loader, name, &m)?;
+        let mat = material(&mut loader, b.resolver(), name, &m)?;
         ids.insert(name.as_str(), b.add_material(mat));
     }
     let lookup = |name: &str, loc: &str| -> Result<u32, SceneError> {
@@ -711,17 +657,14 @@ pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
                 ..
             }) => {
                 let m = lookup(material, &loc)?;
-                let path = resolve_in_folder(file, mesh_file, &format!("{loc}.file"))?;
-                let mesh = super::mesh::load_mesh(&path).map_err(|msg| {
-                    SceneError::new(
-                        file,
-                        format!("{loc}.file"),
-                        format!("{}: {msg}", path.display()),
-                    )
+                let f = b.resolver().resolve(mesh_file, &format!("{loc}.file"))?;
+                let path = f.path().display();
+                let mesh = super::mesh::load_mesh(&f).map_err(|msg| {
+                    SceneError::new(file, format!("{loc}.file"), format!("{path}: {msg}"))
                 })?;
                 let t = build_transform(transform, file, &loc)?;
                 let e = emission(e, &loc)?;
-                b.add_mesh(&mesh, &t, m, e, &format!("{loc} ({})", path.display()))?;
+                b.add_mesh(&mesh, &t, m, e, &format!("{loc} ({path})"))?;
             }
             ShapeDesc::Triangles(TrianglesShape {
                 positions,
@@ -809,10 +752,4 @@ pub fn parse(text: &str, file: &Path) -> Result<SceneBuilder, SceneError> {
         }
     }
     Ok(b)
-}
-
-pub fn load(path: &Path) -> Result<super::Scene, SceneError> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| SceneError::new(path, "file", format!("cannot read: {e}")))?;
-    parse(&text, path)?.build()
 }

@@ -1,0 +1,194 @@
+//! The XML tree of a Mitsuba file, with the line of every element, and `$name` substitution
+//! from `<default>` elements.
+
+use super::R;
+use crate::scene::SceneError;
+use quick_xml::XmlVersion;
+use quick_xml::events::{BytesStart, Event};
+use std::collections::HashMap;
+use std::path::Path;
+
+/// An element: tag, attributes in order, children, and the line its tag starts on.
+#[derive(Debug)]
+pub(super) struct Node {
+    pub(super) tag: String,
+    pub(super) attrs: Vec<(String, String)>,
+    pub(super) children: Vec<Node>,
+    pub(super) line: u32,
+}
+
+impl Node {
+    /// The value of attribute `k`.
+    pub(super) fn attr(&self, k: &str) -> Option<&str> {
+        self.attrs
+            .iter()
+            .find(|(a, _)| a == k)
+            .map(|(_, v)| v.as_str())
+    }
+
+    /// `<tag type="x">` for messages.
+    pub(super) fn label(&self) -> String {
+        match (self.attr("type"), self.attr("name")) {
+            (Some(t), _) => format!("<{} type=\"{t}\">", self.tag),
+            (None, Some(n)) => format!("<{} name=\"{n}\">", self.tag),
+            _ => format!("<{}>", self.tag),
+        }
+    }
+}
+
+/// Line starts of a text, to turn byte positions into line numbers.
+struct Lines(Vec<usize>);
+
+impl Lines {
+    fn new(text: &str) -> Self {
+        Lines(
+            text.bytes()
+                .enumerate()
+                .filter(|(_, b)| *b == b'\n')
+                .map(|(i, _)| i)
+                .collect(),
+        )
+    }
+
+    fn line(&self, pos: usize) -> u32 {
+        1 + self.0.partition_point(|&n| n < pos) as u32
+    }
+}
+
+/// Parses XML text into its tree of elements; errors name the line.
+pub(super) fn parse_xml(text: &str, file: &Path) -> R<Node> {
+    let lines = Lines::new(text);
+    let mut reader = quick_xml::Reader::from_str(text);
+    reader.config_mut().trim_text(true);
+    let err = |pos: usize, m: String| SceneError::new(file, format!("line {}", lines.line(pos)), m);
+    let mut stack: Vec<Node> = Vec::new();
+    let mut root: Option<Node> = None;
+    let element = |e: &BytesStart, end: usize| -> R<Node> {
+        // The tag starts at the last '<' before the end of the tag ('<' cannot occur inside
+        // attribute values of well-formed XML).
+        let start = text[..end].rfind('<').unwrap_or(0);
+        let tag = e.name().as_ref().to_string();
+        let mut attrs = Vec::new();
+        for a in e.attributes() {
+            let a = a.map_err(|x| err(start, format!("malformed attribute: {x}")))?;
+            let k = a.key.as_ref().to_string();
+            let v = a
+                .normalized_value(XmlVersion::Implicit1_0)
+                .map_err(|x| err(start, format!("malformed attribute value: {x}")))?
+                .into_owned();
+            attrs.push((k, v));
+        }
+        Ok(Node {
+            tag,
+            attrs,
+            children: Vec::new(),
+            line: lines.line(start),
+        })
+    };
+    loop {
+        let ev = reader.read_event();
+        let pos = reader.buffer_position() as usize;
+        match ev {
+            Err(e) => {
+                return Err(err(
+                    reader.error_position() as usize,
+                    format!("malformed XML: {e}"),
+                ));
+            }
+            Ok(Event::Eof) => break,
+            Ok(Event::Start(e)) => {
+                let n = element(&e, pos)?;
+                stack.push(n);
+            }
+            Ok(Event::Empty(e)) => {
+                let n = element(&e, pos)?;
+                match stack.last_mut() {
+                    Some(p) => p.children.push(n),
+                    None if root.is_none() => root = Some(n),
+                    None => return Err(err(pos, "more than one root element".into())),
+                }
+            }
+            Ok(Event::End(_)) => {
+                let Some(n) = stack.pop() else {
+                    return Err(err(pos, "unexpected closing tag".into()));
+                };
+                match stack.last_mut() {
+                    Some(p) => p.children.push(n),
+                    None if root.is_none() => root = Some(n),
+                    None => return Err(err(pos, "more than one root element".into())),
+                }
+            }
+            Ok(Event::Text(t)) => {
+                if !t.as_ref().chars().all(char::is_whitespace) {
+                    return Err(err(pos, "unexpected text between elements".into()));
+                }
+            }
+            Ok(Event::CData(_) | Event::GeneralRef(_)) => {
+                return Err(err(pos, "unexpected text between elements".into()));
+            }
+            Ok(Event::Comment(_) | Event::Decl(_) | Event::PI(_) | Event::DocType(_)) => {}
+        }
+    }
+    if let Some(open) = stack.last() {
+        return Err(SceneError::new(
+            file,
+            format!("line {}", open.line),
+            format!("<{}> is never closed", open.tag),
+        ));
+    }
+    root.ok_or_else(|| SceneError::new(file, "line 1", "no XML element in the file"))
+}
+
+/// Replaces `$name` in attribute values with `<default name= value=>` values.
+pub(super) fn substitute(
+    node: &mut Node,
+    defaults: &HashMap<String, String>,
+    file: &Path,
+) -> R<()> {
+    for (_, v) in &mut node.attrs {
+        if v.contains('$') {
+            let mut out = String::new();
+            let mut rest = v.as_str();
+            while let Some(i) = rest.find('$') {
+                out.push_str(&rest[..i]);
+                let after = &rest[i + 1..];
+                let n = after
+                    .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+                    .unwrap_or(after.len());
+                let key = &after[..n];
+                let val = defaults.get(key).ok_or_else(|| {
+                    SceneError::new(
+                        file,
+                        format!("line {}", node.line),
+                        format!("undefined parameter ${key}"),
+                    )
+                })?;
+                out.push_str(val);
+                rest = &after[n..];
+            }
+            out.push_str(rest);
+            *v = out;
+        }
+    }
+    for c in &mut node.children {
+        substitute(c, defaults, file)?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn xml_tree_keeps_lines() {
+        let t = "<?xml version=\"1.0\"?>\n<scene version=\"0.5.0\">\n  <shape type=\"cube\"\n     id=\"a\">\n    <float name=\"x\" value=\"1\"/>\n  </shape>\n</scene>\n";
+        let root = parse_xml(t, Path::new("s.xml")).unwrap();
+        assert_eq!(root.tag, "scene");
+        assert_eq!(root.line, 2);
+        assert_eq!(root.children[0].line, 3);
+        assert_eq!(root.children[0].children[0].line, 5);
+        let e = parse_xml("<scene>\n<shape>\n</scene>", Path::new("s.xml")).unwrap_err();
+        assert!(e.location.starts_with("line "), "{e}");
+    }
+}
