@@ -157,14 +157,14 @@ fn balance_from_the_optimal_accumulators_equals_balance_weighted_bdpt() {
         .render_in_process(&scene, &|_| {})
         .image();
     let f = &out.film;
-    let o = f.optimal.as_ref().expect("optimal systems");
+    let o = f.acc.optimal.as_ref().expect("optimal systems");
     let mut worst: f64 = 0.0;
     for i in 0..bal.pixels.len() {
-        let n = f.sums.count[i] as f64;
+        let n = f.acc.sums.count[i] as f64;
         for c in 0..3 {
-            let mut v = (f.sums.sum[i][c] + f.splat[i][c]) / n;
+            let mut v = (f.acc.sums.sum[i][c] + f.acc.splat[i][c]) / n;
             for d in 1..=3 {
-                v += o.balance(i, d, f.sums.count[i])[c];
+                v += o.balance(i, d, f.acc.sums.count[i])[c];
             }
             let b = bal.pixels[i][c] as f64;
             worst = worst.max((v - b).abs() / b.abs().max(1e-3));
@@ -333,4 +333,83 @@ fn camera_techniques_survive_a_light_tracing_count_1e13_times_larger() {
     );
     assert!((f[1] - 2.0 * expected).abs() <= 1e-9 * expected.abs());
     assert_eq!(f[2], 0.0);
+}
+
+/// A frame merged tile by tile — each tile's accumulators receiving, pass by pass, its own
+/// task's sums and what every task of the pass routed to it, in task order — has the bits of the
+/// frame merged task by task, whatever order the tiles are merged in. The coordinator merges
+/// this way, one tile at a time.
+#[test]
+fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
+    use omis::film::{FilmTile, TileGrid};
+    let scene = load("cornell-box-small-light.json", 24, 20);
+    let mut s = optimal(4, 5, 3);
+    s.strategies = true;
+    s.depth_layers = true;
+    let layout = s.film_layout();
+    let grid = TileGrid::new(24, 20, 8);
+    let tiles = grid.tiles();
+    assert_eq!(
+        tiles,
+        make_tiles(24, 20, 8),
+        "the grid is the schedule's tiling"
+    );
+    let passes = [0..2, 2..4];
+    let results: Vec<Vec<TileFilm>> = passes
+        .iter()
+        .map(|r| {
+            tiles
+                .iter()
+                .map(|t| integrator::render_tile(&scene, &s, *t, r.clone()))
+                .collect()
+        })
+        .collect();
+    // Task order, into one frame.
+    let mut film = Film::new(24, 20, &layout);
+    for pass in &results {
+        for r in pass {
+            film.merge_task(r);
+        }
+    }
+    // Tile by tile, tiles in a scrambled order.
+    let mut acc: Vec<FilmTile> = tiles.iter().map(|t| FilmTile::new(*t, &layout)).collect();
+    for pass in &results {
+        let routed: Vec<_> = pass.iter().map(|r| r.route(&grid)).collect();
+        for k in 0..tiles.len() {
+            let dest = (k * 7 + 3) % tiles.len();
+            for (u, r) in pass.iter().enumerate() {
+                if u == dest {
+                    acc[dest].merge_own(r);
+                }
+                if let Some((_, part)) = routed[u].iter().find(|(d, _)| *d == dest) {
+                    acc[dest].merge_routed(part, 24);
+                }
+            }
+        }
+    }
+    let light_paths: u64 = acc.iter().map(|t| t.samples()).sum();
+    assert_eq!(light_paths, film.light_paths());
+    let mut beauty = Image::new(24, 20);
+    let mut depth2 = Image::new(24, 20);
+    let mut layer5 = Image::new(24, 20);
+    for t in &acc {
+        let (x, y) = (t.tile.x0 as usize, t.tile.y0 as usize);
+        beauty.blit(&t.image(light_paths, layout.kappa), x, y);
+        depth2.blit(&t.depth_image(2, light_paths, layout.kappa), x, y);
+        layer5.blit(&t.strategy_image(5), x, y);
+    }
+    assert!(film.image() == beauty, "beauty");
+    assert!(film.depth_images()[2] == depth2, "depth 2");
+    assert!(film.strategy_images()[5].1 == layer5, "strategy layer 5");
+    // Routing keeps everything and sends each record to the tile that holds its pixel.
+    for r in &results[1] {
+        let routed = r.route(&grid);
+        let splats: usize = routed.iter().map(|(_, p)| p.splats.len()).sum();
+        let records: usize = routed.iter().map(|(_, p)| p.records.len()).sum();
+        assert_eq!((splats, records), (r.splats.len(), r.records.len()));
+        for (d, part) in &routed {
+            assert!(part.splats.iter().all(|x| grid.tile_of(x.pixel) == *d));
+            assert!(part.records.pixels.iter().all(|&p| grid.tile_of(p) == *d));
+        }
+    }
 }

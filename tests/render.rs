@@ -18,7 +18,10 @@ fn scene_from_json(text: &str) -> Scene {
 }
 
 fn render(scene: &Scene, settings: &RenderSettings, threads: usize) -> PixelSums {
-    common::render_on(scene, settings, 8, threads).film.sums
+    common::render_on(scene, settings, 8, threads)
+        .film
+        .sums()
+        .clone()
 }
 
 /// Mean and standard error of the mean over a pixel region (pixels are independent estimates).

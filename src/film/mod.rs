@@ -6,6 +6,7 @@
 //! knows nothing of how the samples were made.
 
 pub mod exr_io;
+mod film_tile;
 mod frame;
 pub mod layers;
 pub mod metrics;
@@ -15,6 +16,7 @@ mod tile;
 mod tile_film;
 pub mod wire;
 
+pub use film_tile::{FilmTile, Routed, TileGrid};
 pub use frame::Film;
 pub use layers::{
     FilmLayout, STRATEGY_DEPTH, STRATEGY_LAYERS, strategy_layer, strategy_layer_name,

@@ -37,7 +37,7 @@ impl RayStats {
 }
 
 /// A light-tracing contribution to any pixel of the frame.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Splat {
     /// Pixel index y * width + x in the frame.
     pub pixel: u32,

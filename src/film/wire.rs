@@ -401,18 +401,18 @@ impl Checkpoint {
         w.u32(self.passes);
         w.stats(&self.stats);
         for i in 0..n {
-            w.u32(f.sums.count[i]);
-            for v in f.sums.sum[i]
+            w.u32(f.acc.sums.count[i]);
+            for v in f.acc.sums.sum[i]
                 .iter()
-                .chain(&f.sums.sum_sq[i])
-                .chain(&f.splat[i])
+                .chain(&f.acc.sums.sum_sq[i])
+                .chain(&f.acc.splat[i])
             {
                 w.f64(*v);
             }
         }
-        w.rgb_list(&f.layers);
-        w.rgb_list(&f.depths);
-        w.optimal(f.optimal.as_ref());
+        w.rgb_list(&f.acc.layers);
+        w.rgb_list(&f.acc.depths);
+        w.optimal(f.acc.optimal.as_ref());
         w.finish()
     }
 
@@ -448,20 +448,20 @@ impl Checkpoint {
             return Err(WireError("checkpoint pixels truncated".into()));
         }
         for i in 0..n {
-            frame.sums.count[i] = r.u32()?;
+            frame.acc.sums.count[i] = r.u32()?;
             for c in 0..3 {
-                frame.sums.sum[i][c] = r.f64()?;
+                frame.acc.sums.sum[i][c] = r.f64()?;
             }
             for c in 0..3 {
-                frame.sums.sum_sq[i][c] = r.f64()?;
+                frame.acc.sums.sum_sq[i][c] = r.f64()?;
             }
             for c in 0..3 {
-                frame.splat[i][c] = r.f64()?;
+                frame.acc.splat[i][c] = r.f64()?;
             }
         }
         for (list, what) in [
-            (&mut frame.layers, "strategy layers"),
-            (&mut frame.depths, "depth layers"),
+            (&mut frame.acc.layers, "strategy layers"),
+            (&mut frame.acc.depths, "depth layers"),
         ] {
             let m = r.count(24, what)?;
             if m != list.len() {
@@ -475,7 +475,7 @@ impl Checkpoint {
             }
         }
         let d = r.u32()?;
-        match frame.optimal.as_mut() {
+        match frame.acc.optimal.as_mut() {
             None if d == 0 => {}
             Some(o) if o.layout.d_opt == d => r.optimal_into(o)?,
             _ => {

@@ -7,7 +7,7 @@
 //! `omis bench`, the tests and the coordinator all take their tasks from here.
 
 use super::Resolved;
-use crate::film::{Film, Image, PixelSums, RayStats, Tile, TileFilm};
+use crate::film::{Film, Image, PixelSums, RayStats, Tile, TileFilm, TileGrid};
 use crate::integrator::{self, RenderSettings};
 use crate::scene::Scene;
 use rayon::prelude::*;
@@ -16,23 +16,7 @@ use std::time::Instant;
 
 /// Row-major tiles of at most `size` x `size` pixels covering the frame.
 pub fn make_tiles(width: u32, height: u32, size: u32) -> Vec<Tile> {
-    let size = size.max(1);
-    let mut tiles = Vec::new();
-    let mut y = 0;
-    while y < height {
-        let mut x = 0;
-        while x < width {
-            tiles.push(Tile {
-                x0: x,
-                y0: y,
-                x1: (x + size).min(width),
-                y1: (y + size).min(height),
-            });
-            x += size;
-        }
-        y += size;
-    }
-    tiles
+    TileGrid::new(width, height, size).tiles()
 }
 
 /// The result of rendering a job in this process.
@@ -50,7 +34,7 @@ pub struct RenderOutput {
 impl RenderOutput {
     /// Camera-side sums (the whole estimate for the path tracer).
     pub fn sums(&self) -> &PixelSums {
-        &self.film.sums
+        self.film.sums()
     }
 
     /// The beauty image.
@@ -104,7 +88,12 @@ impl Resolved {
 
     /// The tiles of the frame, in the order tasks are created and merged.
     pub fn tiles(&self) -> Vec<Tile> {
-        make_tiles(self.width, self.height, self.tile_size)
+        self.grid().tiles()
+    }
+
+    /// The tiling of the frame.
+    pub fn grid(&self) -> TileGrid {
+        TileGrid::new(self.width, self.height, self.tile_size)
     }
 
     /// Sample range of pass `p`, or None when a fixed-spp job has no such pass.
