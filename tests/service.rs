@@ -124,6 +124,7 @@ fn settings(spp: u32) -> Value {
         "resolution": [40, 32],
         "spp": spp,
         "pass_size": 4,
+        "max_pass_size": 4,
         "tile_size": 16,
         "integrator": "bdpt",
         "mis": "optimal",
@@ -903,7 +904,7 @@ fn a_time_budget_job_renders_passes_until_its_time_is_up() {
         &format!("{url}/v1/jobs"),
         &json!({
             "scene": { "library": "cornell-box" },
-            "settings": { "resolution": [40, 32], "time_budget_s": 1.0, "pass_size": 4 },
+            "settings": { "resolution": [40, 32], "time_budget_s": 1.0, "pass_size": 4, "max_pass_size": 4 },
         }),
     );
     assert_eq!(s, 201, "{v}");

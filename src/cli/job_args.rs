@@ -52,9 +52,13 @@ pub struct JobArgs {
     /// Tile edge in pixels.
     #[arg(long, default_value_t = job::DEFAULT_TILE_SIZE)]
     pub tile_size: u32,
-    /// Samples per pixel of one pass (one task = one tile for one pass).
+    /// Samples per pixel of the first pass (one task = one tile for one pass); each pass after
+    /// it is twice as long, up to --max-pass-size.
     #[arg(long, default_value_t = job::DEFAULT_PASS_SIZE)]
     pub pass_size: u32,
+    /// The longest pass in samples per pixel (= --pass-size for passes of constant length).
+    #[arg(long, default_value_t = job::DEFAULT_MAX_PASS_SIZE)]
+    pub max_pass_size: u32,
     /// eps of relMSE = mean (I - R)^2 / (R^2 + eps).
     #[arg(long, default_value_t = 0.01)]
     pub eps: f64,
@@ -87,6 +91,7 @@ impl JobArgs {
             depth_layers: self.depth_layers,
             tile_size: self.tile_size,
             pass_size: self.pass_size,
+            max_pass_size: self.max_pass_size,
             eps: self.eps,
         };
         s.validate(&job::Limits::default()).map_err(flag_error)?;

@@ -63,14 +63,20 @@ pub struct JobSettings {
     pub depth_layers: bool,
     /// Tile edge in pixels.
     pub tile_size: u32,
-    /// Samples per pixel of one pass (a task renders one tile for one pass).
+    /// Samples per pixel of the first pass (a task renders one tile for one pass). Each pass
+    /// after it is twice as long as the one before, up to `max_pass_size`.
     pub pass_size: u32,
+    /// The longest pass, in samples per pixel (at least `pass_size`; equal: constant passes).
+    pub max_pass_size: u32,
     /// eps of relMSE = mean (I - R)^2 / (R^2 + eps).
     pub eps: f64,
 }
 
-/// Default samples per pass: a preview every 16 spp, and bounded light-tracing records per task.
+/// Default samples of the first pass: the first preview after 16 spp.
 pub const DEFAULT_PASS_SIZE: u32 = 16;
+/// Default longest pass: passes double from `DEFAULT_PASS_SIZE` up to this, so that a job's
+/// merges grow as O(log spp) rather than O(spp), and light-tracing records per task stay bounded.
+pub const DEFAULT_MAX_PASS_SIZE: u32 = 256;
 /// Default tile edge.
 pub const DEFAULT_TILE_SIZE: u32 = 32;
 
@@ -93,6 +99,7 @@ impl Default for JobSettings {
             depth_layers: false,
             tile_size: DEFAULT_TILE_SIZE,
             pass_size: DEFAULT_PASS_SIZE,
+            max_pass_size: DEFAULT_MAX_PASS_SIZE,
             eps: 0.01,
         }
     }
@@ -130,7 +137,11 @@ pub struct Resolved {
     pub spp: Option<u32>,
     pub time_budget_s: Option<f64>,
     pub tile_size: u32,
+    /// Samples of the first pass.
     pub pass_size: u32,
+    /// Passes double up to this many samples; None: every pass has `pass_size` samples.
+    #[serde(default)]
+    pub max_pass_size: Option<u32>,
     pub eps: f64,
 }
 
@@ -239,6 +250,12 @@ impl JobSettings {
         if self.pass_size == 0 || self.pass_size > 1 << 16 {
             return Err(FieldError::new("pass_size", "must be within 1 ..= 65536"));
         }
+        if self.max_pass_size == 0 || self.max_pass_size > 1 << 16 {
+            return Err(FieldError::new(
+                "max_pass_size",
+                "must be within 1 ..= 65536",
+            ));
+        }
         if !(self.eps > 0.0 && self.eps.is_finite()) {
             return Err(FieldError::new("eps", "must be a finite number > 0"));
         }
@@ -311,6 +328,7 @@ impl JobSettings {
             time_budget_s: self.time_budget_s,
             tile_size: self.tile_size,
             pass_size: self.pass_size,
+            max_pass_size: Some(self.max_pass_size.max(self.pass_size)),
             eps: self.eps,
         })
     }
@@ -330,6 +348,7 @@ mod tests {
             time_budget_s: None,
             tile_size: 2,
             pass_size: 16,
+            max_pass_size: None,
             eps: 0.01,
         };
         assert_eq!(r.total_passes(), Some(3));
@@ -339,6 +358,39 @@ mod tests {
         r.spp = None;
         assert_eq!(r.pass_range(7), Some(112..128));
         assert_eq!(r.total_passes(), None);
+        // Growing passes: 16, 32, 64, 64, ... (a cap of 100 rounds down to 16 x 4).
+        r.max_pass_size = Some(100);
+        assert_eq!(
+            (0..5).map(|p| r.pass_range(p)).collect::<Vec<_>>(),
+            [
+                Some(0..16),
+                Some(16..48),
+                Some(48..112),
+                Some(112..176),
+                Some(176..240)
+            ]
+        );
+        // Every fixed spp is covered exactly once, by total_passes passes.
+        for max in [None, Some(16), Some(17), Some(256), Some(65536)] {
+            r.max_pass_size = max;
+            for spp in [1, 15, 16, 17, 47, 48, 49, 1000, 4096, 1 << 20] {
+                r.spp = Some(spp);
+                let n = r.total_passes().expect("fixed spp");
+                let mut next = 0;
+                for p in 0..n {
+                    let range = r.pass_range(p).expect("a pass below total_passes");
+                    assert_eq!(range.start, next, "{max:?} {spp} pass {p}");
+                    assert!(range.end > range.start);
+                    next = range.end;
+                }
+                assert_eq!(next, spp, "{max:?} {spp}");
+                assert_eq!(r.pass_range(n), None, "{max:?} {spp}");
+            }
+        }
+        // Ranges past u32::MAX samples do not exist.
+        r.spp = None;
+        r.max_pass_size = Some(65536);
+        assert_eq!(r.pass_range(u32::MAX), None);
     }
 
     #[test]

@@ -61,6 +61,7 @@ impl Resolved {
             time_budget_s: None,
             tile_size,
             pass_size,
+            max_pass_size: None,
             eps: 0.01,
         }
     }
@@ -96,19 +97,49 @@ impl Resolved {
         TileGrid::new(self.width, self.height, self.tile_size)
     }
 
-    /// Sample range of pass `p`, or None when a fixed-spp job has no such pass.
+    /// Samples of pass `p`: `pass_size` doubled once per pass, up to the largest
+    /// `pass_size` x 2^k that is at most `max_pass_size` (so every pass is a whole number of
+    /// first passes).
+    pub fn pass_len(&self, p: u32) -> u32 {
+        let base = self.pass_size.max(1);
+        let max = self.max_pass_size.unwrap_or(base).max(base);
+        let steps = (max / base).ilog2();
+        base << p.min(steps)
+    }
+
+    /// Sample range of pass `p`, or None when a fixed-spp job has no such pass (or the range
+    /// would pass u32::MAX samples).
     pub fn pass_range(&self, p: u32) -> Option<Range<u32>> {
-        let s0 = p.checked_mul(self.pass_size)?;
+        let base = self.pass_size.max(1) as u64;
+        let steps = (self.pass_len(u32::MAX) as u64 / base).ilog2();
+        // Samples before pass p: base (2^min(p, steps) - 1) for the doubling passes, then the
+        // full-length passes.
+        let doubling = p.min(steps);
+        let s0 = base * ((1u64 << doubling) - 1) + (p - doubling) as u64 * (base << steps);
+        let s1 = s0 + self.pass_len(p) as u64;
+        let (s0, s1) = (u32::try_from(s0).ok()?, u32::try_from(s1).ok()?);
         match self.spp {
             Some(spp) if s0 >= spp => None,
-            Some(spp) => Some(s0..(s0 + self.pass_size).min(spp)),
-            None => Some(s0..s0.checked_add(self.pass_size)?),
+            Some(spp) => Some(s0..s1.min(spp)),
+            None => Some(s0..s1),
         }
     }
 
     /// Number of passes of a fixed-spp job.
     pub fn total_passes(&self) -> Option<u32> {
-        self.spp.map(|s| s.div_ceil(self.pass_size))
+        let spp = self.spp?;
+        let full = self.pass_len(u32::MAX);
+        let mut p = 0;
+        // The doubling passes (at most 16 of them), then whole full-length passes.
+        while self.pass_len(p) < full {
+            match self.pass_range(p) {
+                Some(r) if r.end < spp => p += 1,
+                Some(_) => return Some(p + 1),
+                None => return Some(p),
+            }
+        }
+        let start = self.pass_range(p).map_or(spp, |r| r.start);
+        Some(p + (spp.saturating_sub(start)).div_ceil(full))
     }
 
     /// Number of tasks of a fixed-spp job (for progress bars).
