@@ -27,7 +27,7 @@ function h(tag, attrs, ...kids) {
     else if (k === 'class' && !(el instanceof SVGElement)) el.className = v;
     else el.setAttribute(k, v === true ? '' : String(v));
   }
-  for (const kid of kids.flat()) {
+  for (const kid of kids.flat(Infinity)) {
     if (kid === null || kid === undefined || kid === false) continue;
     el.append(kid instanceof Node ? kid : document.createTextNode(String(kid)));
   }
@@ -448,7 +448,7 @@ async function jobView(signal, id) {
       const [x0, y0, x1, y1] = tileRect(i, st.width, st.height, size);
       const [X, Y, Wd, Ht] = [x0 * sx, y0 * sy, (x1 - x0) * sx, (y1 - y0) * sy];
       if (done.has(i)) {
-        g.fillStyle = 'rgba(120, 220, 150, 0.28)';
+        g.fillStyle = 'rgba(120, 220, 150, 0.16)';
         g.fillRect(X, Y, Wd, Ht);
         g.strokeStyle = 'rgba(120, 230, 160, 0.95)';
       } else {
