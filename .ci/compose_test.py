@@ -12,9 +12,10 @@ without a registry, and the render service keeps its promises under faults.
      --in-process` (`omis diff --layers --eps 0`).
   3. Killed worker: `docker kill` of a worker holding a task mid-job; the job still completes,
      bit-identical.
-  4. Restarted coordinator: `compose restart coordinator` mid-job; it resumes on its volume and
-     turns healthy again. Drain: `compose stop worker` mid-job; every worker logs that it
-     finished and uploaded its tasks and exits 0; restarted, they finish the job, bit-identical.
+  4. Restarted coordinator: `compose restart coordinator` mid-job; it resumes on its volume (no
+     merged pass lost) and turns healthy again. Drain: `compose stop worker` mid-job; every
+     worker logs that it finished and uploaded the tasks in hand and exits 0, and holds no lease;
+     started again, they finish the job, bit-identical.
 
 Every compose call uses a project name unique to the run; `down -v` and the removal of the
 run's image happen on the way out, on failure, on SIGTERM and at the deadline. Python's standard
@@ -263,8 +264,15 @@ def main():
         log(f"project {st.project}, {' '.join(compose_command())}, image {st.image} on {a.base_image}, port {st.port}")
         st.up = True
         t = time.monotonic()
-        st.compose("up", "-d", "--build", "--scale", "worker=2", timeout=300)
-        log(f"compose up --build: {time.monotonic() - t:.1f} s")
+        try:
+            st.compose("up", "-d", "--build", "--scale", "worker=2", timeout=300)
+        except Fail as e:
+            # A BuildKit set up with a builder that cannot see local images (a docker-container
+            # driver) cannot use the local base image; the classic builder can.
+            log(f"compose up --build failed; again with the classic builder (DOCKER_BUILDKIT=0): {e}")
+            st.env["DOCKER_BUILDKIT"] = "0"
+            st.compose("up", "-d", "--build", "--scale", "worker=2", timeout=300)
+        log(f"compose up --build (the prebuilt target on {a.base_image}): {time.monotonic() - t:.1f} s")
 
         # 1. Health check, the page, the token.
         st.wait_healthy()
@@ -350,20 +358,15 @@ def main():
         if st.inspect(cid, "{{.State.Running}}") != "true":
             run(["docker", "start", cid], timeout=60)
 
-        # 4. The coordinator restarted on its volume, and drained workers, mid-job.
-        s4 = dict(name="restart", size=128, spp=512, pass_size=16, tile_size=32, seed=9)
+        # 4. The coordinator restarted on its volume mid-job, then the workers drained mid-job
+        #    (right after, so that the job is mid-way on any machine), then started again.
+        s4 = dict(name="restart", size=128, spp=1024, pass_size=16, tile_size=32, seed=9)
         job4 = submit(st, a.omis, s4)
-        wait_for("a pass merged", 120, lambda: st.api("GET", f"/v1/jobs/{job4}")["passes_done"] >= 1, every=0.2)
+        wait_for("a pass merged", 120, lambda: st.api("GET", f"/v1/jobs/{job4}")["passes_done"] >= 1, every=0.1)
         before = st.api("GET", f"/v1/jobs/{job4}")
         st.compose("restart", "-t", "20", "coordinator", timeout=120)
-        log(f"coordinator restarted mid-job (pass {before['passes_done']} of {before['passes_total']} merged)")
-        st.wait_healthy()
-        after = wait_for("the job to go on after the restart", 120, lambda: (lambda j: j if j["passes_done"] > before["passes_done"] else None)(
-            st.api("GET", f"/v1/jobs/{job4}")), every=0.3)
-        if after["state"] != "running":
-            raise Fail(f"after the restart the job is {after['state']}; want running")
-        log(f"the job resumed after the restart ({after['passes_done']} passes merged)")
-        wait_for("two workers", 60, lambda: len(st.worker_map()) == 2)
+        log(f"coordinator restarted mid-job (pass {before['passes_done']} of {before['passes_total']} merged before)")
+        wait_for("the coordinator to answer", 60, lambda: http("GET", st.base + "/healthz", timeout=2)[0] == 200, every=0.1)
         workers = st.containers("worker")
         since = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(time.time() - 1))
         st.compose("stop", "-t", "120", "worker", timeout=180)
@@ -375,15 +378,19 @@ def main():
             if "draining: finishing the" not in text or not m or code != "0":
                 raise Fail(f"worker {c[:12]} did not drain (exit {code}):\n{text[-2000:]}")
             uploaded += int(m.group(1))
+        held = [w for w in st.api("GET", "/v1/workers")["workers"] if w["tasks"]]
+        if held:
+            raise Fail(f"workers still hold leases after the drain: {held}")
         j = st.api("GET", f"/v1/jobs/{job4}")
-        left = [w for w in st.api("GET", "/v1/workers")["workers"] if w["tasks"]]
-        if left:
-            raise Fail(f"workers still hold leases after the drain: {left}")
-        log(f"compose stop worker: both drained (exit 0), {uploaded} task result(s) uploaded after SIGTERM; the job is {j['state']}")
+        log(f"compose stop worker: both drained (exit 0), {uploaded} task result(s) uploaded after SIGTERM; "
+            f"the job is {j['state']} at pass {j['passes_done']} of {j['passes_total']}")
         if j["state"] != "running":
-            raise Fail("the job ended before the drain; make it longer")
+            raise Fail(f"the job is {j['state']} after the drain; want running (mid-job)")
         if uploaded < 1:
             raise Fail("no worker held a task when stopped; the drain was not exercised")
+        if j["passes_done"] < before["passes_done"]:
+            raise Fail(f"the restart lost merged passes ({before['passes_done']} -> {j['passes_done']})")
+        st.wait_healthy()
         st.compose("start", "worker", timeout=120)
         check_image(st, a, job4, s4, tmp)
         log(f"passed in {time.monotonic() - T0:.1f} s")
