@@ -390,7 +390,7 @@ def main():
         procs.start("chromedriver", [a.chromedriver, f"--port={port}"], stdout=cd_log, stderr=subprocess.STDOUT)
         driver = WebDriver(f"http://127.0.0.1:{port}")
         wait_for("chromedriver", 30, lambda: http("GET", driver.url + "/status", timeout=2)[0] == 200)
-        driver.start(a.chromium, os.path.join(tmp, "profile"), 1280, 1000)
+        driver.start(a.chromium, os.path.join(tmp, "profile"), 1280, 1150)
         log("browser started")
 
         wait_for("the reference job", 240, lambda: api("GET", f"/v1/jobs/{ref['id']}")["state"] == "done", every=0.5)
