@@ -508,9 +508,41 @@ def main():
         with open(os.path.join(a.out, "workers-page.png"), "wb") as f:
             f.write(driver.screenshot())
 
-        # Cancel from the job page.
+        # An uploaded scene: a scene file and the mesh it reads, packed into a bundle by the page.
+        up = os.path.join(tmp, "upload")
+        os.makedirs(up)
+        with open(os.path.join(a.scenes, f"{a.scene}.json")) as f:
+            scene = json.load(f)
+        scene["shapes"].append({"type": "mesh", "file": "wedge.obj", "material": "white"})
+        with open(os.path.join(up, "uploaded.json"), "w") as f:
+            json.dump(scene, f)
+        with open(os.path.join(up, "wedge.obj"), "w") as f:
+            f.write("v -0.3 0.9 -0.3\nv 0.3 0.9 -0.3\nv 0 1.4 0.2\nf 1 2 3\n")
+        driver.click("a[data-nav=submit]")
+        wait_for("the form", 20, lambda: driver.find("#f-files"))
+        files = driver.need("#f-files")
+        driver.s("POST", f"/element/{files}/value", {"text": os.path.join(up, "uploaded.json") + "\n" + os.path.join(up, "wedge.obj")})
+        if not driver.js("return document.getElementById('f-source-upload').checked"):
+            raise Fail("choosing files did not select 'Upload'")
+        driver.type("#f-width", "32")
+        driver.type("#f-height", "32")
+        driver.type("#f-spp", "16")
+        driver.click("#f-submit")
+        url = wait_for("the uploaded job's page", 30, lambda: (lambda u: u if "#/jobs/" in u else None)(driver.url_now()))
+        up_id = url.split("#/jobs/")[1]
+        wait_for("the uploaded job to be done", 120, lambda: driver.text("#job-state") == "done")
+        up_st = api("GET", f"/v1/jobs/{up_id}")
+        if up_st["scene"]["main"] != "uploaded.json" or (up_st["width"], up_st["height"]) != (32, 32):
+            raise Fail(f"the uploaded job is {up_st['scene']} at {up_st['width']}x{up_st['height']}")
+        log("a scene file and its mesh uploaded through the form rendered")
+
+        # A long job: the workers page shows what each worker holds; then cancel from its page.
         long_job = api("POST", "/v1/jobs", {"scene": {"library": a.scene}, "name": "to cancel",
                                             "settings": {"resolution": [a.size, a.size], "spp": 65536, "pass_size": 16}})
+        driver.click("a[data-nav=workers]")
+        short = long_job["id"][:8]
+        wait_for("the workers' current tasks", 30, lambda: f"job {short} pass" in (driver.text("#workers") or ""))
+        log("the workers page shows the tasks in hand")
         driver.go(f"{base}/#/jobs/{long_job['id']}")
         wait_for("the cancel button", 20, lambda: driver.js("const b = document.getElementById('cancel'); return b && !b.hidden"))
         driver.click("#cancel")
