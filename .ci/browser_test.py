@@ -279,6 +279,22 @@ class Procs:
         self.procs.append((name, p))
         return p
 
+    def stop(self, p):
+        """Stops one process started here (SIGTERM, then SIGKILL after 15 s)."""
+        for i, (name, q) in enumerate(self.procs):
+            if q is p:
+                del self.procs[i]
+                break
+        if p.poll() is None:
+            try:
+                os.killpg(p.pid, signal.SIGTERM)
+                p.wait(timeout=15)
+            except ProcessLookupError:
+                pass
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait(timeout=10)
+
     def stop_all(self):
         for name, p in reversed(self.procs):
             if p.poll() is None:
@@ -350,16 +366,21 @@ def main():
         env = dict(os.environ, OMIS_LOG="info")
         env.pop("OMIS_TOKEN", None)
         env.pop("OMIS_WORKER_TOKEN", None)
-        serve = procs.start(
-            "omis serve",
-            [a.omis, "serve", "--bind", "127.0.0.1:0", "--data", os.path.join(tmp, "data"), "--workers", "2",
-             "--scenes", a.scenes, "--token", token, "--worker-token", worker_token],
-            stdout=subprocess.PIPE, stderr=serve_log, text=True, env=env,
-        )
-        line = read_first_line(serve, 30)
-        if not line or not line.startswith("listening on "):
-            raise Fail(f"omis serve did not start (first line: {line!r}); see {serve_log.name}")
-        base = line.split()[-1].strip()
+        data = os.path.join(tmp, "data")
+
+        def start_serve(bind):
+            p = procs.start(
+                "omis serve",
+                [a.omis, "serve", "--bind", bind, "--data", data, "--workers", "2",
+                 "--scenes", a.scenes, "--token", token, "--worker-token", worker_token],
+                stdout=subprocess.PIPE, stderr=serve_log, text=True, env=env,
+            )
+            line = read_first_line(p, 30)
+            if not line or not line.startswith("listening on "):
+                raise Fail(f"omis serve did not start (first line: {line!r}); see {serve_log.name}")
+            return p, line.split()[-1].strip()
+
+        serve, base = start_serve("127.0.0.1:0")
         log(f"coordinator at {base}")
         auth = {"Authorization": f"Bearer {token}"}
 
@@ -544,6 +565,23 @@ def main():
         wait_for("the workers' current tasks", 30, lambda: f"job {short} pass" in (driver.text("#workers") or ""))
         log("the workers page shows the tasks in hand")
         driver.go(f"{base}/#/jobs/{long_job['id']}")
+        event_ids = "return [...document.querySelectorAll('#events li')].map((li) => Number(li.dataset.id))"
+        wait_for("the job's events", 30, lambda: len(driver.js(event_ids)) >= 5)
+
+        # The coordinator restarts on the same port and data: the page's event stream breaks, and
+        # resumes after the last event it saw (Last-Event-ID), with nothing replayed.
+        seen_before = max(driver.js(event_ids))
+        procs.stop(serve)
+        serve, again = start_serve(base.split("//")[1])
+        if again != base:
+            raise Fail(f"the coordinator came back at {again}, not {base}")
+        log("coordinator restarted under the open job page")
+        wait_for("events after the restart", 60, lambda: max(driver.js(event_ids)) > seen_before)
+        wait_for("the stream to be live again", 30, lambda: "live" in (driver.text("#live") or ""))
+        ids = driver.js(event_ids)
+        if any(b >= a_ for a_, b in zip(ids, ids[1:])):
+            raise Fail(f"the event log repeats or reorders events after the reconnect: {ids[:40]}")
+        log(f"the event stream resumed after event {seen_before} without repeats ({len(ids)} events listed)")
         wait_for("the cancel button", 20, lambda: driver.js("const b = document.getElementById('cancel'); return b && !b.hidden"))
         driver.click("#cancel")
         wait_for("the confirmation", 10, lambda: driver.s("GET", "/alert/text") is not None)

@@ -126,7 +126,7 @@ async function apiBlob(path, signal) {
 
 /** Follows a job's events until a final one (or `signal`): parses the event stream itself and
  * reconnects with Last-Event-ID after a break, unless `isOver()` says the job has ended.
- * `onState` hears 'live' / 'reconnecting'. */
+ * `onEvent(type, data, id)` hears each event; `onState` hears 'live' / 'reconnecting'. */
 async function followEvents(id, onEvent, onState, isOver, signal) {
   let lastId = null;
   let backoff = 500;
@@ -169,7 +169,7 @@ async function followEvents(id, onEvent, onState, isOver, signal) {
               } catch (e) {
                 data = { text: ev.data.join('\n') };
               }
-              onEvent(type, data);
+              onEvent(type, data, lastId);
               if (TERMINAL.has(type)) ended = true;
             }
             ev = { type: '', data: [], id: null };
@@ -546,7 +546,7 @@ async function jobView(signal, id) {
     render();
   });
 
-  function logEvent(type, data) {
+  function logEvent(type, data, eventId) {
     const bits = [];
     if (data.pass !== undefined) bits.push(`pass ${data.pass}`);
     if (data.tile !== undefined) bits.push(`tile ${data.tile}`);
@@ -554,12 +554,12 @@ async function jobView(signal, id) {
     if (data.relmse !== undefined && data.relmse !== null) bits.push(`relMSE ${fmtRel(data.relmse)}`);
     if (data.worker) bits.push(`worker ${short(data.worker)}`);
     if (data.error) bits.push(data.error);
-    events.prepend(h('li', {}, h('span', { class: 'muted' }, fmtClock(data.at), ' '), h('span', { class: 'kind' }, type), bits.join(', ')));
+    events.prepend(h('li', { dataset: { id: eventId || '' } }, h('span', { class: 'muted' }, fmtClock(data.at), ' '), h('span', { class: 'kind' }, type), bits.join(', ')));
     while (events.childElementCount > 200) events.lastElementChild.remove();
   }
 
-  function onEvent(type, data) {
-    logEvent(type, data);
+  function onEvent(type, data, eventId) {
+    logEvent(type, data, eventId);
     if (type === 'tile_done') {
       if (!tilesDone.has(data.pass)) tilesDone.set(data.pass, new Set());
       tilesDone.get(data.pass).add(data.tile);
