@@ -590,6 +590,21 @@ def main():
         if api("GET", f"/v1/jobs/{long_job['id']}")["state"] != "cancelled":
             raise Fail("the server does not say cancelled")
         log("cancel works")
+
+        # A loopback coordinator without tokens: the API answers, so the page never asks.
+        open_serve = procs.start(
+            "omis serve (no tokens)",
+            [a.omis, "serve", "--bind", "127.0.0.1:0", "--data", os.path.join(tmp, "open"), "--scenes", a.scenes],
+            stdout=subprocess.PIPE, stderr=serve_log, text=True, env=env,
+        )
+        line = read_first_line(open_serve, 30)
+        if not line or not line.startswith("listening on "):
+            raise Fail(f"omis serve without tokens did not start (first line: {line!r})")
+        driver.go(line.split()[-1].strip() + "/#/jobs")
+        wait_for("the jobs list of the open coordinator", 20, lambda: "No jobs yet" in (driver.text("#jobs") or ""))
+        if driver.js("return document.getElementById('token-dialog').open"):
+            raise Fail("the page asked for a token of a coordinator that has none")
+        log("without tokens on loopback the page works without asking")
         log(f"passed in {time.monotonic() - t_start:.1f} s")
     finally:
         signal.alarm(0)
