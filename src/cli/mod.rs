@@ -6,6 +6,7 @@ mod choices;
 mod client;
 mod compare;
 mod diff;
+mod healthcheck;
 mod job_args;
 mod procstat;
 mod render;
@@ -50,6 +51,8 @@ enum Command {
     BenchService(bench_service::BenchServiceArgs),
     /// Compare MIS strategies at equal spp (and equal time) against a reference: table and plots.
     Compare(compare::CompareArgs),
+    /// Check that a coordinator answers /healthz (exit status 0 when healthy; for containers).
+    Healthcheck(healthcheck::HealthcheckArgs),
 }
 
 /// Runs the command line; returns the process exit code. Errors are printed as one line.
@@ -74,6 +77,7 @@ pub fn main() -> i32 {
         Command::Bench(a) => bench::run(a),
         Command::BenchService(a) => bench_service::run(a),
         Command::Compare(a) => compare::run(a),
+        Command::Healthcheck(a) => healthcheck::run(a),
     };
     match result {
         Ok(()) => 0,

@@ -150,6 +150,7 @@ pub fn router(app: AppState) -> Router {
         .route("/metrics", get(metrics))
         .merge(client)
         .merge(worker)
+        .merge(super::web::routes())
         .fallback(|| async { ApiError::field(StatusCode::NOT_FOUND, "path", "no such route") })
         .layer(limit)
         .layer(middleware::from_fn_with_state(app.clone(), count_errors))

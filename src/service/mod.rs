@@ -7,6 +7,7 @@ pub mod bundle;
 pub mod jobs;
 pub mod pool;
 pub mod store;
+pub mod web;
 
 use crate::job::Limits;
 use std::collections::HashMap;

@@ -136,6 +136,18 @@ pub struct WorkerRow {
     pub last_seen: f64,
     pub state: String,
     pub tasks_done: i64,
+    /// The tasks it holds a lease on now.
+    pub tasks: Vec<HeldTask>,
+}
+
+/// A task a worker holds a lease on.
+#[derive(Clone, Debug, Serialize)]
+pub struct HeldTask {
+    pub id: i64,
+    pub job_id: String,
+    pub pass: u32,
+    pub tile: u32,
+    pub attempt: u32,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -648,13 +660,36 @@ impl Store {
     }
 
     pub fn workers(&self) -> rusqlite::Result<Vec<WorkerRow>> {
+        let mut held: std::collections::HashMap<String, Vec<HeldTask>> = Default::default();
+        let mut st = self.conn.prepare(
+            "SELECT worker_id, id, job_id, pass, tile, attempt FROM tasks \
+             WHERE state = 'leased' AND worker_id IS NOT NULL ORDER BY id",
+        )?;
+        let rows = st.query_map([], |r| {
+            Ok((
+                r.get::<_, String>(0)?,
+                HeldTask {
+                    id: r.get(1)?,
+                    job_id: r.get(2)?,
+                    pass: r.get(3)?,
+                    tile: r.get(4)?,
+                    attempt: r.get(5)?,
+                },
+            ))
+        })?;
+        for row in rows {
+            let (w, t) = row?;
+            held.entry(w).or_default().push(t);
+        }
         let mut st = self.conn.prepare(
             "SELECT id, name, threads, version, registered_at, last_seen, state, tasks_done \
              FROM workers ORDER BY registered_at",
         )?;
         st.query_map([], |r| {
+            let id: String = r.get(0)?;
+            let tasks = held.remove(&id).unwrap_or_default();
             Ok(WorkerRow {
-                id: r.get(0)?,
+                id,
                 name: r.get(1)?,
                 threads: r.get(2)?,
                 version: r.get(3)?,
@@ -662,6 +697,7 @@ impl Store {
                 last_seen: r.get(5)?,
                 state: r.get(6)?,
                 tasks_done: r.get(7)?,
+                tasks,
             })
         })?
         .collect()

@@ -14,6 +14,7 @@ use serde::Deserialize;
 use serde_json::json;
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{OnceCell, watch};
@@ -67,6 +68,8 @@ struct Worker {
     lost: Mutex<HashSet<i64>>,
     scenes: Mutex<HashMap<(String, u32, u32), SceneCell>>,
     drain: watch::Sender<bool>,
+    /// Results uploaded since the drain began.
+    drained_uploads: AtomicUsize,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -232,7 +235,12 @@ impl Worker {
                 .send()
                 .await;
             match r {
-                Ok(r) if r.status().is_success() => return,
+                Ok(r) if r.status().is_success() => {
+                    if *self.drain.borrow() {
+                        self.drained_uploads.fetch_add(1, Ordering::Relaxed);
+                    }
+                    return;
+                }
                 Ok(r) if r.status().is_client_error() => {
                     tracing::warn!(
                         "task {} (job {} pass {} tile {}) refused: HTTP {} {}",
@@ -374,6 +382,7 @@ pub async fn run(cfg: WorkerConfig) -> Result<()> {
         lost: Mutex::new(HashSet::new()),
         scenes: Mutex::new(HashMap::new()),
         drain,
+        drained_uploads: AtomicUsize::new(0),
     });
     if cfg.exit_with_parent {
         let parent = std::os::unix::process::parent_id();
@@ -397,7 +406,8 @@ pub async fn run(cfg: WorkerConfig) -> Result<()> {
                 _ = term.recv() => {}
                 _ = tokio::signal::ctrl_c() => {}
             }
-            tracing::info!("draining: finishing the tasks in hand");
+            let n = lock(&w.held).len();
+            tracing::info!("draining: finishing the {n} task(s) in hand");
             let _ = w.drain.send(true);
             tokio::select! {
                 _ = term.recv() => {}
@@ -423,6 +433,11 @@ pub async fn run(cfg: WorkerConfig) -> Result<()> {
         .send()
         .await;
     let _ = std::fs::remove_dir_all(&cfg.cache);
-    tracing::info!("drained; bye");
+    if *w.drain.borrow() {
+        let n = w.drained_uploads.load(Ordering::Relaxed);
+        tracing::info!("drained: {n} task result(s) finished and uploaded since the signal; bye");
+    } else {
+        tracing::info!("drained; bye");
+    }
     Ok(())
 }
