@@ -90,6 +90,49 @@ impl TileFilm {
     }
 }
 
+impl TileFilm {
+    /// Puts a finished task's splats and records in canonical form: splats summed per
+    /// destination (pixel, and the strategy / depth layer when `layout` keeps it) in their order,
+    /// sorted by pixel; records sorted by pixel, each pixel's records in their order. What a pixel
+    /// receives, and in which order, is unchanged, so the merged image does not depend on whether
+    /// this ran; it makes results smaller (a pixel hit by several light paths ships one splat) and
+    /// lets the wire format delta-code pixel indices.
+    pub fn compact(&mut self, layout: &FilmLayout) {
+        for s in &mut self.splats {
+            if !layout.strategy_layers {
+                s.layer = u8::MAX;
+            }
+            if (s.depth as usize) >= layout.depth_layers {
+                s.depth = u8::MAX;
+            }
+        }
+        // Stable: equal keys keep their order; each key's values are summed in f64, in render
+        // order, and rounded to f32 once.
+        self.splats.sort_by_key(|s| (s.pixel, s.layer, s.depth));
+        let key = |s: &Splat| (s.pixel, s.layer, s.depth);
+        let mut out: Vec<Splat> = Vec::with_capacity(self.splats.len());
+        let mut i = 0;
+        while i < self.splats.len() {
+            let first = self.splats[i];
+            let mut sum = first.value.map(|v| v as f64);
+            let mut j = i + 1;
+            while j < self.splats.len() && key(&self.splats[j]) == key(&first) {
+                for (c, v) in sum.iter_mut().enumerate() {
+                    *v += self.splats[j].value[c] as f64;
+                }
+                j += 1;
+            }
+            out.push(Splat {
+                value: sum.map(|v| v as f32),
+                ..first
+            });
+            i = j;
+        }
+        self.splats = out;
+        self.records.sort_by_pixel();
+    }
+}
+
 /// Light-tracing samples for optimal MIS, for pixels of other tiles: pixel (frame index), depth,
 /// and d + 2 weights followed by C W_s (3 values), as f32.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -113,6 +156,35 @@ impl LtRecords {
         self.depths.push(depth as u8);
         self.values.extend_from_slice(w);
         self.values.extend_from_slice(&c);
+    }
+
+    /// Sorts the records by pixel, keeping the order of each pixel's records.
+    pub fn sort_by_pixel(&mut self) {
+        if self.pixels.windows(2).all(|w| w[0] <= w[1]) {
+            return;
+        }
+        let mut offsets = Vec::with_capacity(self.len());
+        let mut off = 0;
+        for &d in &self.depths {
+            offsets.push(off);
+            off += d as usize + 2 + 3;
+        }
+        let mut order: Vec<usize> = (0..self.len()).collect();
+        order.sort_by_key(|&k| self.pixels[k]);
+        let mut sorted = LtRecords {
+            pixels: Vec::with_capacity(self.len()),
+            depths: Vec::with_capacity(self.len()),
+            values: Vec::with_capacity(self.values.len()),
+        };
+        for k in order {
+            let n = self.depths[k] as usize + 2 + 3;
+            sorted.pixels.push(self.pixels[k]);
+            sorted.depths.push(self.depths[k]);
+            sorted
+                .values
+                .extend_from_slice(&self.values[offsets[k]..offsets[k] + n]);
+        }
+        *self = sorted;
     }
 
     /// Adds every record into `acc`, whose pixel i is frame pixel `map(i)`.

@@ -7,11 +7,13 @@
 //! tile x0 y0 x1 y1 u32, samples s0 s1 u32
 //! stats closest shadow samples non_finite u64
 //! per tile pixel: count u32, sum 3 x f64, sum_sq 3 x f64
-//! splats: n u32, then n x (pixel u32, layer u8, depth u8, value 3 x f32)
+//! splats: n u32, then n x (pixel step, layer u8, depth u8, value 3 x f32)
 //! layers: n u32 (0 or pixels x 14), then n x 3 x f64
 //! depths: n u32 (0 or pixels x depth layers), then n x 3 x f64
 //! optimal: d_opt u32 (0 = none), then pixels x stride f64 (A, b), pixels x d_opt u32 (hits)
-//! records: n u32, pixels n x u32, depths n x u8, m u32, values m x f32
+//! records: n u32, pixels n x pixel step, depths n x u8, m u32, values m x f32
+//! pixel step: the difference to the previous pixel of the list (0 before the first), zigzag
+//! LEB128 (one or two bytes for the sorted lists `TileFilm::compact` makes)
 //! ```
 //! All sums stay f64: the merged frame must equal a single-process render to 1e-6, and solving
 //! the optimal systems amplifies rounding.
@@ -22,7 +24,7 @@ use super::{
 use crate::mis::OptimalAccum;
 
 const MAGIC: &[u8; 8] = b"OMISTILE";
-const VERSION: u32 = 2;
+const VERSION: u32 = 3;
 
 /// A result that failed validation.
 #[derive(Debug, thiserror::Error)]
@@ -60,6 +62,20 @@ impl<T: std::io::Write> Writer<T> {
     }
     fn f64(&mut self, v: f64) {
         self.bytes(&v.to_le_bytes());
+    }
+    /// A signed difference, zigzag-mapped, as unsigned LEB128 (1 to 5 bytes for 32-bit steps).
+    fn step(&mut self, from: u32, to: u32) {
+        let d = to as i64 - from as i64;
+        let mut z = ((d << 1) ^ (d >> 63)) as u64;
+        loop {
+            let byte = (z & 0x7f) as u8;
+            z >>= 7;
+            if z == 0 {
+                self.u8(byte);
+                return;
+            }
+            self.u8(byte | 0x80);
+        }
     }
     fn finish(self) -> std::io::Result<T> {
         match self.err {
@@ -142,6 +158,21 @@ impl Reader<'_> {
             self.take(8)?.try_into().expect("8 bytes"),
         ))
     }
+    /// The pixel `step` (see the format) after pixel `from`: a pixel index of the u32 range.
+    fn step(&mut self, from: u32) -> Result<u32, WireError> {
+        let mut z = 0u64;
+        for k in 0..5 {
+            let byte = self.u8()?;
+            z |= ((byte & 0x7f) as u64) << (7 * k);
+            if byte & 0x80 == 0 {
+                let d = (z >> 1) as i64 ^ -((z & 1) as i64);
+                return u32::try_from(from as i64 + d).map_err(|_| {
+                    WireError(format!("pixel step {d} from {from} leaves the u32 range"))
+                });
+            }
+        }
+        Err(WireError("pixel step longer than 5 bytes".into()))
+    }
     fn stats(&mut self) -> Result<RayStats, WireError> {
         Ok(RayStats {
             closest: self.u64()?,
@@ -196,8 +227,10 @@ impl TileFilm {
             }
         }
         w.u32(self.splats.len() as u32);
+        let mut prev = 0;
         for s in &self.splats {
-            w.u32(s.pixel);
+            w.step(prev, s.pixel);
+            prev = s.pixel;
             w.u8(s.layer);
             w.u8(s.depth);
             for v in s.value {
@@ -209,8 +242,10 @@ impl TileFilm {
         w.optimal(self.optimal.as_ref());
         let r = &self.records;
         w.u32(r.pixels.len() as u32);
-        for v in &r.pixels {
-            w.u32(*v);
+        let mut prev = 0;
+        for &p in &r.pixels {
+            w.step(prev, p);
+            prev = p;
         }
         w.bytes(&r.depths);
         w.u32(r.values.len() as u32);
@@ -263,10 +298,12 @@ impl TileFilm {
             }
         }
         let frame_px = width as u64 * height as u64;
-        let n = r.count(18, "splats")?;
+        let n = r.count(15, "splats")?;
         let mut splats = Vec::with_capacity(n);
+        let mut prev = 0;
         for _ in 0..n {
-            let pixel = r.u32()?;
+            let pixel = r.step(prev)?;
+            prev = pixel;
             if pixel as u64 >= frame_px {
                 return Err(WireError(format!("splat pixel {pixel} outside the frame")));
             }
@@ -317,10 +354,12 @@ impl TileFilm {
                 )));
             }
         };
-        let n = r.count(5, "records")?;
+        let n = r.count(2, "records")?;
         let mut records = LtRecords::default();
+        let mut prev = 0;
         for _ in 0..n {
-            let p = r.u32()?;
+            let p = r.step(prev)?;
+            prev = p;
             if p as u64 >= frame_px {
                 return Err(WireError(format!("record pixel {p} outside the frame")));
             }

@@ -254,6 +254,7 @@ pub fn render_tile(
         }
         ok
     });
+    film.compact(&settings.film_layout());
     film
 }
 
