@@ -341,6 +341,7 @@ fn camera_techniques_survive_a_light_tracing_count_1e13_times_larger() {
 /// this way, one tile at a time.
 #[test]
 fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
+    use omis::film::wire::TileCheckpoint;
     use omis::film::{FilmTile, TileGrid};
     let scene = load("cornell-box-small-light.json", 24, 20);
     let mut s = optimal(4, 5, 3);
@@ -387,6 +388,26 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
             }
         }
     }
+    // Through the per-tile checkpoint encoding, which must be exact and validated.
+    let acc: Vec<FilmTile> = acc
+        .into_iter()
+        .map(|t| {
+            let bytes = TileCheckpoint {
+                tile: t.clone(),
+                passes: 2,
+            }
+            .encode();
+            let back = TileCheckpoint::decode(&bytes, t.tile, &layout).expect("decodes");
+            assert_eq!(back.passes, 2);
+            assert!(TileCheckpoint::decode(&bytes[..bytes.len() - 1], t.tile, &layout).is_err());
+            assert!(
+                TileCheckpoint::decode(&bytes, tiles[0], &layout).is_err() || t.tile == tiles[0]
+            );
+            let shallower = optimal(4, 5, 2).film_layout();
+            assert!(TileCheckpoint::decode(&bytes, t.tile, &shallower).is_err());
+            back.tile
+        })
+        .collect();
     let light_paths: u64 = acc.iter().map(|t| t.samples()).sum();
     assert_eq!(light_paths, film.light_paths());
     let mut beauty = Image::new(24, 20);

@@ -19,7 +19,8 @@
 //! the optimal systems amplifies rounding.
 
 use super::{
-    Film, FilmLayout, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile, TileFilm,
+    Film, FilmLayout, FilmTile, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile,
+    TileFilm,
 };
 use crate::mis::OptimalAccum;
 
@@ -402,6 +403,143 @@ impl TileFilm {
     }
 }
 
+/// The accumulators of a `FilmTile`, after a checkpoint's header:
+///
+/// ```text
+/// per pixel: count u32, sum 3 x f64, sum_sq 3 x f64, splat 3 x f64
+/// layers: n u32, n x 3 x f64; depths: n u32, n x 3 x f64
+/// optimal: d_opt u32 (0 = none), then pixels x stride f64, pixels x d_opt u32
+/// ```
+fn write_tile_body<T: std::io::Write>(w: &mut Writer<T>, t: &FilmTile) {
+    for i in 0..t.tile.pixels() {
+        w.u32(t.sums.count[i]);
+        for v in t.sums.sum[i]
+            .iter()
+            .chain(&t.sums.sum_sq[i])
+            .chain(&t.splat[i])
+        {
+            w.f64(*v);
+        }
+    }
+    w.rgb_list(&t.layers);
+    w.rgb_list(&t.depths);
+    w.optimal(t.optimal.as_ref());
+}
+
+/// Reads the accumulators of `t` (empty, with the job's layout) from `r`, checking the layout.
+fn read_tile_body(r: &mut Reader, t: &mut FilmTile) -> Result<(), WireError> {
+    let n = t.tile.pixels();
+    if n.saturating_mul(76) > r.b.len() - r.at {
+        return Err(WireError("checkpoint pixels truncated".into()));
+    }
+    for i in 0..n {
+        t.sums.count[i] = r.u32()?;
+        for c in 0..3 {
+            t.sums.sum[i][c] = r.f64()?;
+        }
+        for c in 0..3 {
+            t.sums.sum_sq[i][c] = r.f64()?;
+        }
+        for c in 0..3 {
+            t.splat[i][c] = r.f64()?;
+        }
+    }
+    for (list, what) in [
+        (&mut t.layers, "strategy layers"),
+        (&mut t.depths, "depth layers"),
+    ] {
+        let m = r.count(24, what)?;
+        if m != list.len() {
+            return Err(WireError(format!(
+                "{what}: {m} values, the job has {}",
+                list.len()
+            )));
+        }
+        for v in list.iter_mut() {
+            *v = [r.f64()?, r.f64()?, r.f64()?];
+        }
+    }
+    let d = r.u32()?;
+    match t.optimal.as_mut() {
+        None if d == 0 => {}
+        Some(o) if o.layout.d_opt == d => r.optimal_into(o)?,
+        _ => {
+            return Err(WireError(format!(
+                "optimal depth {d} does not match the job's settings"
+            )));
+        }
+    }
+    if r.at != r.b.len() {
+        return Err(WireError(format!("{} trailing bytes", r.b.len() - r.at)));
+    }
+    Ok(())
+}
+
+const TILE_MAGIC: &[u8; 8] = b"OMISTACC";
+const TILE_VERSION: u32 = 1;
+
+/// One tile's merged accumulators with the number of passes merged into it: the checkpoint a
+/// coordinator keeps per tile, rewritten only when the tile merges a pass, so a restart loses no
+/// merged pass and no write is larger than one tile.
+///
+/// ```text
+/// magic "OMISTACC", version u32, tile x0 y0 x1 y1 u32, passes u32, then the tile's accumulators
+/// ```
+pub struct TileCheckpoint {
+    /// The accumulators.
+    pub tile: FilmTile,
+    /// Passes merged into them.
+    pub passes: u32,
+}
+
+impl TileCheckpoint {
+    /// The encoding.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut w = Writer::new(Vec::with_capacity(36 + self.tile.tile.pixels() * 76));
+        w.bytes(TILE_MAGIC);
+        w.u32(TILE_VERSION);
+        let t = &self.tile.tile;
+        for v in [t.x0, t.y0, t.x1, t.y1, self.passes] {
+            w.u32(v);
+        }
+        write_tile_body(&mut w, &self.tile);
+        w.out
+    }
+
+    /// Parses the checkpoint of `tile` of a job whose films have `layout`.
+    pub fn decode(
+        bytes: &[u8],
+        tile: Tile,
+        layout: &FilmLayout,
+    ) -> Result<TileCheckpoint, WireError> {
+        let mut r = Reader { b: bytes, at: 0 };
+        if r.take(8)? != TILE_MAGIC {
+            return Err(WireError("not a tile checkpoint (bad magic)".into()));
+        }
+        let version = r.u32()?;
+        if version != TILE_VERSION {
+            return Err(WireError(format!(
+                "tile checkpoint version {version}, expected {TILE_VERSION}"
+            )));
+        }
+        let got = Tile {
+            x0: r.u32()?,
+            y0: r.u32()?,
+            x1: r.u32()?,
+            y1: r.u32()?,
+        };
+        if got != tile {
+            return Err(WireError(format!(
+                "checkpoint of tile {got:?}, expected {tile:?}"
+            )));
+        }
+        let passes = r.u32()?;
+        let mut t = FilmTile::new(tile, layout);
+        read_tile_body(&mut r, &mut t)?;
+        Ok(TileCheckpoint { tile: t, passes })
+    }
+}
+
 const FRAME_MAGIC: &[u8; 8] = b"OMISFRAM";
 const FRAME_VERSION: u32 = 1;
 
@@ -431,7 +569,6 @@ impl Checkpoint {
     /// without a second copy of the frame in memory).
     pub fn write_to<T: std::io::Write>(&self, out: T) -> std::io::Result<T> {
         let f = &self.frame;
-        let n = (f.width * f.height) as usize;
         let mut w = Writer::new(out);
         w.bytes(FRAME_MAGIC);
         w.u32(FRAME_VERSION);
@@ -439,19 +576,7 @@ impl Checkpoint {
         w.u32(f.height);
         w.u32(self.passes);
         w.stats(&self.stats);
-        for i in 0..n {
-            w.u32(f.acc.sums.count[i]);
-            for v in f.acc.sums.sum[i]
-                .iter()
-                .chain(&f.acc.sums.sum_sq[i])
-                .chain(&f.acc.splat[i])
-            {
-                w.f64(*v);
-            }
-        }
-        w.rgb_list(&f.acc.layers);
-        w.rgb_list(&f.acc.depths);
-        w.optimal(f.acc.optimal.as_ref());
+        write_tile_body(&mut w, &f.acc);
         w.finish()
     }
 
@@ -482,50 +607,7 @@ impl Checkpoint {
         let passes = r.u32()?;
         let stats = r.stats()?;
         let mut frame = Film::new(width, height, layout);
-        let n = (width * height) as usize;
-        if n.saturating_mul(76) > bytes.len() - r.at {
-            return Err(WireError("checkpoint pixels truncated".into()));
-        }
-        for i in 0..n {
-            frame.acc.sums.count[i] = r.u32()?;
-            for c in 0..3 {
-                frame.acc.sums.sum[i][c] = r.f64()?;
-            }
-            for c in 0..3 {
-                frame.acc.sums.sum_sq[i][c] = r.f64()?;
-            }
-            for c in 0..3 {
-                frame.acc.splat[i][c] = r.f64()?;
-            }
-        }
-        for (list, what) in [
-            (&mut frame.acc.layers, "strategy layers"),
-            (&mut frame.acc.depths, "depth layers"),
-        ] {
-            let m = r.count(24, what)?;
-            if m != list.len() {
-                return Err(WireError(format!(
-                    "{what}: {m} values, the job has {}",
-                    list.len()
-                )));
-            }
-            for v in list.iter_mut() {
-                *v = [r.f64()?, r.f64()?, r.f64()?];
-            }
-        }
-        let d = r.u32()?;
-        match frame.acc.optimal.as_mut() {
-            None if d == 0 => {}
-            Some(o) if o.layout.d_opt == d => r.optimal_into(o)?,
-            _ => {
-                return Err(WireError(format!(
-                    "optimal depth {d} does not match the job's settings"
-                )));
-            }
-        }
-        if r.at != bytes.len() {
-            return Err(WireError(format!("{} trailing bytes", bytes.len() - r.at)));
-        }
+        read_tile_body(&mut r, &mut frame.acc)?;
         Ok(Checkpoint {
             frame,
             passes,
