@@ -3,27 +3,31 @@
 //! after a restart, and expiry of silent leases.
 
 use super::App;
-use super::store::{self, JobRow, SeriesPoint, TaskRow, write_atomic};
+use super::protocol::{
+    CancelledEvent, DoneEvent, FailedEvent, JobEvent, JobState, PassDoneEvent, PreviewEvent,
+    SeriesPoint, TaskFailedEvent,
+};
+use super::store::{self, JobRow, TaskRow, write_atomic};
 use crate::film::wire::Checkpoint;
 use crate::film::{Film, RayStats, TileFilm};
 use crate::film::{Image, exr_io, metrics, plot, png};
 use crate::job::Resolved;
-use serde_json::json;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 /// A task that failed on this many attempts fails its job.
-pub const MAX_FAILURES: u32 = 3;
+pub(crate) const MAX_FAILURES: u32 = 3;
 
 /// What merging needs of a running job, kept between passes.
-pub struct Runtime {
+pub(crate) struct Runtime {
     pub resolved: Resolved,
     /// The merged accumulators (loaded from the checkpoint on first use).
     pub checkpoint: Option<Checkpoint>,
     pub reference: Option<Image>,
 }
 
-pub fn resolved_of(job: &JobRow) -> Result<Resolved, String> {
+/// The resolved settings a job was created with.
+pub(crate) fn resolved_of(job: &JobRow) -> Result<Resolved, String> {
     serde_json::from_str(&job.resolved).map_err(|e| format!("job {}: bad settings: {e}", job.id))
 }
 
@@ -57,7 +61,7 @@ fn drop_runtime(app: &App, id: &str) {
 /// Makes sure the job's next two passes (`passes_done` and the one after) have their tasks, so
 /// workers never wait on a merge; a time-budget job gets no new pass once its time is up.
 /// Idempotent: called at creation, after every merge and after a restart.
-pub fn ensure_passes(app: &App, job: &JobRow, r: &Resolved) -> rusqlite::Result<()> {
+pub(crate) fn ensure_passes(app: &App, job: &JobRow, r: &Resolved) -> rusqlite::Result<()> {
     let within_time = r
         .time_budget_s
         .is_none_or(|b| job.started_at.is_none_or(|s| store::now() - s < b));
@@ -76,11 +80,11 @@ pub fn ensure_passes(app: &App, job: &JobRow, r: &Resolved) -> rusqlite::Result<
 
 /// Merges every finished pass of a job, in order, and finishes the job after its last one.
 /// Runs on a blocking thread; one merge per job at a time.
-pub fn advance(app: &App, id: &str) {
+pub(crate) fn advance(app: &App, id: &str) {
     if let Err(e) = advance_inner(app, id) {
         tracing::error!("job {id}: {e}");
-        if let Ok(true) = app.db().set_job_state(id, store::FAILED, Some(&e)) {
-            app.event(id, "failed", json!({ "error": e }));
+        if let Ok(true) = app.db().set_job_state(id, JobState::Failed, Some(&e)) {
+            app.event(id, JobEvent::Failed(FailedEvent { error: e }));
         }
         drop_runtime(app, id);
     }
@@ -90,7 +94,7 @@ fn advance_inner(app: &App, id: &str) -> Result<(), String> {
     let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
         return Ok(());
     };
-    if !matches!(job.state.as_str(), store::QUEUED | store::RUNNING) {
+    if !job.state.is_active() {
         return Ok(());
     }
     let rt = runtime(app, &job)?;
@@ -99,7 +103,7 @@ fn advance_inner(app: &App, id: &str) -> Result<(), String> {
         let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
             return Ok(());
         };
-        if !matches!(job.state.as_str(), store::QUEUED | store::RUNNING) {
+        if !job.state.is_active() {
             drop_runtime(app, id);
             return Ok(());
         }
@@ -184,13 +188,7 @@ fn merge_pass(
             Err(e) => {
                 tracing::error!("job {} pass {pass} tile {}: {e}; requeued", job.id, t.tile);
                 rt.checkpoint = None;
-                app.db()
-                    .conn
-                    .execute(
-                        "UPDATE tasks SET state = 'queued', worker_id = NULL WHERE id = ?1",
-                        [t.id],
-                    )
-                    .map_err(|e| e.to_string())?;
+                app.db().requeue(t.id).map_err(|e| e.to_string())?;
                 app.work.notify_waiters();
                 return Ok(());
             }
@@ -239,13 +237,20 @@ fn merge_pass(
         .map_err(|e| e.to_string())?;
     app.event(
         &job.id,
-        "pass_done",
-        json!({ "pass": pass, "spp": spp_done, "seconds": seconds, "relmse": relmse }),
+        JobEvent::PassDone(PassDoneEvent {
+            pass,
+            spp: spp_done,
+            seconds,
+            relmse,
+        }),
     );
     app.event(
         &job.id,
-        "preview",
-        json!({ "pass": pass, "spp": spp_done, "url": format!("/v1/jobs/{}/preview.png", job.id) }),
+        JobEvent::Preview(PreviewEvent {
+            pass,
+            spp: spp_done,
+            url: format!("/v1/jobs/{}/preview.png", job.id),
+        }),
     );
 
     Ok(())
@@ -276,17 +281,22 @@ fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
     }
     let ended = app
         .db()
-        .set_job_state(&job.id, store::DONE, None)
+        .set_job_state(&job.id, JobState::Done, None)
         .map_err(|e| e.to_string())?;
     if ended {
         let _ = std::fs::remove_file(app.paths.checkpoint(&job.id));
-        app.event(&job.id, "done", json!({ "spp": job.spp_done }));
+        app.event(&job.id, JobEvent::Done(DoneEvent { spp: job.spp_done }));
     }
     Ok(())
 }
 
 /// Records a failed attempt; after `MAX_FAILURES` the job fails with the worker's error.
-pub fn task_failed(app: &App, task: &TaskRow, worker: &str, error: &str) -> Result<bool, String> {
+pub(crate) fn task_failed(
+    app: &App,
+    task: &TaskRow,
+    worker: &str,
+    error: &str,
+) -> Result<bool, String> {
     let failures = app
         .db()
         .fail(task.id, task.attempt, worker, error)
@@ -296,8 +306,13 @@ pub fn task_failed(app: &App, task: &TaskRow, worker: &str, error: &str) -> Resu
     };
     app.event(
         &task.job_id,
-        "task_failed",
-        json!({ "pass": task.pass, "tile": task.tile, "worker": worker, "error": error, "failures": failures }),
+        JobEvent::TaskFailed(TaskFailedEvent {
+            pass: task.pass,
+            tile: task.tile,
+            worker: worker.to_string(),
+            error: error.to_string(),
+            failures,
+        }),
     );
     if failures >= MAX_FAILURES {
         let msg = format!(
@@ -306,10 +321,10 @@ pub fn task_failed(app: &App, task: &TaskRow, worker: &str, error: &str) -> Resu
         );
         let ended = app
             .db()
-            .set_job_state(&task.job_id, store::FAILED, Some(&msg))
+            .set_job_state(&task.job_id, JobState::Failed, Some(&msg))
             .map_err(|e| e.to_string())?;
         if ended {
-            app.event(&task.job_id, "failed", json!({ "error": msg }));
+            app.event(&task.job_id, JobEvent::Failed(FailedEvent { error: msg }));
         }
         drop_runtime(app, &task.job_id);
     } else {
@@ -319,19 +334,19 @@ pub fn task_failed(app: &App, task: &TaskRow, worker: &str, error: &str) -> Resu
 }
 
 /// Cancels a job that has not ended; false when it had.
-pub fn cancel(app: &App, id: &str) -> Result<bool, String> {
+pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
     let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
         return Ok(false);
     };
-    if !matches!(job.state.as_str(), store::QUEUED | store::RUNNING) {
+    if !job.state.is_active() {
         return Ok(false);
     }
     let ended = app
         .db()
-        .set_job_state(id, store::CANCELLED, None)
+        .set_job_state(id, JobState::Cancelled, None)
         .map_err(|e| e.to_string())?;
     if ended {
-        app.event(id, "cancelled", json!({}));
+        app.event(id, JobEvent::Cancelled(CancelledEvent {}));
         app.work.notify_waiters();
     }
     drop_runtime(app, id);
@@ -340,7 +355,7 @@ pub fn cancel(app: &App, id: &str) -> Result<bool, String> {
 
 /// After a restart: reconcile each unfinished job with its checkpoint, and merge passes whose
 /// results all arrived before the stop.
-pub async fn recover(app: &Arc<App>) -> anyhow::Result<()> {
+pub(crate) async fn recover(app: &Arc<App>) -> anyhow::Result<()> {
     let jobs = app.db().active_jobs()?;
     for job in jobs {
         let path = app.paths.checkpoint(&job.id);
@@ -373,7 +388,7 @@ pub async fn recover(app: &Arc<App>) -> anyhow::Result<()> {
 }
 
 /// Every second: requeue expired leases, mark silent workers gone.
-pub async fn reaper(app: Arc<App>) {
+pub(crate) async fn reaper(app: Arc<App>) {
     let mut tick = tokio::time::interval(std::time::Duration::from_millis(500));
     loop {
         tick.tick().await;
@@ -393,7 +408,7 @@ pub async fn reaper(app: Arc<App>) {
 }
 
 /// The convergence plot of a job: relMSE against spp (log-log).
-pub fn convergence_svg(job: &JobRow, series: &[SeriesPoint]) -> String {
+pub(crate) fn convergence_svg(job: &JobRow, series: &[SeriesPoint]) -> String {
     let pts: Vec<(f64, f64)> = series
         .iter()
         .filter_map(|p| p.relmse.map(|r| (p.spp as f64, r)))

@@ -3,12 +3,14 @@
 //! bundles and results only as accumulators: it never touches a BSDF.
 
 pub mod api;
-pub mod bundle;
-pub mod jobs;
-pub mod pool;
-pub mod store;
+pub(crate) mod bundle;
+pub(crate) mod jobs;
+pub(crate) mod pool;
+pub mod protocol;
+pub(crate) mod store;
 
 use crate::job::Limits;
+use protocol::JobEvent;
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -19,12 +21,16 @@ use tokio::sync::{Notify, broadcast};
 
 /// How a coordinator runs.
 #[derive(Clone, Debug)]
-pub struct Config {
+pub(crate) struct Config {
+    /// Address to listen on (port 0: any free port).
     pub bind: SocketAddr,
+    /// Folder of the database, task results and outputs.
     pub data: PathBuf,
     /// The scene library: jobs may name a scene file in this folder.
     pub library: Option<PathBuf>,
+    /// Bearer token of the client routes (None: not checked; loopback only).
     pub client_token: Option<String>,
+    /// Bearer token of the worker routes (None: not checked; loopback only).
     pub worker_token: Option<String>,
     /// Local worker processes to spawn and keep alive.
     pub workers: usize,
@@ -32,13 +38,17 @@ pub struct Config {
     pub worker_threads: usize,
     /// Seconds a worker may stay silent before its lease is given to another.
     pub lease_s: f64,
+    /// Limits on jobs.
     pub limits: Limits,
+    /// Largest request body (bundle, reference, task result).
     pub max_upload_bytes: u64,
     /// OMIS_LOG of local workers (None: inherit).
     pub worker_log: Option<String>,
 }
 
 impl Config {
+    /// A coordinator on `bind` keeping its state in `data`, with default limits, no tokens, no
+    /// library and no local workers.
     pub fn new(bind: SocketAddr, data: PathBuf) -> Config {
         Config {
             bind,
@@ -58,7 +68,7 @@ impl Config {
 
 /// Counters for /metrics.
 #[derive(Default)]
-pub struct Metrics {
+pub(crate) struct Metrics {
     pub results_accepted: AtomicU64,
     pub results_refused: AtomicU64,
     pub result_bytes: AtomicU64,
@@ -76,7 +86,7 @@ impl Metrics {
 }
 
 /// The coordinator's shared state.
-pub struct App {
+pub(crate) struct App {
     pub cfg: Config,
     pub paths: Paths,
     pub store: Mutex<Store>,
@@ -86,7 +96,6 @@ pub struct App {
     /// Per running job: the merged accumulators and what a merge needs (one merge at a time).
     pub runtimes: Mutex<HashMap<String, Arc<Mutex<jobs::Runtime>>>>,
     pub metrics: Metrics,
-    pub base_url: String,
 }
 
 impl App {
@@ -96,8 +105,9 @@ impl App {
     }
 
     /// Records an event and publishes it to SSE subscribers.
-    pub fn event(&self, job: &str, kind: &str, data: serde_json::Value) {
-        match self.db().add_event(job, kind, &data) {
+    pub fn event(&self, job: &str, event: JobEvent) {
+        let kind = event.kind();
+        match self.db().add_event(job, kind, &event.data()) {
             Ok(row) => {
                 let _ = self.events.send(row);
             }
@@ -107,10 +117,9 @@ impl App {
 }
 
 /// A started coordinator.
-pub struct Running {
-    pub addr: SocketAddr,
+pub(crate) struct Running {
+    /// `http://` and the address.
     pub url: String,
-    pub app: Arc<App>,
     shutdown: Option<tokio::sync::oneshot::Sender<()>>,
     server: tokio::task::JoinHandle<()>,
     pool: Option<pool::Pool>,
@@ -135,7 +144,7 @@ fn is_loopback(addr: &SocketAddr) -> bool {
 }
 
 /// Opens the data folder, recovers unfinished jobs, binds and serves; spawns the local pool.
-pub async fn start(cfg: Config) -> anyhow::Result<Running> {
+pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
     use anyhow::Context;
     if (cfg.client_token.is_none() || cfg.worker_token.is_none()) && !is_loopback(&cfg.bind) {
         anyhow::bail!(
@@ -168,7 +177,6 @@ pub async fn start(cfg: Config) -> anyhow::Result<Running> {
         work: Notify::new(),
         runtimes: Mutex::new(HashMap::new()),
         metrics: Metrics::default(),
-        base_url: url.clone(),
     });
     if cfg.client_token.is_none() && cfg.worker_token.is_none() {
         tracing::warn!("no tokens given: serving {addr} (loopback only) without authentication");
@@ -187,9 +195,7 @@ pub async fn start(cfg: Config) -> anyhow::Result<Running> {
     tokio::spawn(jobs::reaper(app.clone()));
     let pool = (cfg.workers > 0).then(|| pool::Pool::spawn(app.clone(), &url));
     Ok(Running {
-        addr,
         url,
-        app,
         shutdown: Some(tx),
         server,
         pool,
