@@ -1093,3 +1093,178 @@ fn upload_and_scene_limits_are_enforced_with_json_errors() {
     );
     assert_eq!(s, 201, "{v}");
 }
+
+/// The furnace scene as an inline JSON scene, with its `render` defaults replaced.
+fn inline_furnace(render: Value) -> Value {
+    let text = std::fs::read_to_string(repo().join("scenes/furnace.json")).expect("furnace");
+    let mut scene: Value = serde_json::from_str(&text).expect("JSON");
+    scene["render"] = render;
+    scene
+}
+
+/// Queued tasks of every job, from /metrics.
+fn queued_tasks(c: &Client, url: &str) -> u64 {
+    let m = c
+        .get(format!("{url}/metrics"))
+        .send()
+        .expect("metrics")
+        .text()
+        .expect("text");
+    m.lines()
+        .find_map(|l| l.strip_prefix("omis_tasks{state=\"queued\"} "))
+        .map_or(0, |n| n.trim().parse().expect("a count"))
+}
+
+/// The slowest of GET /healthz and GET /v1/jobs (which reads the store) while `until` is false,
+/// polled for at most `limit`.
+fn slowest_answer(c: &Client, url: &str, limit: Duration, until: impl Fn() -> bool) -> Duration {
+    let start = Instant::now();
+    let mut worst = Duration::ZERO;
+    while !until() {
+        assert!(start.elapsed() < limit, "not done after {limit:?}");
+        for path in ["/healthz", "/v1/jobs"] {
+            let t = Instant::now();
+            let r = c
+                .get(format!("{url}{path}"))
+                .timeout(Duration::from_secs(30))
+                .send()
+                .unwrap_or_else(|e| panic!("GET {path}: {e}"));
+            assert!(r.status().is_success(), "GET {path}: {}", r.status());
+            worst = worst.max(t.elapsed());
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    worst
+}
+
+#[test]
+fn too_many_tiles_are_refused_and_a_large_job_keeps_the_api_responsive_across_a_restart() {
+    let dir = folder("tiles");
+    let data = dir.join("data");
+    let args = ["--max-tasks-per-pass", "200000"];
+    let (mut server, url) = serve(&data, &args);
+    let c = http();
+    // 8192x8192 in tiles of 1 is 67M tasks a pass: refused at once, naming the bound.
+    let t = Instant::now();
+    let (s, v) = post(
+        &c,
+        &format!("{url}/v1/jobs"),
+        &json!({ "scene": { "library": "furnace" },
+                 "settings": { "resolution": [8192, 8192], "tile_size": 1 } }),
+    );
+    assert_eq!(
+        (s, v["field"].as_str()),
+        (422, Some("settings.tile_size")),
+        "{v}"
+    );
+    let msg = v["error"].as_str().unwrap_or("");
+    assert!(msg.contains("67108864") && msg.contains("200000"), "{v}");
+    assert!(t.elapsed() < Duration::from_secs(10));
+    // So is a scene whose own resolution makes too many tiles.
+    let mut big = inline_furnace(json!({ "spp": 4 }));
+    big["camera"]["resolution"] = json!([1000, 1000]);
+    let (s, v) = post(
+        &c,
+        &format!("{url}/v1/jobs"),
+        &json!({ "scene": { "inline": big }, "settings": { "tile_size": 2 } }),
+    );
+    assert_eq!(
+        (s, v["field"].as_str()),
+        (422, Some("settings.tile_size")),
+        "{v}"
+    );
+    // A large job within the bound: 400x400 tiles of 1, 160000 tasks a pass, two passes open.
+    let job = json!({ "scene": { "library": "furnace" },
+                      "settings": { "resolution": [400, 400], "tile_size": 1, "spp": 8, "pass_size": 1 } });
+    let posted = {
+        let (u, j) = (url.clone(), job.clone());
+        std::thread::spawn(move || {
+            let (s, v) = post(&http(), &format!("{u}/v1/jobs"), &j);
+            assert_eq!(s, 201, "{v}");
+        })
+    };
+    let worst = slowest_answer(&c, &url, WAIT, || {
+        posted.is_finished() && queued_tasks(&http(), &url) >= 320_000
+    });
+    assert!(worst < Duration::from_secs(3), "an answer took {worst:?}");
+    posted.join().expect("the job was created");
+    // A second one, and the coordinator killed while its tasks are being made: the restarted
+    // coordinator answers at once and finishes making them in the background.
+    let (s, v) = post(&c, &format!("{url}/v1/jobs"), &job);
+    assert_eq!(s, 201, "{v}");
+    server.kill9();
+    let t = Instant::now();
+    let (mut server, url) = serve(&data, &args);
+    assert!(
+        t.elapsed() < Duration::from_secs(15),
+        "the restart took {:?}",
+        t.elapsed()
+    );
+    let worst = slowest_answer(&c, &url, WAIT, || queued_tasks(&c, &url) >= 640_000);
+    assert!(worst < Duration::from_secs(3), "an answer took {worst:?}");
+    // SIGTERM while a third job's tasks are being made: the coordinator stops promptly.
+    let (s, v) = post(&c, &format!("{url}/v1/jobs"), &job);
+    assert_eq!(s, 201, "{v}");
+    // SAFETY: kill(2) on our own child.
+    unsafe {
+        libc::kill(server.0.id() as libc::pid_t, libc::SIGTERM);
+    }
+    let t = Instant::now();
+    while server.0.try_wait().expect("wait").is_none() {
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "SIGTERM did not stop the coordinator"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn settings_are_validated_wherever_they_come_from() {
+    let dir = folder("resolved");
+    let (_server, url) = serve(&dir.join("data"), &["--max-spp", "64"]);
+    let c = http();
+    let jobs = format!("{url}/v1/jobs");
+    // The depth limit holds for a depth the scene file sets, with the path tracer too.
+    let scene = inline_furnace(json!({ "spp": 4, "max_depth": 4294967295u64 }));
+    let (s, v) = post(
+        &c,
+        &jobs,
+        &json!({ "scene": { "inline": scene }, "settings": { "integrator": "pt" } }),
+    );
+    assert_eq!(
+        (s, v["field"].as_str()),
+        (422, Some("settings.max_depth")),
+        "{v}"
+    );
+    assert!(
+        v["error"].as_str().unwrap_or("").contains("4294967295"),
+        "{v}"
+    );
+    // And the spp limit for the scene's default spp.
+    let scene = inline_furnace(json!({ "spp": 1000 }));
+    let (s, v) = post(&c, &jobs, &json!({ "scene": { "inline": scene } }));
+    assert_eq!((s, v["field"].as_str()), (422, Some("settings.spp")), "{v}");
+    assert!(v["error"].as_str().unwrap_or("").contains("64"), "{v}");
+    // Settings that override the scene's defaults make it acceptable.
+    let scene = inline_furnace(json!({ "spp": 1000, "max_depth": 4294967295u64 }));
+    let (s, v) = post(
+        &c,
+        &jobs,
+        &json!({ "scene": { "inline": scene }, "settings": { "spp": 4, "max_depth": 3 } }),
+    );
+    assert_eq!(s, 201, "{v}");
+    assert_eq!(v["spp_target"], 4);
+    // Absurd numbers in the settings themselves.
+    for (settings, field) in [
+        (json!({ "kappa": 1e308 }), "settings.kappa"),
+        (json!({ "time_budget_s": 1e-320 }), "settings.time_budget_s"),
+    ] {
+        let (s, v) = post(
+            &c,
+            &jobs,
+            &json!({ "scene": { "library": "furnace" }, "settings": settings }),
+        );
+        assert_eq!((s, v["field"].as_str()), (422, Some(field)), "{v}");
+    }
+}

@@ -86,6 +86,9 @@ pub(crate) struct ServeArgs {
     pub max_spp: u32,
     #[arg(long, default_value_t = 20_000_000)]
     pub max_triangles: usize,
+    /// Most tiles of a frame, i.e. tasks of one pass (the database holds a row per task).
+    #[arg(long, default_value_t = 65536)]
+    pub max_tasks_per_pass: u32,
     /// Largest upload (scene bundle, reference, task result) in MiB.
     #[arg(long, default_value_t = 1024)]
     pub max_upload_mb: u64,
@@ -107,10 +110,12 @@ pub(crate) fn serve(a: ServeArgs) -> Result<()> {
         max_resolution: a.max_resolution,
         max_spp: a.max_spp,
         max_triangles: a.max_triangles,
+        max_tasks_per_pass: a.max_tasks_per_pass.max(1),
         ..Limits::default()
     };
     cfg.max_upload_bytes = a.max_upload_mb.saturating_mul(1 << 20);
-    runtime()?.block_on(async move {
+    let rt = runtime()?;
+    let result = rt.block_on(async move {
         let running = service::start(cfg).await?;
         // The first line of stdout is the address (scripts and tests read it).
         println!("listening on {}", running.url);
@@ -122,7 +127,10 @@ pub(crate) fn serve(a: ServeArgs) -> Result<()> {
         tracing::info!("stopping: draining local workers");
         running.stop().await;
         Ok(())
-    })
+    });
+    // Background work (task creation, merges) stops at its next chunk; never wait forever.
+    rt.shutdown_timeout(std::time::Duration::from_secs(10));
+    result
 }
 
 #[derive(Args)]

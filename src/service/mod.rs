@@ -11,10 +11,10 @@ pub(crate) mod store;
 
 use crate::job::Limits;
 use protocol::JobEvent;
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use store::{EventRow, Paths, Store};
 use tokio::sync::{Notify, broadcast};
@@ -96,12 +96,24 @@ pub(crate) struct App {
     /// Per running job: the merged accumulators and what a merge needs (one merge at a time).
     pub runtimes: Mutex<HashMap<String, Arc<Mutex<jobs::Runtime>>>>,
     pub metrics: Metrics,
+    /// Set when the coordinator stops: background work ends at its next chunk.
+    pub stopping: AtomicBool,
+    /// Jobs that recovery has not reconciled yet (after a restart).
+    pub recovering: Mutex<HashSet<String>>,
 }
 
 impl App {
     /// Locks the store (a panic while holding it cannot leave SQLite inconsistent).
     pub fn db(&self) -> std::sync::MutexGuard<'_, Store> {
         self.store.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Whether recovery has yet to reconcile job `id`.
+    pub fn is_recovering(&self, id: &str) -> bool {
+        self.recovering
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains(id)
     }
 
     /// Records an event and publishes it to SSE subscribers.
@@ -120,6 +132,7 @@ impl App {
 pub(crate) struct Running {
     /// `http://` and the address.
     pub url: String,
+    app: Arc<App>,
     shutdown: Option<tokio::sync::oneshot::Sender<()>>,
     server: tokio::task::JoinHandle<()>,
     pool: Option<pool::Pool>,
@@ -128,6 +141,7 @@ pub(crate) struct Running {
 impl Running {
     /// Stops the HTTP server and the local workers.
     pub async fn stop(mut self) {
+        self.app.stopping.store(true, Ordering::Relaxed);
         if let Some(p) = self.pool.take() {
             p.stop().await;
         }
@@ -177,11 +191,19 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
         work: Notify::new(),
         runtimes: Mutex::new(HashMap::new()),
         metrics: Metrics::default(),
+        stopping: AtomicBool::new(false),
+        recovering: Mutex::new(HashSet::new()),
     });
     if cfg.client_token.is_none() && cfg.worker_token.is_none() {
         tracing::warn!("no tokens given: serving {addr} (loopback only) without authentication");
     }
-    jobs::recover(&app).await?;
+    // Recovery runs in the background: the API answers at once, also with a large backlog.
+    {
+        let active = app.db().active_jobs()?;
+        let mut r = app.recovering.lock().unwrap_or_else(|e| e.into_inner());
+        r.extend(active.into_iter().map(|j| j.id));
+    }
+    tokio::spawn(jobs::recover(app.clone()));
     let router = api::router(app.clone());
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
     let server = tokio::spawn(async move {
@@ -195,6 +217,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
     tokio::spawn(jobs::reaper(app.clone()));
     let pool = (cfg.workers > 0).then(|| pool::Pool::spawn(app.clone(), &url));
     Ok(Running {
+        app,
         url,
         shutdown: Some(tx),
         server,

@@ -416,21 +416,35 @@ impl Store {
         .collect()
     }
 
-    /// Creates the tasks of one pass (idempotent).
-    pub fn create_pass(
+    /// Creates the tasks of `tiles` of one pass in one transaction (idempotent). Callers create
+    /// a pass in bounded chunks, in tile order, so that a pass with tile `t` has every tile
+    /// before it.
+    pub fn create_tasks(
         &self,
         id: &str,
         pass: u32,
-        tiles: u32,
-        range: std::ops::Range<u32>,
+        tiles: std::ops::Range<u32>,
+        samples: std::ops::Range<u32>,
     ) -> rusqlite::Result<()> {
-        let mut st = self.conn.prepare(
-            "INSERT OR IGNORE INTO tasks (job_id, pass, tile, s0, s1, state) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
-        )?;
-        for t in 0..tiles {
-            st.execute(params![id, pass, t, range.start, range.end, T_QUEUED])?;
+        let tx = self.conn.unchecked_transaction()?;
+        {
+            let mut st = tx.prepare_cached(
+                "INSERT OR IGNORE INTO tasks (job_id, pass, tile, s0, s1, state) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+            )?;
+            for t in tiles {
+                st.execute(params![id, pass, t, samples.start, samples.end, T_QUEUED])?;
+            }
         }
-        Ok(())
+        tx.commit()
+    }
+
+    /// The highest tile of a pass that has its task (None: the pass has none).
+    pub fn last_tile(&self, id: &str, pass: u32) -> rusqlite::Result<Option<u32>> {
+        self.conn.query_row(
+            "SELECT MAX(tile) FROM tasks WHERE job_id = ?1 AND pass = ?2",
+            params![id, pass],
+            |r| r.get(0),
+        )
     }
 
     /// The highest pass with tasks, if any.
@@ -441,12 +455,13 @@ impl Store {
             })
     }
 
-    /// (done, total) tasks of a pass.
-    pub fn pass_progress(&self, id: &str, pass: u32) -> rusqlite::Result<(u32, u32)> {
+    /// Whether a task of the pass is still queued or leased.
+    pub fn pass_open(&self, id: &str, pass: u32) -> rusqlite::Result<bool> {
         self.conn.query_row(
-            "SELECT COALESCE(SUM(state = ?3), 0), COUNT(*) FROM tasks WHERE job_id = ?1 AND pass = ?2",
-            params![id, pass, T_DONE],
-            |r| Ok((r.get(0)?, r.get(1)?)),
+            "SELECT EXISTS (SELECT 1 FROM tasks WHERE state IN (?3, ?4) AND job_id = ?1 \
+             AND pass = ?2)",
+            params![id, pass, T_QUEUED, T_LEASED],
+            |r| r.get(0),
         )
     }
 
@@ -490,15 +505,28 @@ impl Store {
     /// Leases the first queued task of the oldest active job (passes in order) to `worker`.
     pub fn lease(&self, worker: &str, lease_s: f64) -> rusqlite::Result<Option<TaskRow>> {
         let tx = self.conn.unchecked_transaction()?;
-        let id: Option<i64> = tx
-            .query_row(
-                "SELECT t.id FROM tasks t JOIN jobs j ON j.id = t.job_id \
-                 WHERE t.state = ?1 AND j.state IN (?2, ?3) \
-                 ORDER BY j.seq, t.pass, t.tile LIMIT 1",
-                params![T_QUEUED, J_QUEUED, J_RUNNING],
-                |r| r.get(0),
-            )
-            .optional()?;
+        // Job by job (few), each an index lookup of (state, job, pass, tile): no sort of the
+        // queue, however many tasks it holds.
+        let jobs: Vec<String> = {
+            let mut st =
+                tx.prepare_cached("SELECT id FROM jobs WHERE state IN (?1, ?2) ORDER BY seq")?;
+            st.query_map(params![J_QUEUED, J_RUNNING], |r| r.get(0))?
+                .collect::<rusqlite::Result<_>>()?
+        };
+        let mut id: Option<i64> = None;
+        for job in &jobs {
+            id = tx
+                .query_row(
+                    "SELECT id FROM tasks WHERE state = ?1 AND job_id = ?2 \
+                     ORDER BY pass, tile LIMIT 1",
+                    params![T_QUEUED, job],
+                    |r| r.get(0),
+                )
+                .optional()?;
+            if id.is_some() {
+                break;
+            }
+        }
         let Some(id) = id else {
             return Ok(None);
         };

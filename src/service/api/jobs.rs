@@ -33,7 +33,11 @@ pub(crate) async fn create_job(State(app): State<AppState>, body: Bytes) -> ApiR
     let job = tokio::task::spawn_blocking(move || create_job_blocking(&a, req))
         .await
         .map_err(ApiError::internal)??;
-    app.work.notify_waiters();
+    // Its tasks are created in the background, chunk by chunk (the first ones are leased while
+    // the rest are made): a large frame does not hold up this answer or the store.
+    let a = app.clone();
+    let id = job.id.clone();
+    tokio::task::spawn_blocking(move || jobs::advance(&a, &id));
     let status = job_status(&app, &job)?;
     Ok((
         StatusCode::CREATED,
@@ -79,11 +83,6 @@ fn create_job_blocking(app: &App, req: JobRequest) -> ApiResult<JobRow> {
         reference: reference.as_deref(),
         accum_bytes: accum,
     })?;
-    let row = app
-        .db()
-        .job(&id)?
-        .ok_or_else(|| ApiError::internal("job vanished"))?;
-    jobs::ensure_passes(app, &row, &resolved)?;
     app.event(
         &id,
         JobEvent::Queued(QueuedEvent {
@@ -103,7 +102,7 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
     let settings = serde_json::from_str(&job.settings)
         .map_err(|e| ApiError::internal(format!("job {}: bad settings: {e}", job.id)))?;
     let series = app.db().series(&job.id)?;
-    let tiles = r.tiles().len() as u32;
+    let tiles = jobs::tile_count(&r);
     let active = job.state.is_active();
     let tiles_done = if active {
         app.db().tasks_done(&job.id)?

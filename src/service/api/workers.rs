@@ -84,10 +84,7 @@ pub(crate) async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult
         };
         if let Some((task, Some(job))) = leased {
             let res = jobs::resolved_of(&job).map_err(ApiError::internal)?;
-            let rect = res
-                .tiles()
-                .get(task.tile as usize)
-                .copied()
+            let rect = jobs::tile_rect(&res, task.tile)
                 .ok_or_else(|| ApiError::internal("tile index out of range"))?;
             let lease = Lease {
                 task: LeasedTask {
@@ -249,7 +246,7 @@ pub(crate) async fn upload_result(
     let checked = tokio::task::spawn_blocking(move || -> ApiResult<Option<String>> {
         let r = jobs::resolved_of(&job).map_err(ApiError::internal)?;
         let layout = r.film_layout();
-        let tile = r.tiles().get(t.tile as usize).copied();
+        let tile = jobs::tile_rect(&r, t.tile);
         let problem = match TileFilm::decode(&body, r.width, r.height, &layout) {
             Err(e) => Some(e.to_string()),
             Ok((f, range)) if Some(f.tile) != tile || range != (t.s0..t.s1) => Some(format!(
