@@ -1219,6 +1219,105 @@ fn too_many_tiles_are_refused_and_a_large_job_keeps_the_api_responsive_across_a_
     }
 }
 
+/// A real little EXR (8x8, ZIP) whose header then claims a `w` x `h` data window.
+fn exr_claiming(dir: &Path, w: i32, h: i32) -> Vec<u8> {
+    let path = dir.join("small.exr");
+    let img = Image::new(8, 8);
+    exr_io::write_exr(&path, &img, &[], &[]).expect("write EXR");
+    let mut bytes = std::fs::read(&path).expect("read EXR");
+    let key = b"dataWindow\0box2i\0";
+    let at = bytes
+        .windows(key.len())
+        .position(|w| w == key)
+        .expect("a dataWindow attribute")
+        + key.len()
+        + 4;
+    for (k, v) in [0i32, 0, w - 1, h - 1].iter().enumerate() {
+        bytes[at + 4 * k..at + 4 * k + 4].copy_from_slice(&v.to_le_bytes());
+    }
+    bytes
+}
+
+/// A 1x1 EXR with `n` channels.
+fn exr_with_channels(dir: &Path, n: usize) -> Vec<u8> {
+    use exr::prelude::*;
+    let path = dir.join("channels.exr");
+    let channels: Vec<AnyChannel<FlatSamples>> = (0..n)
+        .map(|i| AnyChannel::new(format!("c{i:05}").as_str(), FlatSamples::F32(vec![0.0])))
+        .collect();
+    let layer = Layer::new(
+        (1, 1),
+        LayerAttributes::named("many"),
+        Encoding::UNCOMPRESSED,
+        AnyChannels::sort(channels.into()),
+    );
+    exr::image::Image::from_layer(layer)
+        .write()
+        .to_file(&path)
+        .expect("write EXR");
+    std::fs::read(&path).expect("read EXR")
+}
+
+/// Peak resident memory of a process in KiB.
+fn peak_rss_kib(pid: u32) -> u64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap_or_default()
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .unwrap_or(0)
+}
+
+#[test]
+fn a_reference_whose_header_claims_too_much_is_refused_before_decoding() {
+    let dir = folder("bomb");
+    let (server, url) = serve(&dir.join("data"), &[]);
+    let c = http();
+    let rss0 = peak_rss_kib(server.0.id());
+    for (body, needle) in [
+        (exr_claiming(&dir, 16384, 16384), "16384x16384"),
+        (exr_with_channels(&dir, 1100), "channels"),
+    ] {
+        let t = Instant::now();
+        let r = c
+            .post(format!("{url}/v1/references"))
+            .body(body)
+            .send()
+            .expect("POST");
+        let status = r.status().as_u16();
+        let v: Value = r.json().expect("JSON");
+        assert_eq!((status, v["field"].as_str()), (422, Some("body")), "{v}");
+        assert!(
+            v["error"].as_str().unwrap_or("").contains(needle),
+            "{v} should mention {needle}"
+        );
+        assert!(
+            t.elapsed() < Duration::from_secs(5),
+            "took {:?}",
+            t.elapsed()
+        );
+    }
+    let grew = peak_rss_kib(server.0.id()).saturating_sub(rss0);
+    assert!(
+        grew < 200 << 10,
+        "the server's peak memory grew by {grew} KiB"
+    );
+    // A reference within the limits is still taken.
+    let path = dir.join("ok.exr");
+    exr_io::write_exr(&path, &Image::new(8, 6), &[], &[]).expect("write");
+    let r = c
+        .post(format!("{url}/v1/references"))
+        .body(std::fs::read(&path).expect("read"))
+        .send()
+        .expect("POST");
+    assert_eq!(r.status().as_u16(), 201);
+    let v: Value = r.json().expect("JSON");
+    assert_eq!(
+        (v["width"].as_u64(), v["height"].as_u64()),
+        (Some(8), Some(6))
+    );
+}
+
 #[test]
 fn settings_are_validated_wherever_they_come_from() {
     let dir = folder("resolved");

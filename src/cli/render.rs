@@ -11,6 +11,7 @@ use crate::film::{Image, exr_io, metrics, png};
 use crate::job::{Limits, Resolved};
 use crate::scene::Scene;
 use crate::service;
+use crate::service::exr_header;
 use crate::service::protocol::{JobState, SceneSource};
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -59,6 +60,7 @@ struct Done {
 }
 
 fn read_reference(p: &Path, r: &Resolved) -> Result<Image> {
+    exr_header::check_cli(p).map_err(anyhow::Error::msg)?;
     let img = exr_io::read_exr(p).map_err(anyhow::Error::msg)?;
     if img.width != r.width as usize || img.height != r.height as usize {
         bail!(

@@ -4,6 +4,7 @@
 
 pub mod api;
 pub(crate) mod bundle;
+pub(crate) mod exr_header;
 pub(crate) mod jobs;
 pub(crate) mod pool;
 pub mod protocol;

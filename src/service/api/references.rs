@@ -5,7 +5,7 @@ use super::errors::{ApiError, ApiResult, bad};
 use super::{AppState, is_safe_id};
 use crate::film::exr_io;
 use crate::service::protocol::{JobState, ReferenceInfo, ReferenceSource};
-use crate::service::{App, store};
+use crate::service::{App, exr_header, store};
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::State;
@@ -19,8 +19,25 @@ pub(crate) async fn upload_reference(
 ) -> ApiResult<Response> {
     let id = uuid::Uuid::new_v4().to_string();
     let path = app.paths.reference(&id);
+    let max = app.cfg.limits.max_resolution as usize;
     let img = tokio::task::spawn_blocking(move || {
         store::write_atomic(&path, &body).map_err(ApiError::internal)?;
+        // The header first: a small file can claim (and hold, compressed) a huge frame. At
+        // most an RGBA image at the largest resolution a job may have.
+        let max_samples = 4 * (max as u64) * (max as u64);
+        if let Err(e) = exr_header::check(&path, max, max_samples) {
+            let _ = std::fs::remove_file(&path);
+            let status = if e.starts_with("not a readable EXR") {
+                StatusCode::BAD_REQUEST
+            } else {
+                StatusCode::UNPROCESSABLE_ENTITY
+            };
+            return Err(ApiError::field(
+                status,
+                "body",
+                format!("the reference must be an OpenEXR image within the limits: {e}"),
+            ));
+        }
         exr_io::read_exr(&path).map_err(|e| {
             let _ = std::fs::remove_file(&path);
             let msg = e.replace(&format!("{}: ", path.display()), "");
