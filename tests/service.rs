@@ -1367,3 +1367,82 @@ fn settings_are_validated_wherever_they_come_from() {
         assert_eq!((s, v["field"].as_str()), (422, Some(field)), "{v}");
     }
 }
+
+/// A tar archive of `files` (path, contents).
+fn tar_of(files: &[(String, Vec<u8>)]) -> Vec<u8> {
+    let mut b = tar::Builder::new(Vec::new());
+    for (path, data) in files {
+        let mut h = tar::Header::new_gnu();
+        h.set_size(data.len() as u64);
+        h.set_mode(0o644);
+        h.set_cksum();
+        b.append_data(&mut h, path, data.as_slice())
+            .expect("append");
+    }
+    b.into_inner().expect("tar")
+}
+
+#[test]
+fn bundles_and_library_names_cannot_abuse_the_server() {
+    let dir = folder("bundles");
+    let (_server, url) = serve(&dir.join("data"), &[]);
+    let c = http();
+    let scene = serde_json::to_vec(&inline_furnace(json!({ "spp": 4 }))).expect("JSON");
+    let upload = |tar: Vec<u8>| -> (u16, Value) {
+        let r = c
+            .post(format!("{url}/v1/scenes"))
+            .body(tar)
+            .send()
+            .expect("POST");
+        (r.status().as_u16(), r.json().unwrap_or(Value::Null))
+    };
+    // A scene with 10,000 other files: more entries than a bundle may have.
+    let mut files = vec![("scene.json".to_string(), scene.clone())];
+    files.extend((0..10_000).map(|i| (format!("junk/{i}"), Vec::new())));
+    let (s, v) = upload(tar_of(&files));
+    assert_eq!((s, v["field"].as_str()), (400, Some("body")), "{v}");
+    assert!(v["error"].as_str().unwrap_or("").contains("10000"), "{v}");
+    // A GNU sparse entry is called what it is.
+    // (512 bytes of data at offset 0 of a 1 MiB file, as `tar --sparse` writes it.)
+    let mut sparse = tar::Header::new_gnu();
+    sparse.set_path("holes.bin").expect("path");
+    sparse.set_entry_type(tar::EntryType::GNUSparse);
+    sparse.set_size(512);
+    let gnu = sparse.as_gnu_mut().expect("a GNU header");
+    gnu.set_real_size(1 << 20);
+    gnu.sparse[0].set_offset(0);
+    gnu.sparse[0].set_length(512);
+    sparse.set_cksum();
+    let mut tar = tar_of(&[("scene.json".into(), scene.clone())]);
+    tar.truncate(tar.len() - 1024); // the end-of-archive blocks
+    tar.extend_from_slice(sparse.as_bytes());
+    tar.extend_from_slice(&[7u8; 512]);
+    tar.extend_from_slice(&[0u8; 1024]);
+    let (s, v) = upload(tar);
+    assert_eq!(s, 400, "{v}");
+    let e = v["error"].as_str().unwrap_or("");
+    assert!(e.contains("sparse") && !e.contains("link"), "{v}");
+    // The scene alone is fine.
+    let (s, v) = upload(tar_of(&[("scene.json".into(), scene)]));
+    assert_eq!(s, 201, "{v}");
+    // A library file that is not a scene: refused, and without the server's folders.
+    let library = repo().join("scenes");
+    for name in ["README.md", "README"] {
+        let (s, v) = post(
+            &c,
+            &format!("{url}/v1/jobs"),
+            &json!({ "scene": { "library": name } }),
+        );
+        assert_eq!(
+            (s, v["field"].as_str()),
+            (400, Some("scene.library")),
+            "{v}"
+        );
+        let text = v.to_string();
+        assert!(
+            !text.contains(library.to_str().expect("utf-8"))
+                && !text.contains(&*dir.to_string_lossy()),
+            "{v} shows a server path"
+        );
+    }
+}

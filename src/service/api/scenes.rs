@@ -45,7 +45,11 @@ pub(crate) fn scene_meta(app: &App, id: &str) -> Option<SceneMeta> {
     serde_json::from_slice(&bytes).ok()
 }
 
-/// A library scene file by name: `name` or `name.json|.pbrt|.xml`, directly in the library.
+/// The extensions of scene files.
+const SCENE_EXTENSIONS: [&str; 3] = [".json", ".pbrt", ".xml"];
+
+/// A library scene file by name: `name.json|.pbrt|.xml`, or `name` itself when it has one of
+/// those extensions, directly in the library (what GET /v1/scenes lists, nothing else).
 fn library_file(app: &App, name: &str) -> ApiResult<std::path::PathBuf> {
     let lib = app
         .cfg
@@ -58,17 +62,33 @@ fn library_file(app: &App, name: &str) -> ApiResult<std::path::PathBuf> {
             format!("'{name}' is not a scene name (letters, digits, - _ . only; no paths)"),
         ));
     }
-    let candidates = [
-        name.to_string(),
-        format!("{name}.json"),
-        format!("{name}.pbrt"),
-        format!("{name}.xml"),
-    ];
+    let has_extension = SCENE_EXTENSIONS
+        .iter()
+        .any(|e| name.to_ascii_lowercase().ends_with(e));
+    let candidates: Vec<String> = if has_extension {
+        vec![name.to_string()]
+    } else {
+        SCENE_EXTENSIONS
+            .iter()
+            .map(|e| format!("{name}{e}"))
+            .collect()
+    };
     candidates
         .iter()
         .map(|c| lib.join(c))
         .find(|p| p.is_file())
-        .ok_or_else(|| bad("scene.library", format!("no scene '{name}' in the library")))
+        .ok_or_else(|| {
+            bad(
+                "scene.library",
+                format!("no scene '{name}' in the library (GET /v1/scenes lists them)"),
+            )
+        })
+}
+
+/// `msg` without the server's folder `dir` (errors name files relative to it).
+fn hide_folder(msg: &str, dir: &std::path::Path) -> String {
+    let d = dir.display().to_string();
+    msg.replace(&format!("{d}/"), "").replace(&d, ".")
 }
 
 fn library_names(app: &App) -> Vec<String> {
@@ -80,7 +100,7 @@ fn library_names(app: &App) -> Vec<String> {
             rd.filter_map(|e| e.ok())
                 .filter_map(|e| e.file_name().to_str().map(str::to_string))
                 .filter_map(|n| {
-                    [".json", ".pbrt", ".xml"]
+                    SCENE_EXTENSIONS
                         .iter()
                         .find_map(|ext| n.strip_suffix(ext).map(str::to_string))
                 })
@@ -94,7 +114,9 @@ fn library_names(app: &App) -> Vec<String> {
 /// A library scene packed into a new bundle. Runs on a blocking thread.
 pub(crate) fn store_library(app: &App, name: &str) -> ApiResult<(SceneMeta, Scene)> {
     let path = library_file(app, name)?;
-    let (tar, main) = bundle::pack(&path).map_err(|e| bad("scene.library", e))?;
+    let lib = path.parent().unwrap_or(&path);
+    let (tar, main) =
+        bundle::pack(&path).map_err(|e| bad("scene.library", hide_folder(&e, lib)))?;
     store_bundle(app, &tar, Some(&main), "scene.library")
 }
 
@@ -119,8 +141,9 @@ pub(crate) fn store_inline(app: &App, scene: &serde_json::Value) -> ApiResult<(S
 pub(crate) fn load_bundle(app: &App, id: &str) -> ApiResult<(SceneMeta, Scene)> {
     let meta = scene_meta(app, id)
         .ok_or_else(|| bad("scene.bundle", format!("no scene bundle '{id}'")))?;
-    let path = app.paths.scene(id).join("files").join(&meta.main);
-    let scene = Scene::load(&path).map_err(|e| bad("scene.bundle", e.to_string()))?;
+    let files = app.paths.scene(id).join("files");
+    let scene = Scene::load(&files.join(&meta.main))
+        .map_err(|e| bad("scene.bundle", hide_folder(&e.to_string(), &files)))?;
     Ok((meta, scene))
 }
 
@@ -139,13 +162,9 @@ fn store_bundle(
         let files =
             bundle::unpack(tar, &files_dir, app.cfg.max_upload_bytes).map_err(|e| bad(field, e))?;
         let main = bundle::choose_main(&files, main).map_err(|e| bad(field, e))?;
-        let scene = Scene::load(&files_dir.join(&main)).map_err(|e| {
+        let scene = Scene::load(&files_dir.join(&main))
             // Name the file inside the bundle, not the server's path.
-            let msg = e
-                .to_string()
-                .replace(&format!("{}/", files_dir.display()), "");
-            bad(field, msg)
-        })?;
+            .map_err(|e| bad(field, hide_folder(&e.to_string(), &files_dir)))?;
         if scene.stats.triangles > app.cfg.limits.max_triangles {
             return Err(bad(
                 field,
