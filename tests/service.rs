@@ -569,6 +569,16 @@ fn bad_inputs_get_4xx_naming_the_problem_and_the_server_keeps_serving() {
         .send()
         .expect("DELETE");
     assert_eq!(r.status().as_u16(), 405);
+    let allow = r
+        .headers()
+        .get("allow")
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_string();
+    assert!(
+        allow.contains("GET") && allow.contains("POST"),
+        "Allow: {allow}"
+    );
     let v: Value = r.json().expect("JSON");
     assert_eq!(v["field"], "method");
     let r = c

@@ -79,6 +79,9 @@ pub(crate) struct ServeArgs {
     /// Seconds a worker may stay silent before its task is given to another.
     #[arg(long, default_value_t = 30.0)]
     pub lease_seconds: f64,
+    /// Longest wait of a worker's lease request for a task, in seconds (at most 30).
+    #[arg(long, default_value_t = 30.0)]
+    pub max_lease_wait: f64,
     /// Largest width or height of a job.
     #[arg(long, default_value_t = 8192)]
     pub max_resolution: u32,
@@ -106,6 +109,10 @@ pub(crate) fn serve(a: ServeArgs) -> Result<()> {
     cfg.workers = a.workers;
     cfg.worker_threads = a.worker_threads.max(1);
     cfg.lease_s = a.lease_seconds;
+    if !(0.0..=30.0).contains(&a.max_lease_wait) {
+        bail!("--max-lease-wait must be within 0 ..= 30 seconds");
+    }
+    cfg.max_lease_wait_s = a.max_lease_wait;
     cfg.limits = Limits {
         max_resolution: a.max_resolution,
         max_spp: a.max_spp,

@@ -39,6 +39,8 @@ pub(crate) struct Config {
     pub worker_threads: usize,
     /// Seconds a worker may stay silent before its lease is given to another.
     pub lease_s: f64,
+    /// Longest long poll of a lease request, in seconds (a worker asks for at most 30).
+    pub max_lease_wait_s: f64,
     /// Limits on jobs.
     pub limits: Limits,
     /// Largest request body (bundle, reference, task result).
@@ -60,6 +62,7 @@ impl Config {
             workers: 0,
             worker_threads: 1,
             lease_s: 30.0,
+            max_lease_wait_s: 30.0,
             limits: Limits::default(),
             max_upload_bytes: 1 << 30,
             worker_log: None,

@@ -117,6 +117,10 @@ pub(crate) async fn json_errors(State(app): State<AppState>, req: Request, next:
     if is_json {
         return r;
     }
+    // Keep what the framework said besides the body (the `Allow` of a 405).
+    let mut headers = r.headers().clone();
+    headers.remove(header::CONTENT_TYPE);
+    headers.remove(header::CONTENT_LENGTH);
     let text = match axum::body::to_bytes(r.into_body(), 64 << 10).await {
         Ok(b) => String::from_utf8_lossy(&b).into_owned(),
         Err(_) => String::new(),
@@ -136,5 +140,7 @@ pub(crate) async fn json_errors(State(app): State<AppState>, req: Request, next:
     } else {
         text
     };
-    ApiError::field(status, field, msg).into_response()
+    let mut out = ApiError::field(status, field, msg).into_response();
+    out.headers_mut().extend(headers);
+    out
 }

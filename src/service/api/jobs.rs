@@ -25,7 +25,7 @@ pub(crate) async fn create_job(State(app): State<AppState>, body: Bytes) -> ApiR
         .validate(&app.cfg.limits)
         .map_err(settings_error)?;
     if let Some(n) = &req.name
-        && (n.len() > 200 || n.chars().any(|c| c.is_control()))
+        && (n.chars().count() > 200 || n.chars().any(|c| c.is_control()))
     {
         return Err(bad("name", "at most 200 characters, no control characters"));
     }

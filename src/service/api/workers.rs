@@ -65,7 +65,10 @@ pub(crate) async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult
     if !app.db().touch_worker(&r.worker_id, None)? {
         return Err(unknown_worker());
     }
-    let wait = r.wait_s.unwrap_or(20.0).clamp(0.0, 30.0);
+    let wait = r
+        .wait_s
+        .unwrap_or(20.0)
+        .clamp(0.0, app.cfg.max_lease_wait_s.clamp(0.0, 30.0));
     let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(wait);
     loop {
         let notified = app.work.notified();
