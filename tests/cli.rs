@@ -430,3 +430,36 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
         "{err}"
     );
 }
+
+#[test]
+fn diff_and_compare_read_the_exr_header_before_the_pixels() {
+    let d = folder("bomb");
+    // A real 8x8 EXR whose header then claims a 20000x20000 data window.
+    let small = d.join("small.exr");
+    let img = omis::film::Image::new(8, 8);
+    omis::film::exr_io::write_exr(&small, &img, &[], &[]).expect("write EXR");
+    let mut bytes = std::fs::read(&small).expect("read");
+    let key = b"dataWindow\0box2i\0";
+    let at = bytes
+        .windows(key.len())
+        .position(|w| w == key)
+        .expect("a dataWindow attribute")
+        + key.len()
+        + 4;
+    for (k, v) in [0i32, 0, 19999, 19999].iter().enumerate() {
+        bytes[at + 4 * k..at + 4 * k + 4].copy_from_slice(&v.to_le_bytes());
+    }
+    let bomb = d.join("bomb.exr");
+    std::fs::write(&bomb, &bytes).expect("write");
+    let start = std::time::Instant::now();
+    assert_one_line_error(&omis(&["diff", s(&bomb), s(&small)]), "20000x20000");
+    assert_one_line_error(
+        &omis(&["diff", s(&small), s(&bomb), "--layers"]),
+        "20000x20000",
+    );
+    assert_one_line_error(
+        &omis(&["compare", "scenes/furnace.json", "--reference", s(&bomb)]),
+        "20000x20000",
+    );
+    assert!(start.elapsed() < std::time::Duration::from_secs(30));
+}

@@ -10,6 +10,7 @@ use crate::film::exr_io;
 use crate::job::Limits;
 use crate::scene::Scene;
 use crate::service::bundle;
+use crate::service::protocol::{JobEvent, JobState, SceneSource, WorkerList};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use serde_json::json;
@@ -72,30 +73,30 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
             // Let the workers start and register before the clock starts.
             let c = Client::new(&url, None)?;
             for _ in 0..200 {
-                let v: serde_json::Value = reqwest::get(format!("{url}/v1/workers"))
+                let v: WorkerList = reqwest::get(format!("{url}/v1/workers"))
                     .await?
                     .json()
                     .await?;
-                if v["workers"].as_array().map_or(0, |w| w.len()) >= n {
+                if v.workers.len() >= n {
                     break;
                 }
                 tokio::time::sleep(std::time::Duration::from_millis(50)).await;
             }
             let t0 = Instant::now();
-            let scene = json!({ "bundle": c.upload_bundle(tar.clone(), main.clone()).await? });
+            let scene = SceneSource::Bundle(c.upload_bundle(tar.clone(), main.clone()).await?);
             let st = submit_job(&c, scene, &a.job, None, None).await?;
-            let id = st["id"].as_str().unwrap_or_default().to_string();
+            let id = st.id.clone();
             let mut last_tile = Instant::now();
             let mut latencies = Vec::new();
             let state = c
-                .follow(&id, |e| match e.kind.as_str() {
-                    "tile_done" => last_tile = Instant::now(),
-                    "pass_done" => latencies.push(last_tile.elapsed().as_secs_f64()),
+                .follow(&id, |e| match e {
+                    JobEvent::TileDone(_) => last_tile = Instant::now(),
+                    JobEvent::PassDone(_) => latencies.push(last_tile.elapsed().as_secs_f64()),
                     _ => {}
                 })
                 .await?;
             let seconds = t0.elapsed().as_secs_f64();
-            if state != "done" {
+            if state != JobState::Done {
                 bail!("the job {state}");
             }
             let st = c.status(&id).await?;
@@ -110,8 +111,8 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
         let _ = server.wait();
         let (row, passes) = result?;
         let (st, seconds) = row;
-        let samples = st["samples"].as_f64().unwrap_or(0.0);
-        let bytes = st["result_bytes"].as_f64().unwrap_or(0.0);
+        let samples = st.samples as f64;
+        let bytes = st.result_bytes as f64;
         let mean_latency = passes.iter().sum::<f64>() / passes.len().max(1) as f64;
         images.push(exr_io::read_exr(&out).map_err(anyhow::Error::msg)?);
         rows.push(json!({

@@ -2,26 +2,24 @@
 //! embedded service behind `omis render`.
 
 use crate::service::bundle;
+use crate::service::protocol::{
+    ErrorBody, EventKind, JobEvent, JobRequest, JobState, JobStatus, ReferenceInfo, SceneMeta,
+    SceneSource,
+};
 use anyhow::{Context, Result, bail};
-use serde_json::{Value, json};
 use std::path::Path;
 use std::time::Duration;
 
-pub struct Client {
+/// A client of one coordinator (client token).
+pub(crate) struct Client {
     base: String,
     token: Option<String>,
     http: reqwest::Client,
 }
 
-/// One Server-Sent Event.
-#[derive(Debug, Default)]
-pub struct SseEvent {
-    pub kind: String,
-    pub data: Value,
-}
-
 impl Client {
-    pub fn new(base: &str, token: Option<String>) -> Result<Client> {
+    /// A client of the coordinator at `base` (an http:// URL).
+    pub(crate) fn new(base: &str, token: Option<String>) -> Result<Client> {
         let base = base.trim_end_matches('/').to_string();
         check_url(&base, "--server")?;
         let http = reqwest::Client::builder()
@@ -50,17 +48,22 @@ impl Client {
         }
         let status = r.status();
         let text = r.text().await.unwrap_or_default();
-        let msg = match serde_json::from_str::<Value>(&text) {
-            Ok(v) if v["error"].is_string() => match v["field"].as_str() {
-                Some(f) => format!("{} ({f})", v["error"].as_str().unwrap_or_default()),
-                None => v["error"].as_str().unwrap_or_default().to_string(),
-            },
-            _ => text,
+        let msg = match serde_json::from_str::<ErrorBody>(&text) {
+            Ok(ErrorBody {
+                error,
+                field: Some(f),
+            }) => format!("{error} ({f})"),
+            Ok(ErrorBody { error, field: None }) => error,
+            Err(_) => text,
         };
         bail!("{what}: HTTP {}: {msg}", status.as_u16())
     }
 
-    async fn json(&self, r: reqwest::RequestBuilder, what: &str) -> Result<Value> {
+    async fn json<T: serde::de::DeserializeOwned>(
+        &self,
+        r: reqwest::RequestBuilder,
+        what: &str,
+    ) -> Result<T> {
         self.send(r, what)
             .await?
             .json()
@@ -69,7 +72,7 @@ impl Client {
     }
 
     /// Uploads a scene file and everything it reads as a bundle; returns the bundle id.
-    pub async fn upload_scene(&self, scene: &Path) -> Result<String> {
+    pub(crate) async fn upload_scene(&self, scene: &Path) -> Result<String> {
         let s = scene.to_path_buf();
         let (tar, main) = tokio::task::spawn_blocking(move || bundle::pack(&s))
             .await?
@@ -78,8 +81,8 @@ impl Client {
     }
 
     /// Uploads a bundle made by `bundle::pack`; returns its id.
-    pub async fn upload_bundle(&self, tar: Vec<u8>, main: String) -> Result<String> {
-        let v = self
+    pub(crate) async fn upload_bundle(&self, tar: Vec<u8>, main: String) -> Result<String> {
+        let meta: SceneMeta = self
             .json(
                 self.req(reqwest::Method::POST, "/v1/scenes")
                     .query(&[("main", main)])
@@ -88,17 +91,15 @@ impl Client {
                 "uploading the scene",
             )
             .await?;
-        v["id"]
-            .as_str()
-            .map(str::to_string)
-            .context("uploading the scene: no id in the answer")
+        Ok(meta.id)
     }
 
-    pub async fn upload_reference(&self, exr: &Path) -> Result<String> {
+    /// Uploads a reference EXR; returns its id.
+    pub(crate) async fn upload_reference(&self, exr: &Path) -> Result<String> {
         let bytes = tokio::fs::read(exr)
             .await
             .with_context(|| format!("{}", exr.display()))?;
-        let v = self
+        let info: ReferenceInfo = self
             .json(
                 self.req(reqwest::Method::POST, "/v1/references")
                     .header("content-type", "image/x-exr")
@@ -106,13 +107,11 @@ impl Client {
                 "uploading the reference",
             )
             .await?;
-        v["id"]
-            .as_str()
-            .map(str::to_string)
-            .context("uploading the reference: no id in the answer")
+        Ok(info.id)
     }
 
-    pub async fn submit(&self, request: &Value) -> Result<Value> {
+    /// Submits a job; returns its status document.
+    pub(crate) async fn submit(&self, request: &JobRequest) -> Result<JobStatus> {
         self.json(
             self.req(reqwest::Method::POST, "/v1/jobs").json(request),
             "submitting the job",
@@ -120,7 +119,8 @@ impl Client {
         .await
     }
 
-    pub async fn status(&self, id: &str) -> Result<Value> {
+    /// A job's status document.
+    pub(crate) async fn status(&self, id: &str) -> Result<JobStatus> {
         self.json(
             self.req(reqwest::Method::GET, &format!("/v1/jobs/{id}")),
             "job status",
@@ -128,7 +128,8 @@ impl Client {
         .await
     }
 
-    pub async fn cancel(&self, id: &str) -> Result<Value> {
+    /// Cancels a job; returns its status document.
+    pub(crate) async fn cancel(&self, id: &str) -> Result<JobStatus> {
         self.json(
             self.req(reqwest::Method::POST, &format!("/v1/jobs/{id}/cancel")),
             "cancelling",
@@ -137,7 +138,7 @@ impl Client {
     }
 
     /// Downloads a job's file (image.exr, preview.png, ...) to `out`.
-    pub async fn download(&self, id: &str, file: &str, out: &Path) -> Result<usize> {
+    pub(crate) async fn download(&self, id: &str, file: &str, out: &Path) -> Result<usize> {
         let r = self
             .send(
                 self.req(reqwest::Method::GET, &format!("/v1/jobs/{id}/{file}")),
@@ -151,9 +152,14 @@ impl Client {
         Ok(bytes.len())
     }
 
-    /// Follows a job's events until it ends; calls `on_event` for each. Reconnects (with
-    /// Last-Event-ID) when the stream breaks.
-    pub async fn follow(&self, id: &str, mut on_event: impl FnMut(&SseEvent)) -> Result<String> {
+    /// Follows a job's events until it ends; calls `on_event` for each (events of kinds this
+    /// build does not know are skipped). Reconnects (with Last-Event-ID) when the stream
+    /// breaks. Returns the job's final state.
+    pub(crate) async fn follow(
+        &self,
+        id: &str,
+        mut on_event: impl FnMut(&JobEvent),
+    ) -> Result<JobState> {
         let mut last_id: Option<String> = None;
         let mut failures = 0;
         loop {
@@ -173,7 +179,7 @@ impl Client {
             };
             let mut resp = resp;
             let mut buf = String::new();
-            let mut ev = SseEvent::default();
+            let mut kind = String::new();
             let mut data = String::new();
             loop {
                 let chunk = match resp.chunk().await {
@@ -186,17 +192,21 @@ impl Client {
                     let line = buf[..nl].trim_end_matches('\r').to_string();
                     buf.drain(..=nl);
                     if line.is_empty() {
-                        if !ev.kind.is_empty() {
-                            ev.data = serde_json::from_str(&data).unwrap_or(Value::Null);
-                            on_event(&ev);
-                            if matches!(ev.kind.as_str(), "done" | "failed" | "cancelled") {
-                                return Ok(ev.kind.clone());
+                        if let Ok(k) = kind.parse::<EventKind>() {
+                            let event = serde_json::from_str(&data)
+                                .ok()
+                                .and_then(|d| JobEvent::parse(k, d).ok());
+                            if let Some(e) = &event {
+                                on_event(e);
+                            }
+                            if let Some(state) = final_state(k) {
+                                return Ok(state);
                             }
                         }
-                        ev = SseEvent::default();
+                        kind.clear();
                         data.clear();
                     } else if let Some(v) = line.strip_prefix("event:") {
-                        ev.kind = v.trim().to_string();
+                        kind = v.trim().to_string();
                     } else if let Some(v) = line.strip_prefix("data:") {
                         data.push_str(v.trim_start());
                     } else if let Some(v) = line.strip_prefix("id:") {
@@ -206,10 +216,8 @@ impl Client {
             }
             // The stream ended without a final event: ask for the state, then reconnect.
             let st = self.status(id).await?;
-            if let Some(s) = st["state"].as_str()
-                && matches!(s, "done" | "failed" | "cancelled")
-            {
-                return Ok(s.to_string());
+            if !st.state.is_active() {
+                return Ok(st.state);
             }
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
@@ -218,7 +226,7 @@ impl Client {
 
 /// Refuses what this build cannot reach: only plain http:// (no TLS is built in; put a TLS
 /// proxy in front of a coordinator that must be reached over an untrusted network).
-pub fn check_url(url: &str, flag: &str) -> Result<()> {
+pub(crate) fn check_url(url: &str, flag: &str) -> Result<()> {
     if url.starts_with("https://") {
         bail!(
             "{flag} '{url}': https is not built into omis; use http:// on a private network or a TLS-terminating proxy"
@@ -230,14 +238,26 @@ pub fn check_url(url: &str, flag: &str) -> Result<()> {
     Ok(())
 }
 
+/// The job state a terminal event kind stands for.
+fn final_state(kind: EventKind) -> Option<JobState> {
+    match kind {
+        EventKind::Done => Some(JobState::Done),
+        EventKind::Failed => Some(JobState::Failed),
+        EventKind::Cancelled => Some(JobState::Cancelled),
+        _ => None,
+    }
+}
+
 /// The job request for a scene argument: an existing file is uploaded as a bundle, anything
 /// else names a scene of the server's library.
-pub async fn scene_source(client: &Client, scene: &str) -> Result<Value> {
+pub(crate) async fn scene_source(client: &Client, scene: &str) -> Result<SceneSource> {
     let p = Path::new(scene);
     if p.is_file() {
-        Ok(json!({ "bundle": client.upload_scene(p).await? }))
+        Ok(SceneSource::Bundle(client.upload_scene(p).await?))
     } else if p.components().count() == 1 && !scene.contains('.') || scene.starts_with("library:") {
-        Ok(json!({ "library": scene.trim_start_matches("library:") }))
+        Ok(SceneSource::Library(
+            scene.trim_start_matches("library:").to_string(),
+        ))
     } else {
         bail!("{scene}: no such scene file (a bare name is looked up in the server's library)")
     }

@@ -9,6 +9,7 @@ use crate::integrator::{IntegratorKind, RenderSettings};
 use crate::job::{RenderOutput, Resolved};
 use crate::mis::MisKind;
 use crate::scene::Scene;
+use crate::service::exr_header;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::PathBuf;
@@ -143,6 +144,8 @@ pub fn run(a: CompareArgs) -> Result<()> {
     if a.spp.contains(&0) {
         bail!("--spp values must be >= 1");
     }
+    // The header first: a small file can claim a frame too large to decode.
+    exr_header::check_cli(&a.reference).map_err(anyhow::Error::msg)?;
     let layers = exr_io::read_exr_layers(&a.reference).map_err(anyhow::Error::msg)?;
     let reference = layers
         .iter()

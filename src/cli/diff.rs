@@ -2,6 +2,7 @@
 //! reference, the signed error map, and with `--layers` every EXR layer the two files share.
 
 use crate::film::{exr_io, metrics, png};
+use crate::service::exr_header;
 use anyhow::{Result, bail};
 use clap::Args;
 use std::path::PathBuf;
@@ -34,6 +35,7 @@ pub fn run(a: DiffArgs) -> Result<()> {
     if a.layers {
         return run_layers(&a);
     }
+    check_headers(&a)?;
     let img = exr_io::read_exr(&a.image).map_err(anyhow::Error::msg)?;
     let reference = exr_io::read_exr(&a.reference).map_err(anyhow::Error::msg)?;
     let s = metrics::compare(&img, &reference, a.eps).map_err(anyhow::Error::msg)?;
@@ -61,7 +63,16 @@ pub fn run(a: DiffArgs) -> Result<()> {
 }
 
 /// Every shared layer, by name; with `--eps 0` an error unless every one is bit-identical.
+/// Both files' headers, before decoding: a small file can claim a frame too large to decode.
+fn check_headers(a: &DiffArgs) -> Result<()> {
+    for p in [&a.image, &a.reference] {
+        exr_header::check_cli(p).map_err(anyhow::Error::msg)?;
+    }
+    Ok(())
+}
+
 fn run_layers(a: &DiffArgs) -> Result<()> {
+    check_headers(a)?;
     let img = exr_io::read_exr_layers(&a.image).map_err(anyhow::Error::msg)?;
     let reference = exr_io::read_exr_layers(&a.reference).map_err(anyhow::Error::msg)?;
     let mut rows = Vec::new();

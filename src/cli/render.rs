@@ -11,6 +11,8 @@ use crate::film::{Image, exr_io, metrics, png};
 use crate::job::{Limits, Resolved};
 use crate::scene::Scene;
 use crate::service;
+use crate::service::exr_header;
+use crate::service::protocol::{JobState, SceneSource};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -58,6 +60,7 @@ struct Done {
 }
 
 fn read_reference(p: &Path, r: &Resolved) -> Result<Image> {
+    exr_header::check_cli(p).map_err(anyhow::Error::msg)?;
     let img = exr_io::read_exr(p).map_err(anyhow::Error::msg)?;
     if img.width != r.width as usize || img.height != r.height as usize {
         bail!(
@@ -178,15 +181,15 @@ fn through_service(
         let result = async {
             let start = std::time::Instant::now();
             let c = Client::new(&running.url, None)?;
-            let scene = serde_json::json!({ "bundle": c.upload_bundle(tar, main).await? });
+            let scene = SceneSource::Bundle(c.upload_bundle(tar, main).await?);
             let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), None).await?;
-            let id = st["id"].as_str().unwrap_or_default().to_string();
+            let id = st.id.clone();
             let state = wait_job(&c, &st, false).await?;
             let st = c.status(&id).await?;
-            if state != "done" {
+            if state != JobState::Done {
                 bail!(
                     "the render {state}: {}",
-                    st["error"].as_str().unwrap_or("no error given")
+                    st.error.as_deref().unwrap_or("no error given")
                 );
             }
             c.download(&id, "image.exr", out).await?;
@@ -202,17 +205,16 @@ fn through_service(
     let _ = std::fs::remove_dir_all(&data);
     let (st, seconds) = result?;
     let image = exr_io::read_exr(out).map_err(anyhow::Error::msg)?;
-    let rays = st["rays"].as_u64().unwrap_or(0);
     Ok(Done {
         image,
         stats: RayStats {
-            closest: rays,
+            closest: st.rays.max(0) as u64,
             shadow: 0,
-            samples: st["samples"].as_u64().unwrap_or(0),
-            non_finite: st["non_finite_samples"].as_u64().unwrap_or(0),
+            samples: st.samples.max(0) as u64,
+            non_finite: st.non_finite_samples.max(0) as u64,
         },
         seconds,
-        spp: st["spp_done"].as_u64().unwrap_or(0) as u32,
+        spp: st.spp_done,
         threads: workers,
         mode: format!("{workers} worker processes"),
         bytes_per_pixel,

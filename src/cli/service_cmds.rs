@@ -4,11 +4,13 @@ use super::client::{self, Client};
 use super::job_args::JobArgs;
 use crate::job::Limits;
 use crate::service;
+use crate::service::protocol::{
+    JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource,
+};
 use crate::worker;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use serde_json::{Value, json};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -48,7 +50,7 @@ pub(crate) fn init_logging() {
 }
 
 #[derive(Args)]
-pub struct ServeArgs {
+pub(crate) struct ServeArgs {
     /// Address to listen on (port 0 = any free port; the address is printed).
     #[arg(long, default_value = "127.0.0.1:8570")]
     pub bind: SocketAddr,
@@ -77,6 +79,9 @@ pub struct ServeArgs {
     /// Seconds a worker may stay silent before its task is given to another.
     #[arg(long, default_value_t = 30.0)]
     pub lease_seconds: f64,
+    /// Longest wait of a worker's lease request for a task, in seconds (at most 30).
+    #[arg(long, default_value_t = 30.0)]
+    pub max_lease_wait: f64,
     /// Largest width or height of a job.
     #[arg(long, default_value_t = 8192)]
     pub max_resolution: u32,
@@ -84,12 +89,15 @@ pub struct ServeArgs {
     pub max_spp: u32,
     #[arg(long, default_value_t = 20_000_000)]
     pub max_triangles: usize,
+    /// Most tiles of a frame, i.e. tasks of one pass (the database holds a row per task).
+    #[arg(long, default_value_t = 65536)]
+    pub max_tasks_per_pass: u32,
     /// Largest upload (scene bundle, reference, task result) in MiB.
     #[arg(long, default_value_t = 1024)]
     pub max_upload_mb: u64,
 }
 
-pub fn serve(a: ServeArgs) -> Result<()> {
+pub(crate) fn serve(a: ServeArgs) -> Result<()> {
     init_logging();
     if !(a.lease_seconds >= 1.0 && a.lease_seconds.is_finite()) {
         bail!("--lease-seconds must be >= 1");
@@ -101,14 +109,20 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     cfg.workers = a.workers;
     cfg.worker_threads = a.worker_threads.max(1);
     cfg.lease_s = a.lease_seconds;
+    if !(0.0..=30.0).contains(&a.max_lease_wait) {
+        bail!("--max-lease-wait must be within 0 ..= 30 seconds");
+    }
+    cfg.max_lease_wait_s = a.max_lease_wait;
     cfg.limits = Limits {
         max_resolution: a.max_resolution,
         max_spp: a.max_spp,
         max_triangles: a.max_triangles,
+        max_tasks_per_pass: a.max_tasks_per_pass.max(1),
         ..Limits::default()
     };
     cfg.max_upload_bytes = a.max_upload_mb.saturating_mul(1 << 20);
-    runtime()?.block_on(async move {
+    let rt = runtime()?;
+    let result = rt.block_on(async move {
         let running = service::start(cfg).await?;
         // The first line of stdout is the address (scripts and tests read it).
         println!("listening on {}", running.url);
@@ -120,11 +134,14 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         tracing::info!("stopping: draining local workers");
         running.stop().await;
         Ok(())
-    })
+    });
+    // Background work (task creation, merges) stops at its next chunk; never wait forever.
+    rt.shutdown_timeout(std::time::Duration::from_secs(10));
+    result
 }
 
 #[derive(Args)]
-pub struct WorkerArgs {
+pub(crate) struct WorkerArgs {
     /// The coordinator's URL, e.g. http://render-host:8570.
     #[arg(long, env = "OMIS_COORDINATOR")]
     pub coordinator: String,
@@ -146,7 +163,7 @@ pub struct WorkerArgs {
     pub exit_with_parent: bool,
 }
 
-pub fn worker(a: WorkerArgs) -> Result<()> {
+pub(crate) fn worker(a: WorkerArgs) -> Result<()> {
     init_logging();
     let threads = if a.threads == 0 {
         std::thread::available_parallelism().map_or(1, |n| n.get())
@@ -173,7 +190,7 @@ pub fn worker(a: WorkerArgs) -> Result<()> {
 }
 
 #[derive(Args, Clone)]
-pub struct ServerArgs {
+pub(crate) struct ServerArgs {
     /// The coordinator's URL.
     #[arg(long, env = "OMIS_SERVER", default_value = "http://127.0.0.1:8570")]
     pub server: String,
@@ -194,7 +211,7 @@ impl ServerArgs {
 }
 
 #[derive(Args)]
-pub struct SubmitArgs {
+pub(crate) struct SubmitArgs {
     /// A scene file (uploaded with the files it reads) or the name of a library scene.
     pub scene: String,
     #[command(flatten)]
@@ -218,27 +235,30 @@ pub struct SubmitArgs {
 /// Builds a job request and submits it; returns the job's status document.
 pub(crate) async fn submit_job(
     c: &Client,
-    scene: Value,
+    scene: SceneSource,
     job: &JobArgs,
     reference: Option<&std::path::Path>,
     name: Option<&str>,
-) -> Result<Value> {
+) -> Result<JobStatus> {
     let settings = job.settings()?;
-    let mut req = json!({ "scene": scene, "settings": settings });
-    if let Some(r) = reference {
-        req["reference"] = json!({ "upload": c.upload_reference(r).await? });
-    }
-    if let Some(n) = name {
-        req["name"] = json!(n);
-    }
+    let reference = match reference {
+        Some(r) => Some(ReferenceSource::Upload(c.upload_reference(r).await?)),
+        None => None,
+    };
+    let req = JobRequest {
+        scene,
+        settings,
+        reference,
+        name: name.map(str::to_string),
+    };
     c.submit(&req).await
 }
 
 /// Follows a job with a progress bar over its tiles; returns its final state.
-pub(crate) async fn wait_job(c: &Client, status: &Value, quiet: bool) -> Result<String> {
-    let id = status["id"].as_str().unwrap_or_default().to_string();
-    let tiles = status["tiles_per_pass"].as_u64().unwrap_or(1);
-    let total = status["passes_total"].as_u64().map(|p| p * tiles);
+pub(crate) async fn wait_job(c: &Client, status: &JobStatus, quiet: bool) -> Result<JobState> {
+    let id = &status.id;
+    let tiles = status.tiles_per_pass as u64;
+    let total = status.passes_total.map(|p| p as u64 * tiles);
     let bar = if quiet {
         ProgressBar::hidden()
     } else {
@@ -251,11 +271,11 @@ pub(crate) async fn wait_job(c: &Client, status: &Value, quiet: bool) -> Result<
         .expect("valid template"),
     );
     let state = c
-        .follow(&id, |e| match e.kind.as_str() {
-            "tile_done" => bar.inc(1),
-            "pass_done" => {
-                let spp = e.data["spp"].as_u64().unwrap_or(0);
-                match e.data["relmse"].as_f64() {
+        .follow(id, |e| match e {
+            JobEvent::TileDone(_) => bar.inc(1),
+            JobEvent::PassDone(p) => {
+                let spp = p.spp;
+                match p.relmse {
                     Some(r) => bar.set_message(format!("{spp} spp, relMSE {r:.3e}")),
                     None => bar.set_message(format!("{spp} spp")),
                 }
@@ -270,12 +290,12 @@ pub(crate) async fn wait_job(c: &Client, status: &Value, quiet: bool) -> Result<
     Ok(state)
 }
 
-pub fn submit(a: SubmitArgs) -> Result<()> {
+pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
     runtime()?.block_on(async move {
         let c = a.server.client()?;
         let scene = client::scene_source(&c, &a.scene).await?;
         let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), a.name.as_deref()).await?;
-        let id = st["id"].as_str().unwrap_or_default().to_string();
+        let id = st.id.clone();
         if !a.wait {
             println!("{id}");
             return Ok(());
@@ -283,10 +303,10 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
         eprintln!("job {id}");
         let state = wait_job(&c, &st, false).await?;
         let st = c.status(&id).await?;
-        if state != "done" {
+        if state != JobState::Done {
             bail!(
                 "job {id} {state}: {}",
-                st["error"].as_str().unwrap_or("no error given")
+                st.error.as_deref().unwrap_or("no error given")
             );
         }
         if let Some(out) = &a.out {
@@ -299,14 +319,14 @@ pub fn submit(a: SubmitArgs) -> Result<()> {
 }
 
 #[derive(Args)]
-pub struct IdArgs {
+pub(crate) struct IdArgs {
     /// The job id.
     pub id: String,
     #[command(flatten)]
     pub server: ServerArgs,
 }
 
-pub fn status(a: IdArgs) -> Result<()> {
+pub(crate) fn status(a: IdArgs) -> Result<()> {
     runtime()?.block_on(async move {
         let st = a.server.client()?.status(&a.id).await?;
         println!("{}", serde_json::to_string_pretty(&st)?);
@@ -314,16 +334,16 @@ pub fn status(a: IdArgs) -> Result<()> {
     })
 }
 
-pub fn cancel(a: IdArgs) -> Result<()> {
+pub(crate) fn cancel(a: IdArgs) -> Result<()> {
     runtime()?.block_on(async move {
         let st = a.server.client()?.cancel(&a.id).await?;
-        println!("{}", st["state"].as_str().unwrap_or_default());
+        println!("{}", st.state);
         Ok(())
     })
 }
 
 #[derive(Args)]
-pub struct DownloadArgs {
+pub(crate) struct DownloadArgs {
     /// The job id.
     pub id: String,
     /// Where to write the EXR.
@@ -336,7 +356,7 @@ pub struct DownloadArgs {
     pub server: ServerArgs,
 }
 
-pub fn download(a: DownloadArgs) -> Result<()> {
+pub(crate) fn download(a: DownloadArgs) -> Result<()> {
     if !matches!(
         a.file.as_str(),
         "image.exr" | "preview.png" | "error.png" | "convergence.svg"

@@ -112,6 +112,8 @@ pub struct Limits {
     pub max_spp: u32,
     pub max_triangles: usize,
     pub max_time_budget_s: f64,
+    /// Tiles of a frame, i.e. tasks of one pass: the coordinator keeps a row per task.
+    pub max_tasks_per_pass: u32,
 }
 
 impl Default for Limits {
@@ -121,8 +123,35 @@ impl Default for Limits {
             max_spp: 1 << 20,
             max_triangles: 50_000_000,
             max_time_budget_s: 7.0 * 24.0 * 3600.0,
+            // A frame at the largest resolution in tiles of the default size.
+            max_tasks_per_pass: 1 << 18,
         }
     }
+}
+
+/// Largest optimal-MIS regularisation (pseudo-samples toward balance).
+pub const MAX_KAPPA: f64 = 1e6;
+/// Shortest time budget in seconds.
+pub const MIN_TIME_BUDGET_S: f64 = 1e-3;
+
+/// Refuses a frame of more than `limits.max_tasks_per_pass` tiles (field `tile_size`).
+fn check_tiles(width: u32, height: u32, tile: u32, limits: &Limits) -> Result<(), FieldError> {
+    let tiles = |t: u64| (width as u64).div_ceil(t) * (height as u64).div_ceil(t);
+    let max = limits.max_tasks_per_pass as u64;
+    if tiles(tile.max(1) as u64) <= max {
+        return Ok(());
+    }
+    let smallest = (1..=width.max(height) as u64)
+        .find(|&t| tiles(t) <= max)
+        .unwrap_or(width.max(height) as u64);
+    Err(FieldError::new(
+        "tile_size",
+        format!(
+            "{width}x{height} in tiles of {tile} is {} tasks per pass, more than the limit of \
+             {max} (max_tasks_per_pass); use a tile_size of at least {smallest}",
+            tiles(tile.max(1) as u64)
+        ),
+    ))
 }
 
 /// A job's settings resolved against its scene: everything a worker needs to render a task.
@@ -198,11 +227,14 @@ impl JobSettings {
             ));
         }
         if let Some(t) = self.time_budget_s
-            && !(t > 0.0 && t <= limits.max_time_budget_s)
+            && !(t >= MIN_TIME_BUDGET_S && t <= limits.max_time_budget_s)
         {
             return Err(FieldError::new(
                 "time_budget_s",
-                format!("{t} is outside (0, {}] seconds", limits.max_time_budget_s),
+                format!(
+                    "{t} is outside [{MIN_TIME_BUDGET_S}, {}] seconds",
+                    limits.max_time_budget_s
+                ),
             ));
         }
         if self.mis == MisKind::Optimal && self.integrator != IntegratorKind::Bdpt {
@@ -233,8 +265,11 @@ impl JobSettings {
                 ),
             ));
         }
-        if !(self.kappa >= 0.0 && self.kappa.is_finite()) {
-            return Err(FieldError::new("kappa", "must be a finite number >= 0"));
+        if !(self.kappa >= 0.0 && self.kappa <= MAX_KAPPA) {
+            return Err(FieldError::new(
+                "kappa",
+                format!("must be a number within 0 ..= {MAX_KAPPA:e}"),
+            ));
         }
         if let Some(d) = self.max_depth
             && d > integrator::bdpt::MAX_DEPTH
@@ -259,11 +294,15 @@ impl JobSettings {
         if !(self.eps > 0.0 && self.eps.is_finite()) {
             return Err(FieldError::new("eps", "must be a finite number > 0"));
         }
+        if let Some([w, h]) = self.resolution {
+            check_tiles(w, h, self.tile_size, limits)?;
+        }
         Ok(())
     }
 
     /// Applies the resolution to the scene's camera and resolves the settings against the
-    /// scene's defaults. Call `validate` first.
+    /// scene's defaults, and checks the result against `limits` whichever of the two each
+    /// value came from.
     pub fn resolve(&self, scene: &mut Scene, limits: &Limits) -> Result<Resolved, FieldError> {
         self.validate(limits)?;
         if let Some([w, h]) = self.resolution {
@@ -273,15 +312,20 @@ impl JobSettings {
                 .map_err(|e| FieldError::new("resolution", e))?;
         }
         let (width, height) = (scene.camera.width, scene.camera.height);
-        if width > limits.max_resolution || height > limits.max_resolution {
+        if width == 0
+            || height == 0
+            || width > limits.max_resolution
+            || height > limits.max_resolution
+        {
             return Err(FieldError::new(
                 "resolution",
                 format!(
-                    "the scene's {width}x{height} exceeds {m}x{m}",
+                    "the scene's {width}x{height} is outside 1x1 .. {m}x{m}",
                     m = limits.max_resolution
                 ),
             ));
         }
+        check_tiles(width, height, self.tile_size, limits)?;
         if scene.stats.triangles > limits.max_triangles {
             return Err(FieldError::new(
                 "scene",
@@ -294,14 +338,26 @@ impl JobSettings {
         let spp = match (self.spp, self.time_budget_s) {
             (Some(s), _) => Some(s),
             (None, Some(_)) => None,
-            (None, None) => Some(scene.defaults.spp.unwrap_or(16).clamp(1, limits.max_spp)),
+            (None, None) => {
+                let s = scene.defaults.spp.unwrap_or(16);
+                if s == 0 || s > limits.max_spp {
+                    return Err(FieldError::new(
+                        "spp",
+                        format!(
+                            "the scene's default of {s} is outside 1 ..= {}; give spp",
+                            limits.max_spp
+                        ),
+                    ));
+                }
+                Some(s)
+            }
         };
         let max_depth = self.max_depth.or(scene.defaults.max_depth).unwrap_or(5);
-        if self.integrator == IntegratorKind::Bdpt && max_depth > integrator::bdpt::MAX_DEPTH {
+        if max_depth > integrator::bdpt::MAX_DEPTH {
             return Err(FieldError::new(
                 "max_depth",
                 format!(
-                    "{max_depth} exceeds the BDPT limit of {}",
+                    "{max_depth} (the scene's default) exceeds the limit of {}",
                     integrator::bdpt::MAX_DEPTH
                 ),
             ));

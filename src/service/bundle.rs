@@ -41,9 +41,34 @@ pub fn pack_files(scene_path: &Path, files: &[PathBuf]) -> Result<(Vec<u8>, Stri
     Ok((bytes, main))
 }
 
+/// Most entries (files and folders) of a bundle: a scene with its meshes and textures needs far
+/// fewer, and every entry costs a file on the server.
+pub(crate) const MAX_ENTRIES: usize = 10_000;
+
+/// What a tar entry that is not a plain file or folder is, in words.
+fn entry_kind(kind: tar::EntryType) -> String {
+    use tar::EntryType as T;
+    match kind {
+        T::Symlink | T::Link => "a link (links are refused)".into(),
+        T::GNUSparse => {
+            "a GNU sparse file (sparse files are refused; archive it without --sparse)".into()
+        }
+        T::Char | T::Block => "a device file (refused)".into(),
+        T::Fifo => "a FIFO (refused)".into(),
+        T::Continuous => "a contiguous file (refused; archive it as a plain file)".into(),
+        T::XGlobalHeader | T::XHeader => "a pax header the archive reader could not apply".into(),
+        T::GNULongName | T::GNULongLink => "a GNU long-name record without its entry".into(),
+        other => format!(
+            "an entry of tar type '{}' (only plain files and folders are accepted)",
+            (other.as_byte() as char).escape_default()
+        ),
+    }
+}
+
 /// Unpacks a bundle into `dest` (which must not exist yet), refusing absolute paths, `..`,
-/// links and anything but plain files and folders, and more than `max_bytes` of content.
-/// Returns the relative paths of the files.
+/// links, sparse and special files (anything but plain files and folders), more than
+/// `MAX_ENTRIES` entries and more than `max_bytes` of content. Returns the relative paths of
+/// the files.
 pub fn unpack(bytes: &[u8], dest: &Path, max_bytes: u64) -> Result<Vec<String>, String> {
     let mut archive = tar::Archive::new(bytes);
     let entries = archive
@@ -52,7 +77,12 @@ pub fn unpack(bytes: &[u8], dest: &Path, max_bytes: u64) -> Result<Vec<String>, 
     std::fs::create_dir_all(dest).map_err(|e| format!("{}: {e}", dest.display()))?;
     let mut total = 0u64;
     let mut files = Vec::new();
-    for entry in entries {
+    for (n, entry) in entries.enumerate() {
+        if n >= MAX_ENTRIES {
+            return Err(format!(
+                "the bundle has more than {MAX_ENTRIES} entries (files and folders)"
+            ));
+        }
         let mut entry = entry.map_err(|e| format!("not a tar archive: {e}"))?;
         let path = entry
             .path()
@@ -73,7 +103,8 @@ pub fn unpack(bytes: &[u8], dest: &Path, max_bytes: u64) -> Result<Vec<String>, 
         }
         if !kind.is_file() {
             return Err(format!(
-                "'{shown}' in the bundle is not a plain file (links are refused)"
+                "'{shown}' in the bundle is {}, not a plain file",
+                entry_kind(kind)
             ));
         }
         total = total.saturating_add(entry.size());

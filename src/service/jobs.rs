@@ -3,27 +3,32 @@
 //! after a restart, and expiry of silent leases.
 
 use super::App;
-use super::store::{self, JobRow, SeriesPoint, TaskRow, write_atomic};
+use super::protocol::{
+    CancelledEvent, DoneEvent, FailedEvent, JobEvent, JobState, PassDoneEvent, PreviewEvent,
+    SeriesPoint, TaskFailedEvent,
+};
+use super::store::{self, JobRow, TaskRow, write_atomic};
 use crate::film::wire::Checkpoint;
-use crate::film::{Film, RayStats, TileFilm};
+use crate::film::{Film, RayStats, Tile, TileFilm};
 use crate::film::{Image, exr_io, metrics, plot, png};
 use crate::job::Resolved;
-use serde_json::json;
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 /// A task that failed on this many attempts fails its job.
-pub const MAX_FAILURES: u32 = 3;
+pub(crate) const MAX_FAILURES: u32 = 3;
 
 /// What merging needs of a running job, kept between passes.
-pub struct Runtime {
+pub(crate) struct Runtime {
     pub resolved: Resolved,
     /// The merged accumulators (loaded from the checkpoint on first use).
     pub checkpoint: Option<Checkpoint>,
     pub reference: Option<Image>,
 }
 
-pub fn resolved_of(job: &JobRow) -> Result<Resolved, String> {
+/// The resolved settings a job was created with.
+pub(crate) fn resolved_of(job: &JobRow) -> Result<Resolved, String> {
     serde_json::from_str(&job.resolved).map_err(|e| format!("job {}: bad settings: {e}", job.id))
 }
 
@@ -54,33 +59,83 @@ fn drop_runtime(app: &App, id: &str) {
         .remove(id);
 }
 
+/// Tasks created per SQLite transaction: the store's lock is never held long, whatever the size
+/// of the frame.
+const TASK_CHUNK: u32 = 2048;
+
+/// Tiles of a frame (the length of `r.tiles()`, without making the list).
+pub(crate) fn tile_count(r: &Resolved) -> u32 {
+    let t = r.tile_size.max(1) as u64;
+    let n = (r.width as u64).div_ceil(t) * (r.height as u64).div_ceil(t);
+    n.min(u32::MAX as u64) as u32
+}
+
+/// Tile `i` of `r.tiles()` (row-major), computed directly.
+pub(crate) fn tile_rect(r: &Resolved, i: u32) -> Option<Tile> {
+    if i >= tile_count(r) {
+        return None;
+    }
+    let t = r.tile_size.max(1);
+    let cols = r.width.div_ceil(t);
+    let (x0, y0) = ((i % cols) * t, (i / cols) * t);
+    Some(Tile {
+        x0,
+        y0,
+        x1: x0.saturating_add(t).min(r.width),
+        y1: y0.saturating_add(t).min(r.height),
+    })
+}
+
 /// Makes sure the job's next two passes (`passes_done` and the one after) have their tasks, so
-/// workers never wait on a merge; a time-budget job gets no new pass once its time is up.
-/// Idempotent: called at creation, after every merge and after a restart.
-pub fn ensure_passes(app: &App, job: &JobRow, r: &Resolved) -> rusqlite::Result<()> {
+/// workers never wait on a merge; a time-budget job starts no new pass once its time is up (a
+/// pass begun is completed). Tasks are created in chunks of `TASK_CHUNK`, each its own
+/// transaction, the store unlocked in between and workers woken after each; it stops early when
+/// the job ends or the coordinator stops. Idempotent: called at creation, after every merge and
+/// after a restart.
+pub(crate) fn ensure_passes(app: &App, job: &JobRow, r: &Resolved) -> rusqlite::Result<()> {
     let within_time = r
         .time_budget_s
         .is_none_or(|b| job.started_at.is_none_or(|s| store::now() - s < b));
-    if !within_time {
-        return Ok(());
-    }
-    let tiles = r.tiles().len() as u32;
-    let db = app.db();
+    let tiles = tile_count(r);
     for p in job.passes_done..job.passes_done + 2 {
-        if let Some(range) = r.pass_range(p) {
-            db.create_pass(&job.id, p, tiles, range)?;
+        let Some(range) = r.pass_range(p) else {
+            continue;
+        };
+        let mut next = match app.db().last_tile(&job.id, p)? {
+            Some(last) => last + 1,
+            None if within_time => 0,
+            None => continue,
+        };
+        while next < tiles {
+            if app.stopping.load(Ordering::Relaxed) {
+                return Ok(());
+            }
+            let end = next.saturating_add(TASK_CHUNK).min(tiles);
+            {
+                let db = app.db();
+                if !db.job(&job.id)?.is_some_and(|j| j.state.is_active()) {
+                    return Ok(());
+                }
+                db.create_tasks(&job.id, p, next..end, range.clone())?;
+            }
+            app.work.notify_waiters();
+            next = end;
         }
     }
     Ok(())
 }
 
 /// Merges every finished pass of a job, in order, and finishes the job after its last one.
-/// Runs on a blocking thread; one merge per job at a time.
-pub fn advance(app: &App, id: &str) {
+/// Runs on a blocking thread; one merge per job at a time. A job that recovery has not
+/// reconciled yet is left to recovery.
+pub(crate) fn advance(app: &App, id: &str) {
+    if app.is_recovering(id) {
+        return;
+    }
     if let Err(e) = advance_inner(app, id) {
         tracing::error!("job {id}: {e}");
-        if let Ok(true) = app.db().set_job_state(id, store::FAILED, Some(&e)) {
-            app.event(id, "failed", json!({ "error": e }));
+        if let Ok(true) = app.db().set_job_state(id, JobState::Failed, Some(&e)) {
+            app.event(id, JobEvent::Failed(FailedEvent { error: e }));
         }
         drop_runtime(app, id);
     }
@@ -90,7 +145,7 @@ fn advance_inner(app: &App, id: &str) -> Result<(), String> {
     let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
         return Ok(());
     };
-    if !matches!(job.state.as_str(), store::QUEUED | store::RUNNING) {
+    if !job.state.is_active() {
         return Ok(());
     }
     let rt = runtime(app, &job)?;
@@ -99,19 +154,21 @@ fn advance_inner(app: &App, id: &str) -> Result<(), String> {
         let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
             return Ok(());
         };
-        if !matches!(job.state.as_str(), store::QUEUED | store::RUNNING) {
+        if !job.state.is_active() {
             drop_runtime(app, id);
             return Ok(());
         }
         ensure_passes(app, &job, &rt.resolved).map_err(|e| e.to_string())?;
         app.work.notify_waiters();
         let pass = job.passes_done;
-        let (done, total) = app
-            .db()
-            .pass_progress(id, pass)
-            .map_err(|e| e.to_string())?;
-        if total == 0 || done < total {
-            if total == 0 && finished_all(app, &job)? {
+        let (last, open) = {
+            let db = app.db();
+            let last = db.last_tile(id, pass).map_err(|e| e.to_string())?;
+            (last, db.pass_open(id, pass).map_err(|e| e.to_string())?)
+        };
+        let complete = last.is_some_and(|l| l + 1 >= tile_count(&rt.resolved));
+        if !complete || open {
+            if last.is_none() && finished_all(app, &job)? {
                 finish(app, &job, &mut rt)?;
                 drop_runtime(app, id);
             }
@@ -184,13 +241,7 @@ fn merge_pass(
             Err(e) => {
                 tracing::error!("job {} pass {pass} tile {}: {e}; requeued", job.id, t.tile);
                 rt.checkpoint = None;
-                app.db()
-                    .conn
-                    .execute(
-                        "UPDATE tasks SET state = 'queued', worker_id = NULL WHERE id = ?1",
-                        [t.id],
-                    )
-                    .map_err(|e| e.to_string())?;
+                app.db().requeue(t.id).map_err(|e| e.to_string())?;
                 app.work.notify_waiters();
                 return Ok(());
             }
@@ -239,13 +290,20 @@ fn merge_pass(
         .map_err(|e| e.to_string())?;
     app.event(
         &job.id,
-        "pass_done",
-        json!({ "pass": pass, "spp": spp_done, "seconds": seconds, "relmse": relmse }),
+        JobEvent::PassDone(PassDoneEvent {
+            pass,
+            spp: spp_done,
+            seconds,
+            relmse,
+        }),
     );
     app.event(
         &job.id,
-        "preview",
-        json!({ "pass": pass, "spp": spp_done, "url": format!("/v1/jobs/{}/preview.png", job.id) }),
+        JobEvent::Preview(PreviewEvent {
+            pass,
+            spp: spp_done,
+            url: format!("/v1/jobs/{}/preview.png", job.id),
+        }),
     );
 
     Ok(())
@@ -276,17 +334,22 @@ fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
     }
     let ended = app
         .db()
-        .set_job_state(&job.id, store::DONE, None)
+        .set_job_state(&job.id, JobState::Done, None)
         .map_err(|e| e.to_string())?;
     if ended {
         let _ = std::fs::remove_file(app.paths.checkpoint(&job.id));
-        app.event(&job.id, "done", json!({ "spp": job.spp_done }));
+        app.event(&job.id, JobEvent::Done(DoneEvent { spp: job.spp_done }));
     }
     Ok(())
 }
 
 /// Records a failed attempt; after `MAX_FAILURES` the job fails with the worker's error.
-pub fn task_failed(app: &App, task: &TaskRow, worker: &str, error: &str) -> Result<bool, String> {
+pub(crate) fn task_failed(
+    app: &App,
+    task: &TaskRow,
+    worker: &str,
+    error: &str,
+) -> Result<bool, String> {
     let failures = app
         .db()
         .fail(task.id, task.attempt, worker, error)
@@ -296,8 +359,13 @@ pub fn task_failed(app: &App, task: &TaskRow, worker: &str, error: &str) -> Resu
     };
     app.event(
         &task.job_id,
-        "task_failed",
-        json!({ "pass": task.pass, "tile": task.tile, "worker": worker, "error": error, "failures": failures }),
+        JobEvent::TaskFailed(TaskFailedEvent {
+            pass: task.pass,
+            tile: task.tile,
+            worker: worker.to_string(),
+            error: error.to_string(),
+            failures,
+        }),
     );
     if failures >= MAX_FAILURES {
         let msg = format!(
@@ -306,10 +374,10 @@ pub fn task_failed(app: &App, task: &TaskRow, worker: &str, error: &str) -> Resu
         );
         let ended = app
             .db()
-            .set_job_state(&task.job_id, store::FAILED, Some(&msg))
+            .set_job_state(&task.job_id, JobState::Failed, Some(&msg))
             .map_err(|e| e.to_string())?;
         if ended {
-            app.event(&task.job_id, "failed", json!({ "error": msg }));
+            app.event(&task.job_id, JobEvent::Failed(FailedEvent { error: msg }));
         }
         drop_runtime(app, &task.job_id);
     } else {
@@ -319,61 +387,101 @@ pub fn task_failed(app: &App, task: &TaskRow, worker: &str, error: &str) -> Resu
 }
 
 /// Cancels a job that has not ended; false when it had.
-pub fn cancel(app: &App, id: &str) -> Result<bool, String> {
+pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
     let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
         return Ok(false);
     };
-    if !matches!(job.state.as_str(), store::QUEUED | store::RUNNING) {
+    if !job.state.is_active() {
         return Ok(false);
     }
     let ended = app
         .db()
-        .set_job_state(id, store::CANCELLED, None)
+        .set_job_state(id, JobState::Cancelled, None)
         .map_err(|e| e.to_string())?;
     if ended {
-        app.event(id, "cancelled", json!({}));
+        app.event(id, JobEvent::Cancelled(CancelledEvent {}));
         app.work.notify_waiters();
     }
     drop_runtime(app, id);
     Ok(ended)
 }
 
-/// After a restart: reconcile each unfinished job with its checkpoint, and merge passes whose
-/// results all arrived before the stop.
-pub async fn recover(app: &Arc<App>) -> anyhow::Result<()> {
-    let jobs = app.db().active_jobs()?;
-    for job in jobs {
-        let path = app.paths.checkpoint(&job.id);
-        if let Ok(bytes) = std::fs::read(&path) {
-            let r = resolved_of(&job).map_err(anyhow::Error::msg)?;
-            match Checkpoint::decode(&bytes, r.width, r.height, &r.film_layout()) {
-                Ok(ck) if ck.passes > job.passes_done => {
-                    // Stopped between writing the checkpoint and recording it.
-                    let spp = r
-                        .pass_range(ck.passes - 1)
-                        .map_or(job.spp_done, |range| range.end);
-                    app.db().pass_merged(&job.id, ck.passes, spp, &ck.stats)?;
-                }
-                Ok(_) => {}
-                Err(e) => tracing::error!("job {}: {e}", job.id),
-            }
-        }
-        // Results of passes merged before the stop are no longer needed.
-        if let Some(job) = app.db().job(&job.id)? {
-            for p in 0..job.passes_done {
-                let _ = std::fs::remove_dir_all(app.paths.pass_dir(&job.id, p));
-            }
-        }
-        tracing::info!("recovering job {} ({})", job.id, job.state);
+/// After a restart: reconcile each unfinished job with its checkpoint, fail the ones this
+/// server's limits no longer allow, and merge passes whose results all arrived before the stop.
+/// Runs in the background while the server already answers; `App::recovering` holds the jobs
+/// not reconciled yet (no merge touches them meanwhile).
+pub(crate) async fn recover(app: Arc<App>) {
+    let jobs: Vec<String> = app
+        .recovering
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .iter()
+        .cloned()
+        .collect();
+    for id in jobs {
         let a = app.clone();
-        let id = job.id.clone();
-        tokio::task::spawn_blocking(move || advance(&a, &id)).await?;
+        let i = id.clone();
+        let r = tokio::task::spawn_blocking(move || reconcile(&a, &i)).await;
+        match r {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => tracing::error!("recovering job {id}: {e}"),
+            Err(e) => tracing::error!("recovering job {id}: {e}"),
+        }
+        app.recovering
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(&id);
+        let a = app.clone();
+        let _ = tokio::task::spawn_blocking(move || advance(&a, &id)).await;
     }
+    app.work.notify_waiters();
+}
+
+/// Recovery of one job (blocking).
+fn reconcile(app: &App, id: &str) -> anyhow::Result<()> {
+    let Some(job) = app.db().job(id)? else {
+        return Ok(());
+    };
+    let r = resolved_of(&job).map_err(anyhow::Error::msg)?;
+    let tiles = tile_count(&r) as u64;
+    if tiles > app.cfg.limits.max_tasks_per_pass as u64 {
+        let msg = format!(
+            "the job has {tiles} tasks per pass, more than this server's limit of {} \
+             (--max-tasks-per-pass)",
+            app.cfg.limits.max_tasks_per_pass
+        );
+        tracing::error!("job {id}: {msg}");
+        if app.db().set_job_state(id, JobState::Failed, Some(&msg))? {
+            app.event(id, JobEvent::Failed(FailedEvent { error: msg }));
+        }
+        return Ok(());
+    }
+    let path = app.paths.checkpoint(&job.id);
+    if let Ok(bytes) = std::fs::read(&path) {
+        match Checkpoint::decode(&bytes, r.width, r.height, &r.film_layout()) {
+            Ok(ck) if ck.passes > job.passes_done => {
+                // Stopped between writing the checkpoint and recording it.
+                let spp = r
+                    .pass_range(ck.passes - 1)
+                    .map_or(job.spp_done, |range| range.end);
+                app.db().pass_merged(&job.id, ck.passes, spp, &ck.stats)?;
+            }
+            Ok(_) => {}
+            Err(e) => tracing::error!("job {}: {e}", job.id),
+        }
+    }
+    // Results of passes merged before the stop are no longer needed.
+    if let Some(job) = app.db().job(&job.id)? {
+        for p in 0..job.passes_done {
+            let _ = std::fs::remove_dir_all(app.paths.pass_dir(&job.id, p));
+        }
+    }
+    tracing::info!("recovering job {} ({})", job.id, job.state);
     Ok(())
 }
 
 /// Every second: requeue expired leases, mark silent workers gone.
-pub async fn reaper(app: Arc<App>) {
+pub(crate) async fn reaper(app: Arc<App>) {
     let mut tick = tokio::time::interval(std::time::Duration::from_millis(500));
     loop {
         tick.tick().await;
@@ -393,7 +501,7 @@ pub async fn reaper(app: Arc<App>) {
 }
 
 /// The convergence plot of a job: relMSE against spp (log-log).
-pub fn convergence_svg(job: &JobRow, series: &[SeriesPoint]) -> String {
+pub(crate) fn convergence_svg(job: &JobRow, series: &[SeriesPoint]) -> String {
     let pts: Vec<(f64, f64)> = series
         .iter()
         .filter_map(|p| p.relmse.map(|r| (p.spp as f64, r)))
@@ -406,4 +514,33 @@ pub fn convergence_svg(job: &JobRow, series: &[SeriesPoint]) -> String {
         true,
         true,
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::integrator::RenderSettings;
+
+    #[test]
+    fn tiles_by_index_are_the_schedule_s_tiles() {
+        for (w, h, t) in [(40, 32, 16), (7, 5, 2), (1, 1, 4), (33, 64, 32), (5, 9, 1)] {
+            let r = Resolved {
+                width: w,
+                height: h,
+                render: RenderSettings::default(),
+                spp: Some(4),
+                time_budget_s: None,
+                tile_size: t,
+                pass_size: 4,
+                max_pass_size: None,
+                eps: 0.01,
+            };
+            let all = r.tiles();
+            assert_eq!(tile_count(&r) as usize, all.len());
+            for (i, tile) in all.iter().enumerate() {
+                assert_eq!(tile_rect(&r, i as u32), Some(*tile));
+            }
+            assert_eq!(tile_rect(&r, all.len() as u32), None);
+        }
+    }
 }

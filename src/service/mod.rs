@@ -3,29 +3,36 @@
 //! bundles and results only as accumulators: it never touches a BSDF.
 
 pub mod api;
-pub mod bundle;
-pub mod jobs;
-pub mod pool;
-pub mod store;
-pub mod web;
+pub(crate) mod bundle;
+pub(crate) mod exr_header;
+pub(crate) mod jobs;
+pub(crate) mod pool;
+pub mod protocol;
+pub(crate) mod store;
+pub(crate) mod web;
 
 use crate::job::Limits;
-use std::collections::HashMap;
+use protocol::JobEvent;
+use std::collections::{HashMap, HashSet};
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use store::{EventRow, Paths, Store};
 use tokio::sync::{Notify, broadcast};
 
 /// How a coordinator runs.
 #[derive(Clone, Debug)]
-pub struct Config {
+pub(crate) struct Config {
+    /// Address to listen on (port 0: any free port).
     pub bind: SocketAddr,
+    /// Folder of the database, task results and outputs.
     pub data: PathBuf,
     /// The scene library: jobs may name a scene file in this folder.
     pub library: Option<PathBuf>,
+    /// Bearer token of the client routes (None: not checked; loopback only).
     pub client_token: Option<String>,
+    /// Bearer token of the worker routes (None: not checked; loopback only).
     pub worker_token: Option<String>,
     /// Local worker processes to spawn and keep alive.
     pub workers: usize,
@@ -33,13 +40,19 @@ pub struct Config {
     pub worker_threads: usize,
     /// Seconds a worker may stay silent before its lease is given to another.
     pub lease_s: f64,
+    /// Longest long poll of a lease request, in seconds (a worker asks for at most 30).
+    pub max_lease_wait_s: f64,
+    /// Limits on jobs.
     pub limits: Limits,
+    /// Largest request body (bundle, reference, task result).
     pub max_upload_bytes: u64,
     /// OMIS_LOG of local workers (None: inherit).
     pub worker_log: Option<String>,
 }
 
 impl Config {
+    /// A coordinator on `bind` keeping its state in `data`, with default limits, no tokens, no
+    /// library and no local workers.
     pub fn new(bind: SocketAddr, data: PathBuf) -> Config {
         Config {
             bind,
@@ -50,6 +63,7 @@ impl Config {
             workers: 0,
             worker_threads: 1,
             lease_s: 30.0,
+            max_lease_wait_s: 30.0,
             limits: Limits::default(),
             max_upload_bytes: 1 << 30,
             worker_log: None,
@@ -59,7 +73,7 @@ impl Config {
 
 /// Counters for /metrics.
 #[derive(Default)]
-pub struct Metrics {
+pub(crate) struct Metrics {
     pub results_accepted: AtomicU64,
     pub results_refused: AtomicU64,
     pub result_bytes: AtomicU64,
@@ -77,7 +91,7 @@ impl Metrics {
 }
 
 /// The coordinator's shared state.
-pub struct App {
+pub(crate) struct App {
     pub cfg: Config,
     pub paths: Paths,
     pub store: Mutex<Store>,
@@ -87,7 +101,10 @@ pub struct App {
     /// Per running job: the merged accumulators and what a merge needs (one merge at a time).
     pub runtimes: Mutex<HashMap<String, Arc<Mutex<jobs::Runtime>>>>,
     pub metrics: Metrics,
-    pub base_url: String,
+    /// Set when the coordinator stops: background work ends at its next chunk.
+    pub stopping: AtomicBool,
+    /// Jobs that recovery has not reconciled yet (after a restart).
+    pub recovering: Mutex<HashSet<String>>,
 }
 
 impl App {
@@ -96,9 +113,18 @@ impl App {
         self.store.lock().unwrap_or_else(|e| e.into_inner())
     }
 
+    /// Whether recovery has yet to reconcile job `id`.
+    pub fn is_recovering(&self, id: &str) -> bool {
+        self.recovering
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains(id)
+    }
+
     /// Records an event and publishes it to SSE subscribers.
-    pub fn event(&self, job: &str, kind: &str, data: serde_json::Value) {
-        match self.db().add_event(job, kind, &data) {
+    pub fn event(&self, job: &str, event: JobEvent) {
+        let kind = event.kind();
+        match self.db().add_event(job, kind, &event.data()) {
             Ok(row) => {
                 let _ = self.events.send(row);
             }
@@ -108,10 +134,10 @@ impl App {
 }
 
 /// A started coordinator.
-pub struct Running {
-    pub addr: SocketAddr,
+pub(crate) struct Running {
+    /// `http://` and the address.
     pub url: String,
-    pub app: Arc<App>,
+    app: Arc<App>,
     shutdown: Option<tokio::sync::oneshot::Sender<()>>,
     server: tokio::task::JoinHandle<()>,
     pool: Option<pool::Pool>,
@@ -120,6 +146,7 @@ pub struct Running {
 impl Running {
     /// Stops the HTTP server and the local workers.
     pub async fn stop(mut self) {
+        self.app.stopping.store(true, Ordering::Relaxed);
         if let Some(p) = self.pool.take() {
             p.stop().await;
         }
@@ -136,7 +163,7 @@ fn is_loopback(addr: &SocketAddr) -> bool {
 }
 
 /// Opens the data folder, recovers unfinished jobs, binds and serves; spawns the local pool.
-pub async fn start(cfg: Config) -> anyhow::Result<Running> {
+pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
     use anyhow::Context;
     if (cfg.client_token.is_none() || cfg.worker_token.is_none()) && !is_loopback(&cfg.bind) {
         anyhow::bail!(
@@ -169,12 +196,19 @@ pub async fn start(cfg: Config) -> anyhow::Result<Running> {
         work: Notify::new(),
         runtimes: Mutex::new(HashMap::new()),
         metrics: Metrics::default(),
-        base_url: url.clone(),
+        stopping: AtomicBool::new(false),
+        recovering: Mutex::new(HashSet::new()),
     });
     if cfg.client_token.is_none() && cfg.worker_token.is_none() {
         tracing::warn!("no tokens given: serving {addr} (loopback only) without authentication");
     }
-    jobs::recover(&app).await?;
+    // Recovery runs in the background: the API answers at once, also with a large backlog.
+    {
+        let active = app.db().active_jobs()?;
+        let mut r = app.recovering.lock().unwrap_or_else(|e| e.into_inner());
+        r.extend(active.into_iter().map(|j| j.id));
+    }
+    tokio::spawn(jobs::recover(app.clone()));
     let router = api::router(app.clone());
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
     let server = tokio::spawn(async move {
@@ -188,9 +222,8 @@ pub async fn start(cfg: Config) -> anyhow::Result<Running> {
     tokio::spawn(jobs::reaper(app.clone()));
     let pool = (cfg.workers > 0).then(|| pool::Pool::spawn(app.clone(), &url));
     Ok(Running {
-        addr,
-        url,
         app,
+        url,
         shutdown: Some(tx),
         server,
         pool,

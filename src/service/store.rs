@@ -2,13 +2,16 @@
 //! event log, in one embedded SQLite database (WAL) under the data folder. Outputs and task
 //! results are files beside it (see `Paths`).
 
+use super::protocol::{
+    EventKind, JobState, SeriesPoint, TaskState, WorkerInfo, WorkerState, WorkerTask,
+};
 use rusqlite::{Connection, OptionalExtension, params};
-use serde::Serialize;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 /// Seconds since the Unix epoch.
-pub fn now() -> f64 {
+pub(crate) fn now() -> f64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map(|d| d.as_secs_f64())
@@ -17,7 +20,7 @@ pub fn now() -> f64 {
 
 /// Where a coordinator keeps its files.
 #[derive(Clone, Debug)]
-pub struct Paths {
+pub(crate) struct Paths {
     pub root: PathBuf,
 }
 
@@ -51,13 +54,13 @@ impl Paths {
 }
 
 /// Writes `bytes` to `path` atomically (temporary file, fsync, rename).
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     use std::io::Write;
     write_atomic_with(path, |f| f.write_all(bytes))
 }
 
 /// Writes `path` atomically with `write` streaming into a buffered temporary file.
-pub fn write_atomic_with(
+pub(crate) fn write_atomic_with(
     path: &Path,
     write: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> std::io::Result<()>,
 ) -> std::io::Result<()> {
@@ -73,24 +76,12 @@ pub fn write_atomic_with(
     std::fs::rename(&tmp, path)
 }
 
-/// Job states. `queued` until a task is first leased, `running`, then one of the final three.
-pub const QUEUED: &str = "queued";
-pub const RUNNING: &str = "running";
-pub const DONE: &str = "done";
-pub const FAILED: &str = "failed";
-pub const CANCELLED: &str = "cancelled";
-
-/// Task states.
-pub const T_QUEUED: &str = "queued";
-pub const T_LEASED: &str = "leased";
-pub const T_DONE: &str = "done";
-
-#[derive(Clone, Debug, Serialize)]
-pub struct JobRow {
+/// A job as stored.
+#[derive(Clone, Debug)]
+pub(crate) struct JobRow {
     pub id: String,
-    pub seq: i64,
     pub name: Option<String>,
-    pub state: String,
+    pub state: JobState,
     pub error: Option<String>,
     /// The request's settings (JSON) and their resolution against the scene (JSON).
     pub settings: String,
@@ -110,65 +101,33 @@ pub struct JobRow {
     pub result_bytes: i64,
 }
 
-#[derive(Clone, Debug, Serialize)]
-pub struct TaskRow {
+/// A task (one tile of one pass) as stored.
+#[derive(Clone, Debug)]
+pub(crate) struct TaskRow {
     pub id: i64,
     pub job_id: String,
     pub pass: u32,
     pub tile: u32,
     pub s0: u32,
     pub s1: u32,
-    pub state: String,
+    pub state: TaskState,
     pub attempt: u32,
     pub worker_id: Option<String>,
-    pub lease_expires: Option<f64>,
-    pub failures: u32,
-    pub last_error: Option<String>,
 }
 
-#[derive(Clone, Debug, Serialize)]
-pub struct WorkerRow {
-    pub id: String,
-    pub name: String,
-    pub threads: u32,
-    pub version: String,
-    pub registered_at: f64,
-    pub last_seen: f64,
-    pub state: String,
-    pub tasks_done: i64,
-    /// The tasks it holds a lease on now.
-    pub tasks: Vec<HeldTask>,
-}
-
-/// A task a worker holds a lease on.
-#[derive(Clone, Debug, Serialize)]
-pub struct HeldTask {
+/// A recorded job event.
+#[derive(Clone, Debug)]
+pub(crate) struct EventRow {
     pub id: i64,
     pub job_id: String,
-    pub pass: u32,
-    pub tile: u32,
-    pub attempt: u32,
-}
-
-#[derive(Clone, Debug, Serialize)]
-pub struct EventRow {
-    pub id: i64,
-    pub job_id: String,
-    pub kind: String,
+    pub kind: EventKind,
     pub data: serde_json::Value,
     pub at: f64,
 }
 
-#[derive(Clone, Debug, Serialize)]
-pub struct SeriesPoint {
-    pub pass: u32,
-    pub spp: u32,
-    pub seconds: f64,
-    pub relmse: Option<f64>,
-}
-
-pub struct Store {
-    pub conn: Connection,
+/// The database of a coordinator.
+pub(crate) struct Store {
+    conn: Connection,
 }
 
 const SCHEMA: &str = "
@@ -241,34 +200,33 @@ CREATE TABLE IF NOT EXISTS events (
 CREATE INDEX IF NOT EXISTS events_job ON events (job_id, id);
 ";
 
-const JOB_COLS: &str = "id, seq, name, state, error, settings, resolved, scene_id, scene_main, \
+const JOB_COLS: &str = "id, name, state, error, settings, resolved, scene_id, scene_main, \
     reference, created_at, started_at, finished_at, passes_done, spp_done, samples, rays, \
     non_finite, accum_bytes, result_bytes";
 
-const TASK_COLS: &str = "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, lease_expires, failures, last_error";
+const TASK_COLS: &str = "id, job_id, pass, tile, s0, s1, state, attempt, worker_id";
 
 fn job_row(r: &rusqlite::Row) -> rusqlite::Result<JobRow> {
     Ok(JobRow {
         id: r.get(0)?,
-        seq: r.get(1)?,
-        name: r.get(2)?,
-        state: r.get(3)?,
-        error: r.get(4)?,
-        settings: r.get(5)?,
-        resolved: r.get(6)?,
-        scene_id: r.get(7)?,
-        scene_main: r.get(8)?,
-        reference: r.get(9)?,
-        created_at: r.get(10)?,
-        started_at: r.get(11)?,
-        finished_at: r.get(12)?,
-        passes_done: r.get(13)?,
-        spp_done: r.get(14)?,
-        samples: r.get(15)?,
-        rays: r.get(16)?,
-        non_finite: r.get(17)?,
-        accum_bytes: r.get(18)?,
-        result_bytes: r.get(19)?,
+        name: r.get(1)?,
+        state: r.get(2)?,
+        error: r.get(3)?,
+        settings: r.get(4)?,
+        resolved: r.get(5)?,
+        scene_id: r.get(6)?,
+        scene_main: r.get(7)?,
+        reference: r.get(8)?,
+        created_at: r.get(9)?,
+        started_at: r.get(10)?,
+        finished_at: r.get(11)?,
+        passes_done: r.get(12)?,
+        spp_done: r.get(13)?,
+        samples: r.get(14)?,
+        rays: r.get(15)?,
+        non_finite: r.get(16)?,
+        accum_bytes: r.get(17)?,
+        result_bytes: r.get(18)?,
     })
 }
 
@@ -283,14 +241,11 @@ fn task_row(r: &rusqlite::Row) -> rusqlite::Result<TaskRow> {
         state: r.get(6)?,
         attempt: r.get(7)?,
         worker_id: r.get(8)?,
-        lease_expires: r.get(9)?,
-        failures: r.get(10)?,
-        last_error: r.get(11)?,
     })
 }
 
 /// A new job's row.
-pub struct NewJob<'a> {
+pub(crate) struct NewJob<'a> {
     pub id: &'a str,
     pub name: Option<&'a str>,
     pub settings: &'a str,
@@ -301,7 +256,15 @@ pub struct NewJob<'a> {
     pub accum_bytes: i64,
 }
 
+// The states bound as parameters wherever a statement names one.
+const J_QUEUED: JobState = JobState::Queued;
+const J_RUNNING: JobState = JobState::Running;
+const T_QUEUED: TaskState = TaskState::Queued;
+const T_LEASED: TaskState = TaskState::Leased;
+const T_DONE: TaskState = TaskState::Done;
+
 impl Store {
+    /// Opens (creating if needed) the database at `path`.
     pub fn open(path: &Path) -> rusqlite::Result<Store> {
         let conn = Connection::open(path)?;
         conn.busy_timeout(std::time::Duration::from_secs(10))?;
@@ -309,6 +272,7 @@ impl Store {
         Ok(Store { conn })
     }
 
+    /// Adds a job, `queued`, after every earlier one.
     pub fn insert_job(&self, j: &NewJob) -> rusqlite::Result<()> {
         let seq: i64 =
             self.conn
@@ -322,7 +286,7 @@ impl Store {
                 j.id,
                 seq,
                 j.name,
-                QUEUED,
+                J_QUEUED,
                 j.settings,
                 j.resolved,
                 j.scene_id,
@@ -335,6 +299,7 @@ impl Store {
         Ok(())
     }
 
+    /// A job by id.
     pub fn job(&self, id: &str) -> rusqlite::Result<Option<JobRow>> {
         self.conn
             .query_row(
@@ -345,6 +310,7 @@ impl Store {
             .optional()
     }
 
+    /// Every job, oldest first.
     pub fn jobs(&self) -> rusqlite::Result<Vec<JobRow>> {
         let mut st = self
             .conn
@@ -355,9 +321,10 @@ impl Store {
     /// Jobs still to be worked on (queued or running).
     pub fn active_jobs(&self) -> rusqlite::Result<Vec<JobRow>> {
         let mut st = self.conn.prepare(&format!(
-            "SELECT {JOB_COLS} FROM jobs WHERE state IN ('queued', 'running') ORDER BY seq"
+            "SELECT {JOB_COLS} FROM jobs WHERE state IN (?1, ?2) ORDER BY seq"
         ))?;
-        st.query_map([], job_row)?.collect()
+        st.query_map(params![J_QUEUED, J_RUNNING], job_row)?
+            .collect()
     }
 
     /// Moves an active (queued or running) job to `state`; false when the job had already
@@ -365,15 +332,15 @@ impl Store {
     pub fn set_job_state(
         &self,
         id: &str,
-        state: &str,
+        state: JobState,
         error: Option<&str>,
     ) -> rusqlite::Result<bool> {
-        let finished = matches!(state, DONE | FAILED | CANCELLED).then(now);
+        let finished = (!state.is_active()).then(now);
         let n = self.conn.execute(
             "UPDATE jobs SET state = ?2, error = COALESCE(?3, error), \
              finished_at = COALESCE(?4, finished_at) WHERE id = ?1 \
-             AND state IN ('queued', 'running')",
-            params![id, state, error, finished],
+             AND state IN (?5, ?6)",
+            params![id, state, error, finished, J_QUEUED, J_RUNNING],
         )?;
         Ok(n == 1)
     }
@@ -381,9 +348,9 @@ impl Store {
     /// Gives back every task a worker holds (it said it is leaving).
     pub fn release_worker(&self, worker: &str) -> rusqlite::Result<usize> {
         self.conn.execute(
-            "UPDATE tasks SET state = 'queued', worker_id = NULL, lease_expires = NULL \
-             WHERE worker_id = ?1 AND state = 'leased'",
-            [worker],
+            "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL \
+             WHERE worker_id = ?1 AND state = ?3",
+            params![worker, T_QUEUED, T_LEASED],
         )
     }
 
@@ -427,6 +394,7 @@ impl Store {
         Ok(())
     }
 
+    /// Records the relMSE point of a merged pass.
     pub fn add_series(&self, id: &str, p: &SeriesPoint) -> rusqlite::Result<()> {
         self.conn.execute(
             "INSERT OR REPLACE INTO series (job_id, pass, spp, seconds, relmse) VALUES (?1, ?2, ?3, ?4, ?5)",
@@ -435,6 +403,7 @@ impl Store {
         Ok(())
     }
 
+    /// A job's relMSE series, pass by pass.
     pub fn series(&self, id: &str) -> rusqlite::Result<Vec<SeriesPoint>> {
         let mut st = self.conn.prepare(
             "SELECT pass, spp, seconds, relmse FROM series WHERE job_id = ?1 ORDER BY pass",
@@ -450,21 +419,35 @@ impl Store {
         .collect()
     }
 
-    /// Creates the tasks of one pass (idempotent).
-    pub fn create_pass(
+    /// Creates the tasks of `tiles` of one pass in one transaction (idempotent). Callers create
+    /// a pass in bounded chunks, in tile order, so that a pass with tile `t` has every tile
+    /// before it.
+    pub fn create_tasks(
         &self,
         id: &str,
         pass: u32,
-        tiles: u32,
-        range: std::ops::Range<u32>,
+        tiles: std::ops::Range<u32>,
+        samples: std::ops::Range<u32>,
     ) -> rusqlite::Result<()> {
-        let mut st = self.conn.prepare(
-            "INSERT OR IGNORE INTO tasks (job_id, pass, tile, s0, s1, state) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
-        )?;
-        for t in 0..tiles {
-            st.execute(params![id, pass, t, range.start, range.end, T_QUEUED])?;
+        let tx = self.conn.unchecked_transaction()?;
+        {
+            let mut st = tx.prepare_cached(
+                "INSERT OR IGNORE INTO tasks (job_id, pass, tile, s0, s1, state) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+            )?;
+            for t in tiles {
+                st.execute(params![id, pass, t, samples.start, samples.end, T_QUEUED])?;
+            }
         }
-        Ok(())
+        tx.commit()
+    }
+
+    /// The highest tile of a pass that has its task (None: the pass has none).
+    pub fn last_tile(&self, id: &str, pass: u32) -> rusqlite::Result<Option<u32>> {
+        self.conn.query_row(
+            "SELECT MAX(tile) FROM tasks WHERE job_id = ?1 AND pass = ?2",
+            params![id, pass],
+            |r| r.get(0),
+        )
     }
 
     /// The highest pass with tasks, if any.
@@ -475,24 +458,26 @@ impl Store {
             })
     }
 
-    /// (done, total) tasks of a pass.
-    pub fn pass_progress(&self, id: &str, pass: u32) -> rusqlite::Result<(u32, u32)> {
+    /// Whether a task of the pass is still queued or leased.
+    pub fn pass_open(&self, id: &str, pass: u32) -> rusqlite::Result<bool> {
         self.conn.query_row(
-            "SELECT COALESCE(SUM(state = 'done'), 0), COUNT(*) FROM tasks WHERE job_id = ?1 AND pass = ?2",
-            params![id, pass],
-            |r| Ok((r.get(0)?, r.get(1)?)),
+            "SELECT EXISTS (SELECT 1 FROM tasks WHERE state IN (?3, ?4) AND job_id = ?1 \
+             AND pass = ?2)",
+            params![id, pass, T_QUEUED, T_LEASED],
+            |r| r.get(0),
         )
     }
 
     /// Done tasks of a job's unmerged passes.
     pub fn tasks_done(&self, id: &str) -> rusqlite::Result<u32> {
         self.conn.query_row(
-            "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = 'done'",
-            [id],
+            "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = ?2",
+            params![id, T_DONE],
             |r| r.get(0),
         )
     }
 
+    /// The tasks of a pass in tile order.
     pub fn pass_tasks(&self, id: &str, pass: u32) -> rusqlite::Result<Vec<TaskRow>> {
         let mut st = self.conn.prepare(&format!(
             "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND pass = ?2 ORDER BY tile"
@@ -500,6 +485,7 @@ impl Store {
         st.query_map(params![id, pass], task_row)?.collect()
     }
 
+    /// A task by id.
     pub fn task(&self, task_id: i64) -> rusqlite::Result<Option<TaskRow>> {
         self.conn
             .query_row(
@@ -510,31 +496,53 @@ impl Store {
             .optional()
     }
 
+    /// Puts a task back in the queue (its result could not be merged).
+    pub fn requeue(&self, task_id: i64) -> rusqlite::Result<()> {
+        self.conn.execute(
+            "UPDATE tasks SET state = ?2, worker_id = NULL WHERE id = ?1",
+            params![task_id, T_QUEUED],
+        )?;
+        Ok(())
+    }
+
     /// Leases the first queued task of the oldest active job (passes in order) to `worker`.
     pub fn lease(&self, worker: &str, lease_s: f64) -> rusqlite::Result<Option<TaskRow>> {
         let tx = self.conn.unchecked_transaction()?;
-        let id: Option<i64> = tx
-            .query_row(
-                "SELECT t.id FROM tasks t JOIN jobs j ON j.id = t.job_id \
-                 WHERE t.state = 'queued' AND j.state IN ('queued', 'running') \
-                 ORDER BY j.seq, t.pass, t.tile LIMIT 1",
-                [],
-                |r| r.get(0),
-            )
-            .optional()?;
+        // Job by job (few), each an index lookup of (state, job, pass, tile): no sort of the
+        // queue, however many tasks it holds.
+        let jobs: Vec<String> = {
+            let mut st =
+                tx.prepare_cached("SELECT id FROM jobs WHERE state IN (?1, ?2) ORDER BY seq")?;
+            st.query_map(params![J_QUEUED, J_RUNNING], |r| r.get(0))?
+                .collect::<rusqlite::Result<_>>()?
+        };
+        let mut id: Option<i64> = None;
+        for job in &jobs {
+            id = tx
+                .query_row(
+                    "SELECT id FROM tasks WHERE state = ?1 AND job_id = ?2 \
+                     ORDER BY pass, tile LIMIT 1",
+                    params![T_QUEUED, job],
+                    |r| r.get(0),
+                )
+                .optional()?;
+            if id.is_some() {
+                break;
+            }
+        }
         let Some(id) = id else {
             return Ok(None);
         };
         let t = now();
         tx.execute(
-            "UPDATE tasks SET state = 'leased', attempt = attempt + 1, worker_id = ?2, \
+            "UPDATE tasks SET state = ?4, attempt = attempt + 1, worker_id = ?2, \
              lease_expires = ?3 WHERE id = ?1",
-            params![id, worker, t + lease_s],
+            params![id, worker, t + lease_s, T_LEASED],
         )?;
         tx.execute(
-            "UPDATE jobs SET state = 'running', started_at = COALESCE(started_at, ?2) \
-             WHERE id = (SELECT job_id FROM tasks WHERE id = ?1) AND state = 'queued'",
-            params![id, t],
+            "UPDATE jobs SET state = ?3, started_at = COALESCE(started_at, ?2) \
+             WHERE id = (SELECT job_id FROM tasks WHERE id = ?1) AND state = ?4",
+            params![id, t, J_RUNNING, J_QUEUED],
         )?;
         let row = tx.query_row(
             &format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?1"),
@@ -555,8 +563,15 @@ impl Store {
     ) -> rusqlite::Result<bool> {
         let n = self.conn.execute(
             "UPDATE tasks SET lease_expires = ?4 WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 \
-             AND state = 'leased' AND job_id IN (SELECT id FROM jobs WHERE state = 'running')",
-            params![task_id, attempt, worker, now() + lease_s],
+             AND state = ?5 AND job_id IN (SELECT id FROM jobs WHERE state = ?6)",
+            params![
+                task_id,
+                attempt,
+                worker,
+                now() + lease_s,
+                T_LEASED,
+                J_RUNNING
+            ],
         )?;
         Ok(n == 1)
     }
@@ -571,9 +586,9 @@ impl Store {
     ) -> rusqlite::Result<bool> {
         let tx = self.conn.unchecked_transaction()?;
         let n = tx.execute(
-            "UPDATE tasks SET state = 'done', lease_expires = NULL WHERE id = ?1 AND attempt = ?2 \
-             AND worker_id = ?3 AND state = 'leased'",
-            params![task_id, attempt, worker],
+            "UPDATE tasks SET state = ?4, lease_expires = NULL WHERE id = ?1 AND attempt = ?2 \
+             AND worker_id = ?3 AND state = ?5",
+            params![task_id, attempt, worker, T_DONE, T_LEASED],
         )?;
         if n == 1 {
             tx.execute(
@@ -599,10 +614,10 @@ impl Store {
         error: &str,
     ) -> rusqlite::Result<Option<u32>> {
         let n = self.conn.execute(
-            "UPDATE tasks SET state = 'queued', worker_id = NULL, lease_expires = NULL, \
+            "UPDATE tasks SET state = ?5, worker_id = NULL, lease_expires = NULL, \
              failures = failures + 1, last_error = ?4 WHERE id = ?1 AND attempt = ?2 \
-             AND worker_id = ?3 AND state = 'leased'",
-            params![task_id, attempt, worker, error],
+             AND worker_id = ?3 AND state = ?6",
+            params![task_id, attempt, worker, error, T_QUEUED, T_LEASED],
         )?;
         if n == 0 {
             return Ok(None);
@@ -617,12 +632,13 @@ impl Store {
     /// Requeues every lease that expired; returns how many.
     pub fn expire_leases(&self) -> rusqlite::Result<usize> {
         self.conn.execute(
-            "UPDATE tasks SET state = 'queued', worker_id = NULL, lease_expires = NULL \
-             WHERE state = 'leased' AND lease_expires < ?1",
-            [now()],
+            "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL \
+             WHERE state = ?3 AND lease_expires < ?1",
+            params![now(), T_QUEUED, T_LEASED],
         )
     }
 
+    /// Registers a worker, or refreshes one that registers again with its id; it is `idle`.
     pub fn register_worker(
         &self,
         id: &str,
@@ -633,20 +649,20 @@ impl Store {
         let t = now();
         self.conn.execute(
             "INSERT INTO workers (id, name, threads, version, registered_at, last_seen, state) \
-             VALUES (?1, ?2, ?3, ?4, ?5, ?5, 'idle') ON CONFLICT (id) DO UPDATE SET \
-             name = ?2, threads = ?3, version = ?4, last_seen = ?5, state = 'idle'",
-            params![id, name, threads, version, t],
+             VALUES (?1, ?2, ?3, ?4, ?5, ?5, ?6) ON CONFLICT (id) DO UPDATE SET \
+             name = ?2, threads = ?3, version = ?4, last_seen = ?5, state = ?6",
+            params![id, name, threads, version, t, WorkerState::Idle],
         )?;
         Ok(())
     }
 
     /// Notes that a worker is alive, and its state when given (None keeps it, except that a
     /// worker marked gone is back); false when it is unknown.
-    pub fn touch_worker(&self, id: &str, state: Option<&str>) -> rusqlite::Result<bool> {
+    pub fn touch_worker(&self, id: &str, state: Option<WorkerState>) -> rusqlite::Result<bool> {
         let n = self.conn.execute(
             "UPDATE workers SET last_seen = ?2, state = COALESCE(?3, \
-             CASE state WHEN 'gone' THEN 'idle' ELSE state END) WHERE id = ?1",
-            params![id, now(), state],
+             CASE state WHEN ?4 THEN ?5 ELSE state END) WHERE id = ?1",
+            params![id, now(), state, WorkerState::Gone, WorkerState::Idle],
         )?;
         Ok(n == 1)
     }
@@ -654,21 +670,22 @@ impl Store {
     /// Workers not heard from for `silent_s` are marked gone.
     pub fn mark_gone(&self, silent_s: f64) -> rusqlite::Result<usize> {
         self.conn.execute(
-            "UPDATE workers SET state = 'gone' WHERE state != 'gone' AND last_seen < ?1",
-            [now() - silent_s],
+            "UPDATE workers SET state = ?2 WHERE state != ?2 AND last_seen < ?1",
+            params![now() - silent_s, WorkerState::Gone],
         )
     }
 
-    pub fn workers(&self) -> rusqlite::Result<Vec<WorkerRow>> {
-        let mut held: std::collections::HashMap<String, Vec<HeldTask>> = Default::default();
+    /// Every worker, in order of first registration.
+    pub fn workers(&self) -> rusqlite::Result<Vec<WorkerInfo>> {
+        let mut held: HashMap<String, Vec<WorkerTask>> = HashMap::new();
         let mut st = self.conn.prepare(
             "SELECT worker_id, id, job_id, pass, tile, attempt FROM tasks \
-             WHERE state = 'leased' AND worker_id IS NOT NULL ORDER BY id",
+             WHERE state = ?1 AND worker_id IS NOT NULL ORDER BY id",
         )?;
-        let rows = st.query_map([], |r| {
+        let rows = st.query_map(params![TaskState::Leased], |r| {
             Ok((
                 r.get::<_, String>(0)?,
-                HeldTask {
+                WorkerTask {
                     id: r.get(1)?,
                     job_id: r.get(2)?,
                     pass: r.get(3)?,
@@ -678,8 +695,8 @@ impl Store {
             ))
         })?;
         for row in rows {
-            let (w, t) = row?;
-            held.entry(w).or_default().push(t);
+            let (worker, task) = row?;
+            held.entry(worker).or_default().push(task);
         }
         let mut st = self.conn.prepare(
             "SELECT id, name, threads, version, registered_at, last_seen, state, tasks_done \
@@ -687,8 +704,8 @@ impl Store {
         )?;
         st.query_map([], |r| {
             let id: String = r.get(0)?;
-            let tasks = held.remove(&id).unwrap_or_default();
-            Ok(WorkerRow {
+            Ok(WorkerInfo {
+                tasks: held.remove(&id).unwrap_or_default(),
                 id,
                 name: r.get(1)?,
                 threads: r.get(2)?,
@@ -697,16 +714,16 @@ impl Store {
                 last_seen: r.get(5)?,
                 state: r.get(6)?,
                 tasks_done: r.get(7)?,
-                tasks,
             })
         })?
         .collect()
     }
 
+    /// Records an event of a job.
     pub fn add_event(
         &self,
         job: &str,
-        kind: &str,
+        kind: EventKind,
         data: &serde_json::Value,
     ) -> rusqlite::Result<EventRow> {
         let at = now();
@@ -717,12 +734,13 @@ impl Store {
         Ok(EventRow {
             id: self.conn.last_insert_rowid(),
             job_id: job.to_string(),
-            kind: kind.to_string(),
+            kind,
             data: data.clone(),
             at,
         })
     }
 
+    /// A job's events after event `after`, in order.
     pub fn events_after(&self, job: &str, after: i64) -> rusqlite::Result<Vec<EventRow>> {
         let mut st = self.conn.prepare(
             "SELECT id, job_id, kind, data, at FROM events WHERE job_id = ?1 AND id > ?2 ORDER BY id",

@@ -3,15 +3,15 @@
 //! downloaded once per bundle and kept loaded (with their BVH) for the tasks that follow.
 //! SIGTERM drains: no new task is taken, the ones in hand are finished and uploaded.
 
-use crate::film::Tile;
 use crate::integrator;
-use crate::job::Resolved;
 use crate::scene::Scene;
 use crate::service::bundle;
+use crate::service::protocol::{
+    DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, HeldTask, Lease,
+    LeaseRequest, LeasedJob, LeasedTask, RegisterRequest, Registration, ResultQuery,
+};
 use anyhow::{Context, Result};
 use reqwest::StatusCode;
-use serde::Deserialize;
-use serde_json::json;
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -19,40 +19,21 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{OnceCell, watch};
 
+/// How a worker runs.
 #[derive(Clone, Debug)]
-pub struct WorkerConfig {
+pub(crate) struct WorkerConfig {
+    /// The coordinator's URL (`http://host:port`).
     pub coordinator: String,
+    /// Tasks rendered at once.
     pub threads: usize,
+    /// The worker token.
     pub token: Option<String>,
+    /// Shown in GET /v1/workers.
     pub name: String,
     /// Exit when the parent process goes away (local pools).
     pub exit_with_parent: bool,
     /// Where downloaded scene bundles are unpacked.
     pub cache: PathBuf,
-}
-
-#[derive(Deserialize)]
-struct Lease {
-    task: LeasedTask,
-    job: LeasedJob,
-}
-
-#[derive(Deserialize)]
-struct LeasedTask {
-    id: i64,
-    attempt: u32,
-    job_id: String,
-    pass: u32,
-    tile: u32,
-    rect: Tile,
-    samples: [u32; 2],
-}
-
-#[derive(Deserialize)]
-struct LeasedJob {
-    scene_id: String,
-    scene_main: String,
-    resolved: Resolved,
 }
 
 type SceneCell = Arc<OnceCell<Result<Arc<Scene>, String>>>;
@@ -98,12 +79,12 @@ impl Worker {
         let mut backoff = Duration::from_millis(200);
         loop {
             let prev = self.id();
-            let body = json!({
-                "name": self.cfg.name,
-                "threads": self.cfg.threads,
-                "version": env!("CARGO_PKG_VERSION"),
-                "id": (!prev.is_empty()).then_some(prev),
-            });
+            let body = RegisterRequest {
+                name: self.cfg.name.clone(),
+                threads: self.cfg.threads.min(u32::MAX as usize) as u32,
+                version: env!("CARGO_PKG_VERSION").to_string(),
+                id: (!prev.is_empty()).then_some(prev),
+            };
             match self
                 .req(reqwest::Method::POST, "/v1/worker/register")
                 .json(&body)
@@ -112,11 +93,10 @@ impl Worker {
                 .await
             {
                 Ok(r) if r.status().is_success() => {
-                    let v: serde_json::Value = r.json().await?;
-                    let id = v["worker_id"].as_str().unwrap_or_default().to_string();
-                    *lock(&self.heartbeat_s) = v["heartbeat_seconds"].as_f64().unwrap_or(5.0);
-                    tracing::info!("registered as {id}");
-                    *lock(&self.id) = id;
+                    let v: Registration = r.json().await?;
+                    *lock(&self.heartbeat_s) = v.heartbeat_seconds;
+                    tracing::info!("registered as {}", v.worker_id);
+                    *lock(&self.id) = v.worker_id;
                     return Ok(());
                 }
                 Ok(r) if r.status() == StatusCode::UNAUTHORIZED => {
@@ -194,7 +174,10 @@ impl Worker {
     async fn lease(&self) -> Result<Option<Lease>, reqwest::Error> {
         let r = self
             .req(reqwest::Method::POST, "/v1/worker/lease")
-            .json(&json!({ "worker_id": self.id(), "wait_s": 10.0 }))
+            .json(&LeaseRequest {
+                worker_id: self.id(),
+                wait_s: Some(10.0),
+            })
             .timeout(Duration::from_secs(40))
             .send()
             .await?;
@@ -228,7 +211,10 @@ impl Worker {
             }
             let r = self
                 .req(reqwest::Method::PUT, &path)
-                .query(&[("worker_id", self.id()), ("attempt", t.attempt.to_string())])
+                .query(&ResultQuery {
+                    worker_id: self.id(),
+                    attempt: t.attempt,
+                })
                 .header("content-type", "application/octet-stream")
                 .body(bytes.clone())
                 .timeout(Duration::from_secs(120))
@@ -268,7 +254,11 @@ impl Worker {
                 reqwest::Method::POST,
                 &format!("/v1/worker/tasks/{}/fail", t.id),
             )
-            .json(&json!({ "worker_id": self.id(), "attempt": t.attempt, "error": error }))
+            .json(&FailRequest {
+                worker_id: self.id(),
+                attempt: t.attempt,
+                error: error.to_string(),
+            })
             .timeout(Duration::from_secs(10))
             .send()
             .await;
@@ -335,23 +325,21 @@ impl Worker {
             tokio::time::sleep(Duration::from_secs_f64(every.max(0.2))).await;
             let tasks: Vec<_> = lock(&self.held)
                 .iter()
-                .map(|(id, a)| json!({ "id": id, "attempt": a }))
+                .map(|(&id, &attempt)| HeldTask { id, attempt })
                 .collect();
             let r = self
                 .req(reqwest::Method::POST, "/v1/worker/heartbeat")
-                .json(&json!({ "worker_id": self.id(), "tasks": tasks }))
+                .json(&HeartbeatRequest {
+                    worker_id: self.id(),
+                    tasks,
+                })
                 .timeout(Duration::from_secs(10))
                 .send()
                 .await;
             match r {
                 Ok(r) if r.status().is_success() => {
-                    if let Ok(v) = r.json::<serde_json::Value>().await
-                        && let Some(lost) = v["lost"].as_array()
-                    {
-                        let mut l = lock(&self.lost);
-                        for id in lost.iter().filter_map(|x| x.as_i64()) {
-                            l.insert(id);
-                        }
+                    if let Ok(v) = r.json::<HeartbeatAnswer>().await {
+                        lock(&self.lost).extend(v.lost);
                     }
                 }
                 Ok(r) if r.status() == StatusCode::NOT_FOUND => {
@@ -365,7 +353,7 @@ impl Worker {
 }
 
 /// Runs a worker until SIGTERM / Ctrl-C (drained) or, with `exit_with_parent`, its parent's end.
-pub async fn run(cfg: WorkerConfig) -> Result<()> {
+pub(crate) async fn run(cfg: WorkerConfig) -> Result<()> {
     std::fs::create_dir_all(&cfg.cache)
         .with_context(|| format!("cannot create the cache folder {}", cfg.cache.display()))?;
     let http = reqwest::Client::builder()
@@ -428,7 +416,7 @@ pub async fn run(cfg: WorkerConfig) -> Result<()> {
     hb.abort();
     let _ = w
         .req(reqwest::Method::POST, "/v1/worker/deregister")
-        .json(&json!({ "worker_id": w.id() }))
+        .json(&DeregisterRequest { worker_id: w.id() })
         .timeout(Duration::from_secs(5))
         .send()
         .await;

@@ -1,0 +1,94 @@
+//! `/healthz` and `/metrics` (Prometheus text): no token.
+
+use super::AppState;
+use super::errors::ApiResult;
+use crate::service::protocol::Health;
+use axum::Json;
+use axum::extract::State;
+use axum::http::{HeaderValue, header};
+use axum::response::{IntoResponse, Response};
+use std::sync::atomic::Ordering;
+
+/// GET /healthz.
+pub(crate) async fn healthz() -> Json<Health> {
+    Json(Health {
+        status: "ok".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+    })
+}
+
+/// GET /metrics.
+pub(crate) async fn metrics(State(app): State<AppState>) -> ApiResult<Response> {
+    use std::fmt::Write;
+    let mut out = String::new();
+    {
+        let db = app.db();
+        for (table, help) in [
+            ("jobs", "Jobs by state."),
+            ("tasks", "Tasks of unmerged passes by state."),
+            ("workers", "Registered workers by state."),
+        ] {
+            let _ = writeln!(out, "# HELP omis_{table} {help}\n# TYPE omis_{table} gauge");
+            for (state, n) in db.state_counts(table)? {
+                let _ = writeln!(out, "omis_{table}{{state=\"{state}\"}} {n}");
+            }
+        }
+    }
+    let m = &app.metrics;
+    for (name, help, v) in [
+        (
+            "omis_results_accepted_total",
+            "Task results merged or awaiting their pass.",
+            &m.results_accepted,
+        ),
+        (
+            "omis_results_refused_total",
+            "Task results refused (stale attempt, non-owner, invalid).",
+            &m.results_refused,
+        ),
+        (
+            "omis_result_bytes_total",
+            "Bytes of accepted task results.",
+            &m.result_bytes,
+        ),
+        (
+            "omis_passes_merged_total",
+            "Passes merged.",
+            &m.passes_merged,
+        ),
+        (
+            "omis_merge_microseconds_total",
+            "Time spent merging passes.",
+            &m.merge_micros,
+        ),
+        (
+            "omis_leases_expired_total",
+            "Leases given back after a silent worker.",
+            &m.leases_expired,
+        ),
+        (
+            "omis_worker_restarts_total",
+            "Local worker processes restarted.",
+            &m.worker_restarts,
+        ),
+        (
+            "omis_http_errors_total",
+            "HTTP responses with a 4xx or 5xx status.",
+            &m.http_errors,
+        ),
+    ] {
+        let _ = writeln!(
+            out,
+            "# HELP {name} {help}\n# TYPE {name} counter\n{name} {}",
+            v.load(Ordering::Relaxed)
+        );
+    }
+    Ok((
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("text/plain; version=0.0.4"),
+        )],
+        out,
+    )
+        .into_response())
+}

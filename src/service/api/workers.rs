@@ -1,0 +1,332 @@
+//! Workers: the worker protocol under /v1/worker/* (register, lease, heartbeat, deregister,
+//! scene download, result upload, failure report) and the worker list (GET /v1/workers).
+
+use super::errors::{ApiError, ApiResult, bad, parse_json};
+use super::{AppState, is_safe_id, scenes};
+use crate::film::TileFilm;
+use crate::service::protocol::{
+    DeregisterAnswer, DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, JobEvent,
+    JobState, Lease, LeaseRequest, LeasedJob, LeasedTask, OkAnswer, RegisterRequest, Registration,
+    ResultAnswer, ResultQuery, TaskState, TileDoneEvent, WorkerList, WorkerState,
+};
+use crate::service::store::{self, TaskRow};
+use crate::service::{Metrics, jobs};
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use std::time::Duration;
+
+/// GET /v1/workers (client token).
+pub(crate) async fn list_workers(State(app): State<AppState>) -> ApiResult<Json<WorkerList>> {
+    let workers = app.db().workers()?;
+    Ok(Json(WorkerList { workers }))
+}
+
+fn unknown_worker() -> ApiError {
+    ApiError::field(
+        StatusCode::NOT_FOUND,
+        "worker_id",
+        "unknown worker; register again",
+    )
+}
+
+/// POST /v1/worker/register.
+pub(crate) async fn register(
+    State(app): State<AppState>,
+    body: Bytes,
+) -> ApiResult<Json<Registration>> {
+    let r: RegisterRequest = parse_json(&body)?;
+    let id = match r.id {
+        Some(id) if is_safe_id(&id) => id,
+        Some(_) => return Err(bad("id", "not a worker id")),
+        None => uuid::Uuid::new_v4().to_string(),
+    };
+    let name: String = r
+        .name
+        .chars()
+        .filter(|c| !c.is_control())
+        .take(200)
+        .collect();
+    app.db()
+        .register_worker(&id, &name, r.threads.clamp(1, 4096), &r.version)?;
+    tracing::info!("worker {name} ({id}) registered with {} threads", r.threads);
+    Ok(Json(Registration {
+        worker_id: id,
+        lease_seconds: app.cfg.lease_s,
+        heartbeat_seconds: (app.cfg.lease_s / 4.0).max(0.5),
+    }))
+}
+
+/// POST /v1/worker/lease: a task, or 204 after `wait_s` without one.
+pub(crate) async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult<Response> {
+    let r: LeaseRequest = parse_json(&body)?;
+    if !app.db().touch_worker(&r.worker_id, None)? {
+        return Err(unknown_worker());
+    }
+    let wait = r
+        .wait_s
+        .unwrap_or(20.0)
+        .clamp(0.0, app.cfg.max_lease_wait_s.clamp(0.0, 30.0));
+    let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(wait);
+    loop {
+        let notified = app.work.notified();
+        tokio::pin!(notified);
+        notified.as_mut().enable();
+        let leased = {
+            let db = app.db();
+            match db.lease(&r.worker_id, app.cfg.lease_s)? {
+                Some(t) => {
+                    db.touch_worker(&r.worker_id, Some(WorkerState::Busy))?;
+                    let job = db.job(&t.job_id)?;
+                    Some((t, job))
+                }
+                None => None,
+            }
+        };
+        if let Some((task, Some(job))) = leased {
+            let res = jobs::resolved_of(&job).map_err(ApiError::internal)?;
+            let rect = jobs::tile_rect(&res, task.tile)
+                .ok_or_else(|| ApiError::internal("tile index out of range"))?;
+            let lease = Lease {
+                task: LeasedTask {
+                    id: task.id,
+                    attempt: task.attempt,
+                    job_id: task.job_id,
+                    pass: task.pass,
+                    tile: task.tile,
+                    rect,
+                    samples: [task.s0, task.s1],
+                },
+                job: LeasedJob {
+                    scene_id: job.scene_id,
+                    scene_main: job.scene_main,
+                    resolved: res,
+                },
+                lease_seconds: app.cfg.lease_s,
+            };
+            return Ok(Json(lease).into_response());
+        }
+        tokio::select! {
+            _ = &mut notified => {}
+            _ = tokio::time::sleep_until(deadline) => return Ok(StatusCode::NO_CONTENT.into_response()),
+            _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+        }
+    }
+}
+
+/// POST /v1/worker/heartbeat.
+pub(crate) async fn heartbeat(
+    State(app): State<AppState>,
+    body: Bytes,
+) -> ApiResult<Json<HeartbeatAnswer>> {
+    let r: HeartbeatRequest = parse_json(&body)?;
+    let db = app.db();
+    let state = if r.tasks.is_empty() {
+        WorkerState::Idle
+    } else {
+        WorkerState::Busy
+    };
+    if !db.touch_worker(&r.worker_id, Some(state))? {
+        return Err(unknown_worker());
+    }
+    let mut lost = Vec::new();
+    for t in &r.tasks {
+        if !db.extend(t.id, t.attempt, &r.worker_id, app.cfg.lease_s)? {
+            lost.push(t.id);
+        }
+    }
+    Ok(Json(HeartbeatAnswer { lost }))
+}
+
+/// POST /v1/worker/deregister: the worker is `left`, its leases go back to the queue.
+pub(crate) async fn deregister(
+    State(app): State<AppState>,
+    body: Bytes,
+) -> ApiResult<Json<DeregisterAnswer>> {
+    let r: DeregisterRequest = parse_json(&body)?;
+    let released = {
+        let db = app.db();
+        if !db.touch_worker(&r.worker_id, Some(WorkerState::Left))? {
+            return Err(ApiError::field(
+                StatusCode::NOT_FOUND,
+                "worker_id",
+                "unknown worker",
+            ));
+        }
+        db.release_worker(&r.worker_id)?
+    };
+    if released > 0 {
+        app.work.notify_waiters();
+    }
+    Ok(Json(DeregisterAnswer { ok: true, released }))
+}
+
+/// GET /v1/worker/scenes/{id}: a bundle's tar.
+pub(crate) async fn worker_scene(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    if scenes::scene_meta(&app, &id).is_none() {
+        return Err(ApiError::not_found("scene", &id));
+    }
+    let bytes = tokio::fs::read(app.paths.scene(&id).join("bundle.tar"))
+        .await
+        .map_err(ApiError::internal)?;
+    Ok((
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/x-tar"),
+        )],
+        bytes,
+    )
+        .into_response())
+}
+
+/// Whether `task` is still `worker`'s current attempt (else the 409 to answer).
+fn check_owner(task: &TaskRow, worker: &str, attempt: u32) -> ApiResult<()> {
+    if task.state != TaskState::Leased
+        || task.attempt != attempt
+        || task.worker_id.as_deref() != Some(worker)
+    {
+        return Err(ApiError::field(
+            StatusCode::CONFLICT,
+            "attempt",
+            format!(
+                "task {} attempt {attempt} of worker {worker} is not current (task is {}, attempt {}, owner {})",
+                task.id,
+                task.state,
+                task.attempt,
+                task.worker_id.as_deref().unwrap_or("none")
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// PUT /v1/worker/tasks/{id}/result: the task's encoded accumulators.
+pub(crate) async fn upload_result(
+    State(app): State<AppState>,
+    Path(task_id): Path<i64>,
+    Query(q): Query<ResultQuery>,
+    body: Bytes,
+) -> ApiResult<Json<ResultAnswer>> {
+    let refused = |e: ApiError| {
+        Metrics::add(&app.metrics.results_refused, 1);
+        e
+    };
+    let (task, job) = {
+        let db = app.db();
+        let Some(task) = db.task(task_id)? else {
+            return Err(refused(if db.task_existed(task_id)? {
+                ApiError::field(
+                    StatusCode::CONFLICT,
+                    "id",
+                    format!("task {task_id} is no longer current (its pass was merged)"),
+                )
+            } else {
+                ApiError::not_found("task", &task_id.to_string())
+            }));
+        };
+        let job = db
+            .job(&task.job_id)?
+            .ok_or_else(|| ApiError::internal("task without job"))?;
+        (task, job)
+    };
+    check_owner(&task, &q.worker_id, q.attempt).map_err(refused)?;
+    if job.state != JobState::Running {
+        return Err(refused(ApiError::field(
+            StatusCode::CONFLICT,
+            "id",
+            format!("job '{}' is {}", job.id, job.state),
+        )));
+    }
+    let a = app.clone();
+    let t = task.clone();
+    let worker = q.worker_id.clone();
+    let n = body.len();
+    let checked = tokio::task::spawn_blocking(move || -> ApiResult<Option<String>> {
+        let r = jobs::resolved_of(&job).map_err(ApiError::internal)?;
+        let layout = r.film_layout();
+        let tile = jobs::tile_rect(&r, t.tile);
+        let problem = match TileFilm::decode(&body, r.width, r.height, &layout) {
+            Err(e) => Some(e.to_string()),
+            Ok((f, range)) if Some(f.tile) != tile || range != (t.s0..t.s1) => Some(format!(
+                "result is for tile {:?} samples {range:?}, the task is tile {tile:?} samples {}..{}",
+                f.tile, t.s0, t.s1
+            )),
+            Ok(_) => None,
+        };
+        if let Some(p) = problem {
+            return Ok(Some(p));
+        }
+        let path = a.paths.result(&t.job_id, t.pass, t.tile, t.attempt);
+        store::write_atomic(&path, &body).map_err(ApiError::internal)?;
+        Ok(None)
+    })
+    .await
+    .map_err(ApiError::internal)??;
+    if let Some(problem) = checked {
+        let _ = jobs::task_failed(&app, &task, &worker, &format!("invalid result: {problem}"));
+        return Err(refused(ApiError::field(
+            StatusCode::BAD_REQUEST,
+            "body",
+            problem,
+        )));
+    }
+    let accepted = app.db().complete(task.id, task.attempt, &worker, n)?;
+    if !accepted {
+        let _ = std::fs::remove_file(app.paths.result(
+            &task.job_id,
+            task.pass,
+            task.tile,
+            task.attempt,
+        ));
+        return Err(refused(ApiError::field(
+            StatusCode::CONFLICT,
+            "attempt",
+            format!(
+                "task {} attempt {} is no longer current",
+                task.id, task.attempt
+            ),
+        )));
+    }
+    Metrics::add(&app.metrics.results_accepted, 1);
+    Metrics::add(&app.metrics.result_bytes, n as u64);
+    app.event(
+        &task.job_id,
+        JobEvent::TileDone(TileDoneEvent {
+            pass: task.pass,
+            tile: task.tile,
+            worker,
+            bytes: n as u64,
+        }),
+    );
+    let a = app.clone();
+    let id = task.job_id.clone();
+    tokio::task::spawn_blocking(move || jobs::advance(&a, &id));
+    Ok(Json(ResultAnswer { accepted: true }))
+}
+
+/// POST /v1/worker/tasks/{id}/fail.
+pub(crate) async fn fail_task(
+    State(app): State<AppState>,
+    Path(task_id): Path<i64>,
+    body: Bytes,
+) -> ApiResult<Json<OkAnswer>> {
+    let r: FailRequest = parse_json(&body)?;
+    let task = app
+        .db()
+        .task(task_id)?
+        .ok_or_else(|| ApiError::not_found("task", &task_id.to_string()))?;
+    check_owner(&task, &r.worker_id, r.attempt)?;
+    let error: String = r.error.chars().take(2000).collect();
+    let a = app.clone();
+    let w = r.worker_id.clone();
+    tokio::task::spawn_blocking(move || jobs::task_failed(&a, &task, &w, &error))
+        .await
+        .map_err(ApiError::internal)?
+        .map_err(ApiError::internal)?;
+    Ok(Json(OkAnswer { ok: true }))
+}
