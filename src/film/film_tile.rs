@@ -62,8 +62,8 @@ impl TileGrid {
         Tile {
             x0,
             y0,
-            x1: (x0 + self.size).min(self.width),
-            y1: (y0 + self.size).min(self.height),
+            x1: x0.saturating_add(self.size).min(self.width),
+            y1: y0.saturating_add(self.size).min(self.height),
         }
     }
 
@@ -336,6 +336,43 @@ impl Image {
             let row = &src.pixels[y * src.width..(y + 1) * src.width];
             let at = (y0 + y) * self.width + x0;
             self.pixels[at..at + src.width].copy_from_slice(row);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grid_tiles_pixels_and_indices_agree() {
+        for (w, h, t) in [(40, 32, 16), (7, 5, 2), (1, 1, 4), (33, 64, 32), (5, 9, 1)] {
+            let g = TileGrid::new(w, h, t);
+            let tiles = g.tiles();
+            assert_eq!(tiles.len(), g.len());
+            let mut covered = vec![0u32; (w * h) as usize];
+            for (i, tile) in tiles.iter().enumerate() {
+                assert_eq!(g.index_of(tile), Some(i));
+                assert!(tile.x0 < tile.x1 && tile.y0 < tile.y1 && tile.x1 <= w && tile.y1 <= h);
+                for y in tile.y0..tile.y1 {
+                    for x in tile.x0..tile.x1 {
+                        let p = y * w + x;
+                        assert_eq!(g.tile_of(p), i, "{w}x{h}/{t}: pixel ({x}, {y})");
+                        covered[p as usize] += 1;
+                    }
+                }
+            }
+            assert!(
+                covered.iter().all(|&c| c == 1),
+                "{w}x{h}/{t}: tiles cover once"
+            );
+            let odd = Tile {
+                x0: 1,
+                y0: 0,
+                x1: 2,
+                y1: 1,
+            };
+            assert_eq!(g.index_of(&odd).is_some(), t == 1);
         }
     }
 }

@@ -65,25 +65,13 @@ const TASK_CHUNK: u32 = 2048;
 
 /// Tiles of a frame (the length of `r.tiles()`, without making the list).
 pub(crate) fn tile_count(r: &Resolved) -> u32 {
-    let t = r.tile_size.max(1) as u64;
-    let n = (r.width as u64).div_ceil(t) * (r.height as u64).div_ceil(t);
-    n.min(u32::MAX as u64) as u32
+    r.grid().len().min(u32::MAX as usize) as u32
 }
 
 /// Tile `i` of `r.tiles()` (row-major), computed directly.
 pub(crate) fn tile_rect(r: &Resolved, i: u32) -> Option<Tile> {
-    if i >= tile_count(r) {
-        return None;
-    }
-    let t = r.tile_size.max(1);
-    let cols = r.width.div_ceil(t);
-    let (x0, y0) = ((i % cols) * t, (i / cols) * t);
-    Some(Tile {
-        x0,
-        y0,
-        x1: x0.saturating_add(t).min(r.width),
-        y1: y0.saturating_add(t).min(r.height),
-    })
+    let g = r.grid();
+    ((i as usize) < g.len()).then(|| g.tile(i as usize))
 }
 
 /// Makes sure the job's next two passes (`passes_done` and the one after) have their tasks, so
@@ -514,33 +502,4 @@ pub(crate) fn convergence_svg(job: &JobRow, series: &[SeriesPoint]) -> String {
         true,
         true,
     )
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::integrator::RenderSettings;
-
-    #[test]
-    fn tiles_by_index_are_the_schedule_s_tiles() {
-        for (w, h, t) in [(40, 32, 16), (7, 5, 2), (1, 1, 4), (33, 64, 32), (5, 9, 1)] {
-            let r = Resolved {
-                width: w,
-                height: h,
-                render: RenderSettings::default(),
-                spp: Some(4),
-                time_budget_s: None,
-                tile_size: t,
-                pass_size: 4,
-                max_pass_size: None,
-                eps: 0.01,
-            };
-            let all = r.tiles();
-            assert_eq!(tile_count(&r) as usize, all.len());
-            for (i, tile) in all.iter().enumerate() {
-                assert_eq!(tile_rect(&r, i as u32), Some(*tile));
-            }
-            assert_eq!(tile_rect(&r, all.len() as u32), None);
-        }
-    }
 }
