@@ -337,8 +337,7 @@ fn camera_techniques_survive_a_light_tracing_count_1e13_times_larger() {
 
 /// A frame merged tile by tile — each tile's accumulators receiving, pass by pass, its own
 /// task's sums and what every task of the pass routed to it, in task order — has the bits of the
-/// frame merged task by task, whatever order the tiles are merged in. The coordinator merges
-/// this way, one tile at a time.
+/// frame merged task by task, whatever order the tiles are merged in.
 #[test]
 fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
     use omis::film::wire::TileCheckpoint;
@@ -433,4 +432,125 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
             assert!(part.records.pixels.iter().all(|&p| grid.tile_of(p) == *d));
         }
     }
+}
+
+/// The coordinator's merge: results stored laid out by band, every pass added band group by band
+/// group (each group reading only its bands' sections), with a restart in the middle of a pass
+/// (some groups already hold it), has the bits of the frame merged task by task. Damaged stored
+/// results are refused.
+#[test]
+fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
+    use omis::film::wire::{self, BandedIndex};
+    use omis::film::{BandGroup, FilmTile, TileGrid, band_groups};
+    let (w, h) = (24, 20);
+    let scene = load("cornell-box-small-light.json", w, h);
+    let mut s = optimal(4, 5, 3);
+    s.strategies = true;
+    s.depth_layers = true;
+    let layout = s.film_layout();
+    let grid = TileGrid::new(w, h, 8);
+    let tiles = grid.tiles();
+    let passes = [0..2u32, 2..4];
+    let mut film = Film::new(w, h, &layout);
+    let mut stored: Vec<Vec<Vec<u8>>> = Vec::new();
+    for range in &passes {
+        let mut pass = Vec::new();
+        for t in &tiles {
+            let r = integrator::render_tile(&scene, &s, *t, range.clone());
+            film.merge_task(&r);
+            // What the coordinator stores: the upload, decoded, laid out by band.
+            let (back, got) =
+                TileFilm::decode(&r.encode(range.clone()), w, h, &layout).expect("decodes");
+            pass.push(wire::encode_banded(back, got, &grid));
+        }
+        stored.push(pass);
+    }
+    // Groups of one band, and a budget that puts two bands in a group.
+    let band_bytes = (w as u64) * 8 * layout.bytes_per_pixel() as u64;
+    for budget in [1, 2 * band_bytes] {
+        let groups = band_groups(&grid, &layout, budget);
+        assert_eq!(groups.first().map(|g| g.start), Some(0));
+        assert_eq!(groups.last().map(|g| g.end), Some(grid.rows() as usize));
+        let mut acc: Vec<FilmTile> = tiles.iter().map(|t| FilmTile::new(*t, &layout)).collect();
+        let mut done = vec![0u32; tiles.len()];
+        for (p, pass) in stored.iter().enumerate() {
+            // Pass 1 restarted after its first group: that group's tiles hold it already.
+            let restarts = p == 1;
+            for (g, bands) in groups.iter().enumerate() {
+                let rounds = if restarts && g == 0 { 2 } else { 1 };
+                for _ in 0..rounds {
+                    let range =
+                        grid.band_tiles(bands.start).start..grid.band_tiles(bands.end - 1).end;
+                    let open: Vec<bool> = range.clone().map(|t| done[t] == p as u32).collect();
+                    let mut group =
+                        BandGroup::new(&grid, bands.clone(), acc[range.clone()].to_vec(), open);
+                    for (u, bytes) in pass.iter().enumerate() {
+                        let index =
+                            BandedIndex::read(&mut &bytes[..], bytes.len() as u64).expect("index");
+                        assert_eq!(index.tile, tiles[u]);
+                        let own = group.holds(u).then(|| {
+                            let part = &bytes[index.own.start as usize..index.own.end as usize];
+                            TileFilm::decode(part, w, h, &layout).expect("own").0
+                        });
+                        let sections: Vec<_> = index
+                            .sections
+                            .iter()
+                            .filter(|(b, _)| bands.contains(&(*b as usize)))
+                            .map(|(b, r)| {
+                                let part = &bytes[r.start as usize..r.end as usize];
+                                let b = *b as usize;
+                                (
+                                    b,
+                                    wire::decode_section(part, b, &grid, layout.d_opt())
+                                        .expect("section"),
+                                )
+                            })
+                            .collect();
+                        group.add_task(&grid, u, own.as_ref(), &sections);
+                    }
+                    for (k, t) in range.clone().enumerate() {
+                        if group.open[k] {
+                            done[t] += 1;
+                        }
+                        acc[t] = group.tiles[k].clone();
+                    }
+                }
+            }
+        }
+        assert!(
+            done.iter().all(|&d| d == 2),
+            "each tile merged each pass once"
+        );
+        let light_paths = film.light_paths();
+        let mut beauty = Image::new(w as usize, h as usize);
+        let mut depth2 = Image::new(w as usize, h as usize);
+        for t in &acc {
+            let (x, y) = (t.tile.x0 as usize, t.tile.y0 as usize);
+            beauty.blit(&t.image(light_paths, layout.kappa), x, y);
+            depth2.blit(&t.depth_image(2, light_paths, layout.kappa), x, y);
+        }
+        assert!(film.image() == beauty, "beauty, budget {budget}");
+        assert!(film.depth_images()[2] == depth2, "depth 2, budget {budget}");
+    }
+    // Damage is refused: truncation, a wrong length, a section read as another band's.
+    let bytes = &stored[0][3];
+    let len = bytes.len() as u64;
+    assert!(BandedIndex::read(&mut &bytes[..], len - 1).is_err());
+    assert!(BandedIndex::read(&mut &bytes[..20], 20).is_err());
+    assert!(BandedIndex::read(&mut &bytes[..], len + 1).is_err());
+    let mut bad = bytes.clone();
+    bad[0] ^= 1;
+    assert!(BandedIndex::read(&mut &bad[..], len).is_err());
+    let index = BandedIndex::read(&mut &bytes[..], len).expect("index");
+    let (b, r) = index
+        .sections
+        .first()
+        .expect("light tracing reaches some band")
+        .clone();
+    let part = &bytes[r.start as usize..r.end as usize];
+    let other = (b as usize + 1) % grid.rows() as usize;
+    assert!(wire::decode_section(part, other, &grid, layout.d_opt()).is_err());
+    assert!(
+        wire::decode_section(&part[..part.len() - 1], b as usize, &grid, layout.d_opt()).is_err()
+    );
 }

@@ -772,37 +772,6 @@ fn protocol_names_and_events_round_trip() {
     assert!(c.kind().is_terminal() && !EventKind::TileDone.is_terminal());
 }
 
-#[test]
-fn a_checkpoint_round_trips() {
-    use omis::film::wire::Checkpoint;
-    let mut s: JobSettings = serde_json::from_value(settings(8)).expect("settings");
-    s.depth_layers = true;
-    let mut scene = Scene::load(&repo().join("scenes/cornell-box.json")).expect("scene");
-    let r = s.resolve(&mut scene, &Limits::default()).expect("resolve");
-    let out = r.render_in_process(&scene, &|_| {});
-    let ck = Checkpoint {
-        frame: out.film,
-        passes: 2,
-        stats: out.stats,
-    };
-    let bytes = ck.encode();
-    let back = Checkpoint::decode(&bytes, r.width, r.height, &r.film_layout()).expect("decode");
-    assert_eq!(back.passes, 2);
-    assert_eq!(back.stats, ck.stats);
-    assert_eq!(back.frame.image(), ck.frame.image());
-    assert_eq!(back.frame.depth_images(), ck.frame.depth_images());
-    assert!(
-        Checkpoint::decode(
-            &bytes[..bytes.len() - 1],
-            r.width,
-            r.height,
-            &r.film_layout()
-        )
-        .is_err()
-    );
-    assert!(Checkpoint::decode(&bytes, r.width + 1, r.height, &r.film_layout()).is_err());
-}
-
 /// Pids of the children of `pid` (of any of its threads).
 fn children(pid: u32) -> Vec<u32> {
     let Ok(tasks) = std::fs::read_dir(format!("/proc/{pid}/task")) else {

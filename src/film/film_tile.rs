@@ -8,7 +8,7 @@
 //! `Film::merge_task` adds a whole frame, so a frame merged tile by tile, on another machine, in
 //! any interleaving of tiles, has the same bits.
 
-use super::layers::{FilmLayout, STRATEGY_LAYERS};
+use super::layers::{FilmLayout, STRATEGY_LAYERS, strategy_layer_name};
 use super::{Image, LtRecords, PixelSums, Splat, Tile, TileFilm};
 use crate::geometry::Rgb;
 use crate::mis::{OptimalAccum, SolveScratch};
@@ -79,6 +79,26 @@ impl TileGrid {
         (y / self.size) as usize * self.columns() as usize + (x / self.size) as usize
     }
 
+    /// The band (row of tiles) holding frame pixel `p`.
+    #[inline]
+    pub fn band_of(&self, p: u32) -> usize {
+        (p / self.width / self.size) as usize
+    }
+
+    /// The tiles of band `b`, as indices.
+    pub fn band_tiles(&self, b: usize) -> std::ops::Range<usize> {
+        let c = self.columns() as usize;
+        (b * c).min(self.len())..((b + 1) * c).min(self.len())
+    }
+
+    /// The frame pixels (y * width + x) of band `b`.
+    pub fn band_pixels(&self, b: usize) -> std::ops::Range<u64> {
+        let w = self.width as u64;
+        let y0 = (b as u64 * self.size as u64).min(self.height as u64);
+        let y1 = (y0 + self.size as u64).min(self.height as u64);
+        y0 * w..y1 * w
+    }
+
     /// Index of `tile` in the grid, when it is one of its tiles.
     pub fn index_of(&self, tile: &Tile) -> Option<usize> {
         let i = self.tile_of(tile.y0.checked_mul(self.width)?.checked_add(tile.x0)?);
@@ -103,10 +123,14 @@ impl Routed {
     }
 }
 
-impl TileFilm {
-    /// Splits the task's splats and records by the tile of `grid` they land in, keeping their
-    /// order; tiles that receive nothing are left out. Sorted by destination tile.
-    pub fn route(&self, grid: &TileGrid) -> Vec<(usize, Routed)> {
+impl Routed {
+    /// Splits `splats` and `records` by `key(pixel)`, keeping their order within each key; keys
+    /// that receive nothing are left out. Sorted by key.
+    pub fn split_by(
+        splats: &[Splat],
+        records: &LtRecords,
+        key: impl Fn(u32) -> usize,
+    ) -> Vec<(usize, Routed)> {
         let mut out: Vec<(usize, Routed)> = Vec::new();
         let mut slot = std::collections::HashMap::new();
         let mut at = |dest: usize, out: &mut Vec<(usize, Routed)>| -> usize {
@@ -115,23 +139,40 @@ impl TileFilm {
                 out.len() - 1
             })
         };
-        for s in &self.splats {
-            let k = at(grid.tile_of(s.pixel), &mut out);
+        for s in splats {
+            let k = at(key(s.pixel), &mut out);
             out[k].1.splats.push(*s);
         }
-        let r = &self.records;
         let mut off = 0;
-        for (i, &p) in r.pixels.iter().enumerate() {
-            let n = r.depths[i] as usize + 2 + 3;
-            let k = at(grid.tile_of(p), &mut out);
+        for (i, &p) in records.pixels.iter().enumerate() {
+            let n = records.depths[i] as usize + 2 + 3;
+            let k = at(key(p), &mut out);
             let dst = &mut out[k].1.records;
             dst.pixels.push(p);
-            dst.depths.push(r.depths[i]);
-            dst.values.extend_from_slice(&r.values[off..off + n]);
+            dst.depths.push(records.depths[i]);
+            dst.values.extend_from_slice(&records.values[off..off + n]);
             off += n;
         }
         out.sort_by_key(|(d, _)| *d);
         out
+    }
+
+    /// Splits what was routed to a band (or any set of tiles) by the tile of `grid` it lands in.
+    pub fn by_tile(&self, grid: &TileGrid) -> Vec<(usize, Routed)> {
+        Routed::split_by(&self.splats, &self.records, |p| grid.tile_of(p))
+    }
+}
+
+impl TileFilm {
+    /// Splits the task's splats and records by the tile of `grid` they land in, keeping their
+    /// order; tiles that receive nothing are left out. Sorted by destination tile.
+    pub fn route(&self, grid: &TileGrid) -> Vec<(usize, Routed)> {
+        Routed::split_by(&self.splats, &self.records, |p| grid.tile_of(p))
+    }
+
+    /// The same split by band (tile row) of `grid`.
+    pub fn route_bands(&self, grid: &TileGrid) -> Vec<(usize, Routed)> {
+        Routed::split_by(&self.splats, &self.records, |p| grid.band_of(p))
     }
 }
 
@@ -312,6 +353,35 @@ impl FilmTile {
             },
         );
         img
+    }
+
+    /// The EXR layers besides the beauty, for the tile's pixels, with `light_paths` light paths
+    /// traced for the whole frame: the per-pixel variance of the mean (path tracer; BDPT's
+    /// light-tracing splats have no per-pixel samples), strategy layers `s<S>_t<T>`, and depth
+    /// layers `depth<d>`, as `layout` keeps them.
+    pub fn extra_layers(&self, layout: &FilmLayout, light_paths: u64) -> Vec<(String, Image)> {
+        let mut layers = Vec::new();
+        if layout.variance_layer {
+            layers.push(("variance".to_string(), self.sums.variance_of_mean()));
+        }
+        layers.extend(self.strategy_images(layout));
+        layers.extend((0..layout.depth_layers).map(|d| {
+            (
+                format!("depth{d}"),
+                self.depth_image(d, light_paths, layout.kappa),
+            )
+        }));
+        layers
+    }
+
+    /// The strategy layers as (name, image) pairs, when `layout` keeps them.
+    pub fn strategy_images(&self, layout: &FilmLayout) -> Vec<(String, Image)> {
+        if !layout.strategy_layers {
+            return Vec::new();
+        }
+        (0..STRATEGY_LAYERS)
+            .map(|l| (strategy_layer_name(l), self.strategy_image(l)))
+            .collect()
     }
 
     /// Strategy layer `l` of the tile.

@@ -2,7 +2,7 @@
 //! of task results in task order, the solve of the optimal-MIS systems, the images and the EXR.
 
 use super::film_tile::FilmTile;
-use super::layers::{FilmLayout, STRATEGY_LAYERS, strategy_layer_name};
+use super::layers::FilmLayout;
 use super::tile_film::{LtRecords, TileFilm};
 use super::{Image, PixelSums, Tile};
 
@@ -73,22 +73,9 @@ impl Film {
         self.acc.merge_records(r, self.width);
     }
 
-    /// The EXR layers besides the beauty: the per-pixel variance of the mean (path tracer; BDPT's
-    /// light-tracing splats have no per-pixel samples), strategy layers `s<S>_t<T>`, and depth
-    /// layers `depth<d>`.
+    /// The EXR layers besides the beauty (see `FilmTile::extra_layers`).
     pub fn extra_layers(&self) -> Vec<(String, Image)> {
-        let mut layers = Vec::new();
-        if self.layout.variance_layer {
-            layers.push(("variance".to_string(), self.acc.sums.variance_of_mean()));
-        }
-        layers.extend(self.strategy_images());
-        layers.extend(
-            self.depth_images()
-                .into_iter()
-                .enumerate()
-                .map(|(d, img)| (format!("depth{d}"), img)),
-        );
-        layers
+        self.acc.extra_layers(&self.layout, self.light_paths())
     }
 
     /// Writes the EXR of the frame (beauty and `extra_layers`) with `attributes` in its header;
@@ -118,11 +105,6 @@ impl Film {
 
     /// The strategy layers as (name, image) pairs.
     pub fn strategy_images(&self) -> Vec<(String, Image)> {
-        if !self.layout.strategy_layers {
-            return Vec::new();
-        }
-        (0..STRATEGY_LAYERS)
-            .map(|l| (strategy_layer_name(l), self.acc.strategy_image(l)))
-            .collect()
+        self.acc.strategy_images(&self.layout)
     }
 }

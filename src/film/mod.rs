@@ -5,6 +5,7 @@
 //! Integrators add samples to films; the render service moves, merges and stores films and
 //! knows nothing of how the samples were made.
 
+mod bands;
 pub mod exr_io;
 mod film_tile;
 mod frame;
@@ -16,6 +17,7 @@ mod tile;
 mod tile_film;
 pub mod wire;
 
+pub use bands::{BandGroup, band_groups};
 pub use film_tile::{FilmTile, Routed, TileGrid};
 pub use frame::Film;
 pub use layers::{

@@ -19,8 +19,7 @@
 //! the optimal systems amplifies rounding.
 
 use super::{
-    Film, FilmLayout, FilmTile, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile,
-    TileFilm,
+    FilmLayout, FilmTile, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile, TileFilm,
 };
 use crate::mis::OptimalAccum;
 
@@ -78,12 +77,6 @@ impl<T: std::io::Write> Writer<T> {
             self.u8(byte | 0x80);
         }
     }
-    fn finish(self) -> std::io::Result<T> {
-        match self.err {
-            Some(e) => Err(e),
-            None => Ok(self.out),
-        }
-    }
 }
 
 impl<T: std::io::Write> Writer<T> {
@@ -99,6 +92,34 @@ impl<T: std::io::Write> Writer<T> {
             for v in l {
                 self.f64(*v);
             }
+        }
+    }
+    /// A counted list of splats with delta-coded pixels.
+    fn splats(&mut self, splats: &[Splat]) {
+        self.u32(splats.len() as u32);
+        let mut prev = 0;
+        for s in splats {
+            self.step(prev, s.pixel);
+            prev = s.pixel;
+            self.u8(s.layer);
+            self.u8(s.depth);
+            for v in s.value {
+                self.f32(v);
+            }
+        }
+    }
+    /// Optimal-MIS records: count, delta-coded pixels, depths, counted values.
+    fn records(&mut self, r: &LtRecords) {
+        self.u32(r.pixels.len() as u32);
+        let mut prev = 0;
+        for &p in &r.pixels {
+            self.step(prev, p);
+            prev = p;
+        }
+        self.bytes(&r.depths);
+        self.u32(r.values.len() as u32);
+        for v in &r.values {
+            self.f32(*v);
         }
     }
     /// The optimal-MIS systems: d_opt (0 = none), the f64 values, the u32 hit counts.
@@ -174,6 +195,72 @@ impl Reader<'_> {
         }
         Err(WireError("pixel step longer than 5 bytes".into()))
     }
+    /// A counted splat list whose pixels must lie in `pixels`.
+    fn splats(&mut self, pixels: std::ops::Range<u64>) -> Result<Vec<Splat>, WireError> {
+        let n = self.count(15, "splats")?;
+        let mut splats = Vec::with_capacity(n);
+        let mut prev = 0;
+        for _ in 0..n {
+            let pixel = self.step(prev)?;
+            prev = pixel;
+            if !pixels.contains(&(pixel as u64)) {
+                return Err(WireError(format!(
+                    "splat pixel {pixel} outside pixels {pixels:?}"
+                )));
+            }
+            let layer = self.u8()?;
+            let depth = self.u8()?;
+            let value = [self.f32()?, self.f32()?, self.f32()?];
+            splats.push(Splat {
+                pixel,
+                layer,
+                depth,
+                value,
+            });
+        }
+        Ok(splats)
+    }
+    /// Optimal-MIS records whose pixels must lie in `pixels` and depths in 1..=d_opt, each with
+    /// as many values as its depth asks.
+    fn records(
+        &mut self,
+        pixels: std::ops::Range<u64>,
+        d_opt: Option<u32>,
+    ) -> Result<LtRecords, WireError> {
+        let n = self.count(2, "records")?;
+        let mut records = LtRecords::default();
+        let mut prev = 0;
+        for _ in 0..n {
+            let p = self.step(prev)?;
+            prev = p;
+            if !pixels.contains(&(p as u64)) {
+                return Err(WireError(format!(
+                    "record pixel {p} outside pixels {pixels:?}"
+                )));
+            }
+            records.pixels.push(p);
+        }
+        let mut need = 0usize;
+        for _ in 0..n {
+            let dd = self.u8()?;
+            if dd == 0 || Some(dd as u32) > d_opt {
+                return Err(WireError(format!(
+                    "record depth {dd} outside 1..={d_opt:?}"
+                )));
+            }
+            need += dd as usize + 2 + 3;
+            records.depths.push(dd);
+        }
+        let m = self.count(4, "record values")?;
+        if m != need {
+            return Err(WireError(format!("{m} record values, expected {need}")));
+        }
+        records.values.reserve(m);
+        for _ in 0..m {
+            records.values.push(self.f32()?);
+        }
+        Ok(records)
+    }
     fn stats(&mut self) -> Result<RayStats, WireError> {
         Ok(RayStats {
             closest: self.u64()?,
@@ -227,32 +314,11 @@ impl TileFilm {
                 w.f64(self.sums.sum_sq[i][c]);
             }
         }
-        w.u32(self.splats.len() as u32);
-        let mut prev = 0;
-        for s in &self.splats {
-            w.step(prev, s.pixel);
-            prev = s.pixel;
-            w.u8(s.layer);
-            w.u8(s.depth);
-            for v in s.value {
-                w.f32(v);
-            }
-        }
+        w.splats(&self.splats);
         w.rgb_list(&self.layers);
         w.rgb_list(&self.depths);
         w.optimal(self.optimal.as_ref());
-        let r = &self.records;
-        w.u32(r.pixels.len() as u32);
-        let mut prev = 0;
-        for &p in &r.pixels {
-            w.step(prev, p);
-            prev = p;
-        }
-        w.bytes(&r.depths);
-        w.u32(r.values.len() as u32);
-        for v in &r.values {
-            w.f32(*v);
-        }
+        w.records(&self.records);
         w.out
     }
 
@@ -299,25 +365,7 @@ impl TileFilm {
             }
         }
         let frame_px = width as u64 * height as u64;
-        let n = r.count(15, "splats")?;
-        let mut splats = Vec::with_capacity(n);
-        let mut prev = 0;
-        for _ in 0..n {
-            let pixel = r.step(prev)?;
-            prev = pixel;
-            if pixel as u64 >= frame_px {
-                return Err(WireError(format!("splat pixel {pixel} outside the frame")));
-            }
-            let layer = r.u8()?;
-            let depth = r.u8()?;
-            let value = [r.f32()?, r.f32()?, r.f32()?];
-            splats.push(Splat {
-                pixel,
-                layer,
-                depth,
-                value,
-            });
-        }
+        let splats = r.splats(0..frame_px)?;
         let n = r.count(24, "layers")?;
         let want = if layout.strategy_layers {
             px * STRATEGY_LAYERS
@@ -355,35 +403,7 @@ impl TileFilm {
                 )));
             }
         };
-        let n = r.count(2, "records")?;
-        let mut records = LtRecords::default();
-        let mut prev = 0;
-        for _ in 0..n {
-            let p = r.step(prev)?;
-            prev = p;
-            if p as u64 >= frame_px {
-                return Err(WireError(format!("record pixel {p} outside the frame")));
-            }
-            records.pixels.push(p);
-        }
-        let mut need = 0usize;
-        for _ in 0..n {
-            let dd = r.u8()?;
-            if dd == 0 || Some(dd as u32) > d_opt {
-                return Err(WireError(format!(
-                    "record depth {dd} outside 1..={d_opt:?}"
-                )));
-            }
-            need += dd as usize + 2 + 3;
-            records.depths.push(dd);
-        }
-        let m = r.count(4, "record values")?;
-        if m != need {
-            return Err(WireError(format!("{m} record values, expected {need}")));
-        }
-        for _ in 0..m {
-            records.values.push(r.f32()?);
-        }
+        let records = r.records(0..frame_px, d_opt)?;
         if r.at != bytes.len() {
             return Err(WireError(format!("{} trailing bytes", bytes.len() - r.at)));
         }
@@ -403,7 +423,7 @@ impl TileFilm {
     }
 }
 
-/// The accumulators of a `FilmTile`, after a checkpoint's header:
+/// The accumulators of a `FilmTile`, after a tile checkpoint's header:
 ///
 /// ```text
 /// per pixel: count u32, sum 3 x f64, sum_sq 3 x f64, splat 3 x f64
@@ -540,78 +560,167 @@ impl TileCheckpoint {
     }
 }
 
-const FRAME_MAGIC: &[u8; 8] = b"OMISFRAM";
-const FRAME_VERSION: u32 = 1;
+const BAND_MAGIC: &[u8; 8] = b"OMISBAND";
+const BAND_VERSION: u32 = 1;
+/// Bytes before a banded result's section table.
+const BAND_HEAD: usize = 8 + 4 + 16 + 8 + 32 + 8 + 4;
 
-/// A whole frame's accumulators with the number of merged passes and the work counters: the
-/// checkpoint a coordinator writes after every pass, so that a restart loses no finished pass.
+/// A task result as a coordinator stores it: laid out so that a merge holding only some bands
+/// (rows of tiles) of the frame reads only what lands there.
 ///
 /// ```text
-/// magic "OMISFRAM", version u32, width height u32, passes u32, stats 4 x u64
-/// per pixel: count u32, sum 3 x f64, sum_sq 3 x f64, splat 3 x f64
-/// layers: n u32, n x 3 x f64; depths: n u32, n x 3 x f64
-/// optimal: d_opt u32 (0 = none), then pixels x stride f64, pixels x d_opt u32
+/// magic "OMISBAND", version u32, tile x0 y0 x1 y1 u32, samples s0 s1 u32, stats 4 x u64
+/// own length u64, sections n u32, then n x (band u32, length u64), in band order
+/// own part: the tile result (OMISTILE) without its splats and records
+/// per section: splats, then records (the tile result's lists) that land in its band
 /// ```
-pub struct Checkpoint {
-    pub frame: Film,
-    pub passes: u32,
+#[derive(Clone, Debug, PartialEq)]
+pub struct BandedIndex {
+    /// The task's tile.
+    pub tile: Tile,
+    /// Its sample range.
+    pub samples: std::ops::Range<u32>,
+    /// Its work counters.
     pub stats: RayStats,
+    /// Byte range of the own part in the file.
+    pub own: std::ops::Range<u64>,
+    /// Band and byte range of each section, in band order.
+    pub sections: Vec<(u32, std::ops::Range<u64>)>,
 }
 
-impl Checkpoint {
-    pub fn encode(&self) -> Vec<u8> {
-        let n = (self.frame.width * self.frame.height) as usize;
-        self.write_to(Vec::with_capacity(64 + n * 76))
-            .expect("writing into a Vec cannot fail")
-    }
-
-    /// Streams the encoding into `out` (a coordinator writes its checkpoint file this way,
-    /// without a second copy of the frame in memory).
-    pub fn write_to<T: std::io::Write>(&self, out: T) -> std::io::Result<T> {
-        let f = &self.frame;
-        let mut w = Writer::new(out);
-        w.bytes(FRAME_MAGIC);
-        w.u32(FRAME_VERSION);
-        w.u32(f.width);
-        w.u32(f.height);
-        w.u32(self.passes);
-        w.stats(&self.stats);
-        write_tile_body(&mut w, &f.acc);
-        w.finish()
-    }
-
-    /// Parses a checkpoint of a frame with `layout` at `width` x `height`; anything
-    /// that does not match the layout those imply is an error.
-    pub fn decode(
-        bytes: &[u8],
-        width: u32,
-        height: u32,
-        layout: &FilmLayout,
-    ) -> Result<Checkpoint, WireError> {
-        let mut r = Reader { b: bytes, at: 0 };
-        if r.take(8)? != FRAME_MAGIC {
-            return Err(WireError("not a frame checkpoint (bad magic)".into()));
+impl BandedIndex {
+    /// Reads the header and section table from `r` (positioned at the start of a file of
+    /// `file_len` bytes), checking that every part lies within the file.
+    pub fn read(r: &mut impl std::io::Read, file_len: u64) -> Result<BandedIndex, WireError> {
+        let io = |e: std::io::Error| WireError(format!("banded result header: {e}"));
+        let mut head = [0u8; BAND_HEAD];
+        r.read_exact(&mut head).map_err(io)?;
+        let mut h = Reader { b: &head, at: 0 };
+        if h.take(8)? != BAND_MAGIC {
+            return Err(WireError("not a banded result (bad magic)".into()));
         }
-        let version = r.u32()?;
-        if version != FRAME_VERSION {
+        let version = h.u32()?;
+        if version != BAND_VERSION {
             return Err(WireError(format!(
-                "checkpoint version {version}, expected {FRAME_VERSION}"
+                "banded result version {version}, expected {BAND_VERSION}"
             )));
         }
-        let (w, h) = (r.u32()?, r.u32()?);
-        if (w, h) != (width, height) {
+        let tile = Tile {
+            x0: h.u32()?,
+            y0: h.u32()?,
+            x1: h.u32()?,
+            y1: h.u32()?,
+        };
+        let samples = h.u32()?..h.u32()?;
+        let stats = h.stats()?;
+        let own_len = h.u64()?;
+        let n = h.u32()? as u64;
+        if n.saturating_mul(12) > file_len {
+            return Err(WireError(format!("{n} sections exceed the file")));
+        }
+        let mut table = vec![0u8; n as usize * 12];
+        r.read_exact(&mut table).map_err(io)?;
+        let mut t = Reader { b: &table, at: 0 };
+        let mut at = BAND_HEAD as u64 + table.len() as u64;
+        let own = at..at.saturating_add(own_len);
+        at = own.end;
+        let mut sections = Vec::with_capacity(n as usize);
+        let mut last = None;
+        for _ in 0..n {
+            let band = t.u32()?;
+            if last.is_some_and(|l| l >= band) {
+                return Err(WireError(format!("section of band {band} out of order")));
+            }
+            last = Some(band);
+            let len = t.u64()?;
+            sections.push((band, at..at.saturating_add(len)));
+            at = at.saturating_add(len);
+        }
+        if at != file_len {
             return Err(WireError(format!(
-                "checkpoint is {w}x{h}, the job is {width}x{height}"
+                "banded result parts end at byte {at}, the file has {file_len}"
             )));
         }
-        let passes = r.u32()?;
-        let stats = r.stats()?;
-        let mut frame = Film::new(width, height, layout);
-        read_tile_body(&mut r, &mut frame.acc)?;
-        Ok(Checkpoint {
-            frame,
-            passes,
+        Ok(BandedIndex {
+            tile,
+            samples,
             stats,
+            own,
+            sections,
         })
     }
+
+    /// The byte range holding the sections of `bands` (contiguous: sections are in band order),
+    /// or None when none of them received anything.
+    pub fn span(&self, bands: std::ops::Range<usize>) -> Option<std::ops::Range<u64>> {
+        let mut inside = self
+            .sections
+            .iter()
+            .filter(|(b, _)| bands.contains(&(*b as usize)));
+        let first = inside.next()?;
+        let end = inside.last().unwrap_or(first).1.end;
+        Some(first.1.start..end)
+    }
+}
+
+/// Lays a decoded, validated task result out for band-wise merging (see `BandedIndex`).
+pub fn encode_banded(
+    mut film: TileFilm,
+    samples: std::ops::Range<u32>,
+    grid: &super::TileGrid,
+) -> Vec<u8> {
+    let bands = film.route_bands(grid);
+    film.splats = Vec::new();
+    film.records = LtRecords::default();
+    let own = film.encode(samples.clone());
+    let sections: Vec<(usize, Vec<u8>)> = bands
+        .into_iter()
+        .map(|(b, routed)| {
+            let mut w = Writer::new(Vec::new());
+            w.splats(&routed.splats);
+            w.records(&routed.records);
+            (b, w.out)
+        })
+        .collect();
+    let body: usize = own.len() + sections.iter().map(|(_, s)| s.len()).sum::<usize>();
+    let mut w = Writer::new(Vec::with_capacity(BAND_HEAD + sections.len() * 12 + body));
+    w.bytes(BAND_MAGIC);
+    w.u32(BAND_VERSION);
+    let t = &film.tile;
+    for v in [t.x0, t.y0, t.x1, t.y1, samples.start, samples.end] {
+        w.u32(v);
+    }
+    w.stats(&film.stats);
+    w.u64(own.len() as u64);
+    w.u32(sections.len() as u32);
+    for (b, s) in &sections {
+        w.u32(*b as u32);
+        w.u64(s.len() as u64);
+    }
+    w.bytes(&own);
+    for (_, s) in &sections {
+        w.bytes(s);
+    }
+    w.out
+}
+
+/// Parses the section of `band` (its bytes) of a banded result for `grid`, whose films have at
+/// most optimal depth `d_opt`: everything must land in the band.
+pub fn decode_section(
+    bytes: &[u8],
+    band: usize,
+    grid: &super::TileGrid,
+    d_opt: Option<u32>,
+) -> Result<super::Routed, WireError> {
+    let mut r = Reader { b: bytes, at: 0 };
+    let pixels = grid.band_pixels(band);
+    let splats = r.splats(pixels.clone())?;
+    let records = r.records(pixels, d_opt)?;
+    if r.at != bytes.len() {
+        return Err(WireError(format!(
+            "section of band {band}: {} trailing bytes",
+            bytes.len() - r.at
+        )));
+    }
+    Ok(super::Routed { splats, records })
 }

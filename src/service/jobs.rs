@@ -8,10 +8,11 @@ use super::protocol::{
     SeriesPoint, TaskFailedEvent,
 };
 use super::store::{self, JobRow, TaskRow, write_atomic};
-use crate::film::wire::Checkpoint;
-use crate::film::{Film, RayStats, Tile, TileFilm};
+use crate::film::wire::{self, BandedIndex, TileCheckpoint};
+use crate::film::{BandGroup, FilmTile, RayStats, Tile, TileFilm, band_groups};
 use crate::film::{Image, exr_io, metrics, plot, png};
 use crate::job::Resolved;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -22,8 +23,6 @@ pub(crate) const MAX_FAILURES: u32 = 3;
 /// What merging needs of a running job, kept between passes.
 pub(crate) struct Runtime {
     pub resolved: Resolved,
-    /// The merged accumulators (loaded from the checkpoint on first use).
-    pub checkpoint: Option<Checkpoint>,
     pub reference: Option<Image>,
 }
 
@@ -45,7 +44,6 @@ fn runtime(app: &App, job: &JobRow) -> Result<Arc<Mutex<Runtime>>, String> {
     };
     let rt = Arc::new(Mutex::new(Runtime {
         resolved,
-        checkpoint: None,
         reference,
     }));
     map.insert(job.id.clone(), rt.clone());
@@ -173,33 +171,221 @@ fn finished_all(app: &App, job: &JobRow) -> Result<bool, String> {
     Ok(last.is_none_or(|l| l < job.passes_done))
 }
 
-fn load_checkpoint<'a>(
-    app: &App,
-    job: &JobRow,
-    rt: &'a mut Runtime,
-) -> Result<&'a mut Checkpoint, String> {
-    if rt.checkpoint.is_none() {
-        let r = &rt.resolved;
-        let path = app.paths.checkpoint(&job.id);
-        let ck = match std::fs::read(&path) {
-            Ok(bytes) => Checkpoint::decode(&bytes, r.width, r.height, &r.film_layout())
-                .map_err(|e| format!("{}: {e}", path.display()))?,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Checkpoint {
-                frame: Film::new(r.width, r.height, &r.film_layout()),
-                passes: 0,
-                stats: RayStats::default(),
-            },
-            Err(e) => return Err(format!("{}: {e}", path.display())),
-        };
-        if ck.passes != job.passes_done {
-            return Err(format!(
-                "checkpoint holds {} passes, the database {}",
-                ck.passes, job.passes_done
-            ));
-        }
-        rt.checkpoint = Some(ck);
+/// Bytes of tile accumulators one merge thread holds at a time.
+const GROUP_BUDGET: u64 = 64 << 20;
+
+/// Threads that merge band groups of one pass at once.
+fn merge_threads() -> usize {
+    std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(4)
+}
+
+/// Why a merge stopped: a task result that cannot be read (the task is rendered again) or a
+/// problem with the job's own files (the job fails).
+enum MergeError {
+    Result(usize, String),
+    Job(String),
+}
+
+impl From<std::io::Error> for MergeError {
+    fn from(e: std::io::Error) -> Self {
+        MergeError::Job(e.to_string())
     }
-    Ok(rt.checkpoint.as_mut().expect("loaded above"))
+}
+
+/// One accepted result of the pass being merged.
+struct PassResult {
+    /// Its tile (its place in the merge order).
+    tile: usize,
+    path: PathBuf,
+    index: BandedIndex,
+}
+
+/// Reads byte range `range` of an open result file.
+fn read_range(f: &mut std::fs::File, range: &std::ops::Range<u64>) -> std::io::Result<Vec<u8>> {
+    use std::io::{Read, Seek, SeekFrom};
+    f.seek(SeekFrom::Start(range.start))?;
+    let mut buf = vec![0u8; (range.end - range.start) as usize];
+    f.read_exact(&mut buf)?;
+    Ok(buf)
+}
+
+/// The index of a stored result.
+fn read_index(path: &Path) -> Result<BandedIndex, String> {
+    let mut f = std::fs::File::open(path).map_err(|e| e.to_string())?;
+    let len = f.metadata().map_err(|e| e.to_string())?.len();
+    BandedIndex::read(&mut std::io::BufReader::new(&mut f), len).map_err(|e| e.to_string())
+}
+
+/// The accumulators of tile `t` of a job that has merged `passes` passes.
+fn load_tile(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    t: usize,
+    passes: u32,
+) -> Result<TileCheckpoint, String> {
+    let grid = r.grid();
+    let path = app.paths.tile_checkpoint(job, t as u32);
+    match std::fs::read(&path) {
+        Ok(bytes) => TileCheckpoint::decode(&bytes, grid.tile(t), &r.film_layout())
+            .map_err(|e| format!("tile checkpoint {t}: {e}")),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound && passes == 0 => Ok(TileCheckpoint {
+            tile: FilmTile::new(grid.tile(t), &r.film_layout()),
+            passes: 0,
+        }),
+        Err(e) => Err(format!("tile checkpoint {t}: {e}")),
+    }
+}
+
+/// Light paths traced for the frame after `spp` samples per pixel (N_L of the optimal-MIS
+/// systems): one per pixel sample, as `Film::light_paths` counts them.
+fn light_paths(r: &Resolved, spp: u32) -> u64 {
+    r.width as u64 * r.height as u64 * spp as u64
+}
+
+/// Adds pass `pass` to the tiles of `bands`, writes their checkpoints, and returns the tiles'
+/// beauty images. Tiles that already hold the pass (merged before a restart) are read, not
+/// merged again.
+fn merge_group(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    pass: u32,
+    results: &[PassResult],
+    bands: std::ops::Range<usize>,
+    spp: u32,
+) -> Result<Vec<(Tile, Image)>, MergeError> {
+    let grid = r.grid();
+    let layout = r.film_layout();
+    let first = grid.band_tiles(bands.start).start;
+    let end = grid.band_tiles(bands.end - 1).end;
+    let mut tiles = Vec::with_capacity(end - first);
+    let mut open = Vec::with_capacity(end - first);
+    for t in first..end {
+        let ck = load_tile(app, job, r, t, pass).map_err(MergeError::Job)?;
+        if ck.passes != pass && ck.passes != pass + 1 {
+            return Err(MergeError::Job(format!(
+                "tile checkpoint {t} holds {} passes, the job {pass}",
+                ck.passes
+            )));
+        }
+        open.push(ck.passes == pass);
+        tiles.push(ck.tile);
+    }
+    let mut group = BandGroup::new(&grid, bands.clone(), tiles, open);
+    if group.open.iter().any(|&o| o) {
+        let bad = |u: usize| move |e: String| MergeError::Result(u, e);
+        for res in results {
+            let own_needed = group.holds(res.tile) && group.open[res.tile - first];
+            let span = res.index.span(bands.clone());
+            if !own_needed && span.is_none() {
+                continue;
+            }
+            let u = res.tile;
+            let mut f = std::fs::File::open(&res.path).map_err(|e| bad(u)(e.to_string()))?;
+            let own = if own_needed {
+                let bytes =
+                    read_range(&mut f, &res.index.own).map_err(|e| bad(u)(e.to_string()))?;
+                let (film, _) = TileFilm::decode(&bytes, r.width, r.height, &layout)
+                    .map_err(|e| bad(u)(e.to_string()))?;
+                if film.tile != grid.tile(u) {
+                    return Err(bad(u)(format!("result of tile {:?}", film.tile)));
+                }
+                Some(film)
+            } else {
+                None
+            };
+            let mut sections = Vec::new();
+            if let Some(span) = span {
+                let bytes = read_range(&mut f, &span).map_err(|e| bad(u)(e.to_string()))?;
+                for (b, range) in &res.index.sections {
+                    let b = *b as usize;
+                    if !bands.contains(&b) {
+                        continue;
+                    }
+                    let part = &bytes[(range.start - span.start) as usize..]
+                        [..(range.end - range.start) as usize];
+                    let routed = wire::decode_section(part, b, &grid, layout.d_opt())
+                        .map_err(|e| bad(u)(e.to_string()))?;
+                    sections.push((b, routed));
+                }
+            }
+            group.add_task(&grid, u, own.as_ref(), &sections);
+        }
+        for (k, tile) in group.tiles.iter().enumerate() {
+            if !group.open[k] {
+                continue;
+            }
+            let ck = TileCheckpoint {
+                tile: tile.clone(),
+                passes: pass + 1,
+            };
+            write_atomic(
+                &app.paths.tile_checkpoint(job, (first + k) as u32),
+                &ck.encode(),
+            )?;
+        }
+    }
+    let n_l = light_paths(r, spp);
+    Ok(group
+        .tiles
+        .iter()
+        .map(|t| (t.tile, t.image(n_l, layout.kappa)))
+        .collect())
+}
+
+/// Runs `f` on every band group of the job's frame, `merge_threads()` at a time, and puts the
+/// images each returns (tile by tile) into one frame image per layer.
+fn for_groups<F>(r: &Resolved, f: F) -> Result<Vec<Image>, MergeError>
+where
+    F: Fn(std::ops::Range<usize>) -> Result<Vec<Vec<(Tile, Image)>>, MergeError> + Sync,
+{
+    use std::sync::atomic::AtomicUsize;
+    let groups = band_groups(&r.grid(), &r.film_layout(), GROUP_BUDGET);
+    let next = AtomicUsize::new(0);
+    let frames: Mutex<Vec<Image>> = Mutex::new(Vec::new());
+    let failed: Mutex<Option<MergeError>> = Mutex::new(None);
+    let (w, h) = (r.width as usize, r.height as usize);
+    std::thread::scope(|s| {
+        for _ in 0..merge_threads().min(groups.len()) {
+            s.spawn(|| {
+                loop {
+                    let g = next.fetch_add(1, Ordering::Relaxed);
+                    if g >= groups.len() || failed.lock().is_ok_and(|e| e.is_some()) {
+                        return;
+                    }
+                    match f(groups[g].clone()) {
+                        Ok(layers) => {
+                            let mut frames = frames.lock().unwrap_or_else(|e| e.into_inner());
+                            if frames.len() < layers.len() {
+                                frames.resize_with(layers.len(), || Image::new(w, h));
+                            }
+                            for (frame, tiles) in frames.iter_mut().zip(layers) {
+                                for (t, img) in tiles {
+                                    frame.blit(&img, t.x0 as usize, t.y0 as usize);
+                                }
+                            }
+                        }
+                        Err(e) => {
+                            let mut slot = failed.lock().unwrap_or_else(|e| e.into_inner());
+                            slot.get_or_insert(e);
+                            return;
+                        }
+                    }
+                }
+            });
+        }
+    });
+    if let Some(e) = failed.into_inner().unwrap_or_else(|e| e.into_inner()) {
+        return Err(e);
+    }
+    let mut frames = frames.into_inner().unwrap_or_else(|e| e.into_inner());
+    if frames.is_empty() {
+        frames.push(Image::new(w, h));
+    }
+    Ok(frames)
 }
 
 fn merge_pass(
@@ -210,52 +396,56 @@ fn merge_pass(
     tasks: &[TaskRow],
 ) -> Result<(), String> {
     let t0 = Instant::now();
-    let (w, h) = (rt.resolved.width, rt.resolved.height);
-    let layout = rt.resolved.film_layout();
-    // One result at a time (peak memory: the frame and one tile). A result that cannot be read
-    // drops the half-merged accumulators (the checkpoint on disk is intact) and is rendered again.
-    load_checkpoint(app, job, rt)?;
+    let r = &rt.resolved;
+    // Every result's index first: a result that cannot be read is rendered again before any
+    // tile is touched.
+    let mut results = Vec::with_capacity(tasks.len());
+    let mut stats = RayStats::default();
     for t in tasks {
         let path = app.paths.result(&job.id, pass, t.tile, t.attempt);
-        let film = std::fs::read(&path)
-            .map_err(|e| e.to_string())
-            .and_then(|b| TileFilm::decode(&b, w, h, &layout).map_err(|e| e.to_string()));
-        match film {
-            Ok((f, _)) => {
-                let ck = rt.checkpoint.as_mut().expect("loaded above");
-                ck.frame.merge_task(&f);
-                ck.stats.add(&f.stats);
+        match read_index(&path) {
+            Ok(index) => {
+                stats.add(&index.stats);
+                results.push(PassResult {
+                    tile: t.tile as usize,
+                    path,
+                    index,
+                });
             }
-            Err(e) => {
-                tracing::error!("job {} pass {pass} tile {}: {e}; requeued", job.id, t.tile);
-                rt.checkpoint = None;
-                app.db().requeue(t.id).map_err(|e| e.to_string())?;
-                app.work.notify_waiters();
-                return Ok(());
-            }
+            Err(e) => return requeue(app, job, pass, t, &e),
         }
     }
-    let ck = rt.checkpoint.as_mut().expect("loaded above");
-    ck.passes = pass + 1;
-    store::write_atomic_with(&app.paths.checkpoint(&job.id), |f| {
-        ck.write_to(f).map(|_| ())
-    })
-    .map_err(|e| format!("cannot write the checkpoint: {e}"))?;
     let spp_done = tasks.first().map_or(0, |t| t.s1);
+    let merged = for_groups(r, |bands| {
+        Ok(vec![merge_group(
+            app, &job.id, r, pass, &results, bands, spp_done,
+        )?])
+    });
+    let image = match merged {
+        Ok(mut frames) => frames.swap_remove(0),
+        Err(MergeError::Result(u, e)) => {
+            let t = tasks
+                .iter()
+                .find(|t| t.tile as usize == u)
+                .ok_or("merged a result of no task")?;
+            return requeue(app, job, pass, t, &e);
+        }
+        Err(MergeError::Job(e)) => return Err(e),
+    };
     app.db()
-        .pass_merged(&job.id, pass + 1, spp_done, &ck.stats)
+        .pass_merged(&job.id, pass + 1, spp_done, &stats)
         .map_err(|e| e.to_string())?;
     let _ = std::fs::remove_dir_all(app.paths.pass_dir(&job.id, pass));
     super::Metrics::add(&app.metrics.passes_merged, 1);
     super::Metrics::add(&app.metrics.merge_micros, t0.elapsed().as_micros() as u64);
 
-    // Outputs of the pass: preview, EXR, error map, relMSE.
+    // Outputs of the pass: preview, beauty EXR, error map, relMSE.
     let job = app
         .db()
         .job(&job.id)
         .map_err(|e| e.to_string())?
         .ok_or("job vanished")?;
-    let image = write_outputs(app, &job, rt)?;
+    write_outputs(app, &job, rt, &image, &[])?;
     let relmse = match &rt.reference {
         Some(r) => Some(
             metrics::compare(&image, r, rt.resolved.eps)
@@ -293,39 +483,103 @@ fn merge_pass(
             url: format!("/v1/jobs/{}/preview.png", job.id),
         }),
     );
-
     Ok(())
 }
 
-/// The image of the merged passes; writes preview.png, image.exr and (with a reference)
-/// error.png.
-fn write_outputs(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<Image, String> {
+/// A result of pass `pass` that cannot be read: its task is rendered again (tiles that merged
+/// the pass already keep it; a re-render has the same bits).
+fn requeue(app: &App, job: &JobRow, pass: u32, t: &TaskRow, e: &str) -> Result<(), String> {
+    tracing::error!("job {} pass {pass} tile {}: {e}; requeued", job.id, t.tile);
+    app.db().requeue(t.id).map_err(|e| e.to_string())?;
+    app.work.notify_waiters();
+    Ok(())
+}
+
+/// Writes image.exr (the beauty and `layers`), preview.png and (with a reference) error.png.
+fn write_outputs(
+    app: &App,
+    job: &JobRow,
+    rt: &Runtime,
+    image: &Image,
+    layers: &[(String, Image)],
+) -> Result<(), String> {
     let mut attrs = rt.resolved.exr_attributes(&job.scene_main, job.spp_done);
     attrs.push(("omis.job", job.id.clone()));
-    let ck = load_checkpoint(app, job, rt)?;
     let tmp = app.paths.output(&job.id, "image.exr.tmp");
-    let image = ck.frame.write_exr(&tmp, &attrs)?;
-    let preview = png::encode_rgb8(image.width, image.height, &png::to_srgb8(&image, 0.0))?;
+    let named: Vec<exr_io::NamedLayer> = layers
+        .iter()
+        .map(|(name, image)| exr_io::NamedLayer {
+            name: name.clone(),
+            image,
+        })
+        .collect();
+    exr_io::write_exr(&tmp, image, &named, &attrs)?;
+    let preview = png::encode_rgb8(image.width, image.height, &png::to_srgb8(image, 0.0))?;
     write_atomic(&app.paths.output(&job.id, "preview.png"), &preview).map_err(|e| e.to_string())?;
     std::fs::rename(&tmp, app.paths.output(&job.id, "image.exr")).map_err(|e| e.to_string())?;
     if let Some(r) = &rt.reference {
-        let map = metrics::error_map(&image, r, rt.resolved.eps, 1.0)?;
+        let map = metrics::error_map(image, r, rt.resolved.eps, 1.0)?;
         let bytes = png::encode_rgb8(image.width, image.height, &map)?;
         write_atomic(&app.paths.output(&job.id, "error.png"), &bytes).map_err(|e| e.to_string())?;
     }
-    Ok(image)
+    Ok(())
+}
+
+/// The final EXR with every layer the job keeps, assembled band group by band group from the
+/// tile checkpoints.
+fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
+    let r = &rt.resolved;
+    let layout = r.film_layout();
+    let grid = r.grid();
+    let n_l = light_paths(r, job.spp_done);
+    let mut names = Vec::new();
+    let frames = for_groups(r, |bands| {
+        let tiles = grid.band_tiles(bands.start).start..grid.band_tiles(bands.end - 1).end;
+        let mut layers: Vec<Vec<(Tile, Image)>> = Vec::new();
+        for t in tiles {
+            let ck = load_tile(app, &job.id, r, t, job.passes_done).map_err(MergeError::Job)?;
+            if ck.passes != job.passes_done {
+                return Err(MergeError::Job(format!(
+                    "tile checkpoint {t} holds {} passes, the job {}",
+                    ck.passes, job.passes_done
+                )));
+            }
+            let tile = &ck.tile;
+            let extra = tile.extra_layers(&layout, n_l);
+            let mut images = vec![tile.image(n_l, layout.kappa)];
+            images.extend(extra.into_iter().map(|(_, img)| img));
+            layers.resize_with(images.len(), Vec::new);
+            for (l, img) in layers.iter_mut().zip(images) {
+                l.push((tile.tile, img));
+            }
+        }
+        Ok(layers)
+    })
+    .map_err(|e| match e {
+        MergeError::Job(e) | MergeError::Result(_, e) => e,
+    })?;
+    if let Some(t) = grid.tiles().first() {
+        let empty = FilmTile::new(*t, &layout);
+        names = empty
+            .extra_layers(&layout, n_l)
+            .into_iter()
+            .map(|(n, _)| n)
+            .collect();
+    }
+    let mut frames = frames.into_iter();
+    let image = frames.next().ok_or("no image")?;
+    let layers: Vec<(String, Image)> = names.into_iter().zip(frames).collect();
+    write_outputs(app, job, rt, &image, &layers)
 }
 
 fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
-    if job.passes_done == 0 {
-        write_outputs(app, job, rt)?;
-    }
+    write_final(app, job, rt)?;
     let ended = app
         .db()
         .set_job_state(&job.id, JobState::Done, None)
         .map_err(|e| e.to_string())?;
     if ended {
-        let _ = std::fs::remove_file(app.paths.checkpoint(&job.id));
+        let _ = std::fs::remove_dir_all(app.paths.tiles_dir(&job.id));
         app.event(&job.id, JobEvent::Done(DoneEvent { spp: job.spp_done }));
     }
     Ok(())
@@ -443,20 +697,6 @@ fn reconcile(app: &App, id: &str) -> anyhow::Result<()> {
             app.event(id, JobEvent::Failed(FailedEvent { error: msg }));
         }
         return Ok(());
-    }
-    let path = app.paths.checkpoint(&job.id);
-    if let Ok(bytes) = std::fs::read(&path) {
-        match Checkpoint::decode(&bytes, r.width, r.height, &r.film_layout()) {
-            Ok(ck) if ck.passes > job.passes_done => {
-                // Stopped between writing the checkpoint and recording it.
-                let spp = r
-                    .pass_range(ck.passes - 1)
-                    .map_or(job.spp_done, |range| range.end);
-                app.db().pass_merged(&job.id, ck.passes, spp, &ck.stats)?;
-            }
-            Ok(_) => {}
-            Err(e) => tracing::error!("job {}: {e}", job.id),
-        }
     }
     // Results of passes merged before the stop are no longer needed.
     if let Some(job) = app.db().job(&job.id)? {

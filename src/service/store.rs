@@ -39,8 +39,13 @@ impl Paths {
         self.pass_dir(id, pass)
             .join(format!("tile-{tile:06}.a{attempt}.bin"))
     }
-    pub fn checkpoint(&self, id: &str) -> PathBuf {
-        self.job(id).join("frame.ckpt")
+    /// The folder of a job's tile checkpoints.
+    pub fn tiles_dir(&self, id: &str) -> PathBuf {
+        self.job(id).join("tiles")
+    }
+    /// The merged accumulators of one tile of a job.
+    pub fn tile_checkpoint(&self, id: &str, tile: u32) -> PathBuf {
+        self.tiles_dir(id).join(format!("tile-{tile:06}.acc"))
     }
     pub fn output(&self, id: &str, name: &str) -> PathBuf {
         self.job(id).join(name)
@@ -367,7 +372,8 @@ impl Store {
         Ok(task_id >= 1 && max.is_some_and(|m| task_id <= m))
     }
 
-    /// Records a merged pass: counters, and the task rows of the pass are no longer needed.
+    /// Records a merged pass and adds its work counters `stats` (once: only when the job had
+    /// merged `passes_done - 1` passes); the task rows of the pass are no longer needed.
     pub fn pass_merged(
         &self,
         id: &str,
@@ -376,8 +382,9 @@ impl Store {
         stats: &crate::film::RayStats,
     ) -> rusqlite::Result<()> {
         self.conn.execute(
-            "UPDATE jobs SET passes_done = ?2, spp_done = ?3, samples = ?4, rays = ?5, \
-             non_finite = ?6 WHERE id = ?1",
+            "UPDATE jobs SET passes_done = ?2, spp_done = ?3, samples = samples + ?4, \
+             rays = rays + ?5, non_finite = non_finite + ?6 \
+             WHERE id = ?1 AND passes_done = ?2 - 1",
             params![
                 id,
                 passes_done,

@@ -3,7 +3,7 @@
 
 use super::errors::{ApiError, ApiResult, bad, parse_json};
 use super::{AppState, is_safe_id, scenes};
-use crate::film::TileFilm;
+use crate::film::{TileFilm, wire};
 use crate::service::protocol::{
     DeregisterAnswer, DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, JobEvent,
     JobState, Lease, LeaseRequest, LeasedJob, LeasedTask, OkAnswer, RegisterRequest, Registration,
@@ -250,19 +250,21 @@ pub(crate) async fn upload_result(
         let r = jobs::resolved_of(&job).map_err(ApiError::internal)?;
         let layout = r.film_layout();
         let tile = jobs::tile_rect(&r, t.tile);
-        let problem = match TileFilm::decode(&body, r.width, r.height, &layout) {
-            Err(e) => Some(e.to_string()),
-            Ok((f, range)) if Some(f.tile) != tile || range != (t.s0..t.s1) => Some(format!(
-                "result is for tile {:?} samples {range:?}, the task is tile {tile:?} samples {}..{}",
-                f.tile, t.s0, t.s1
-            )),
-            Ok(_) => None,
+        let (film, range) = match TileFilm::decode(&body, r.width, r.height, &layout) {
+            Err(e) => return Ok(Some(e.to_string())),
+            Ok(x) => x,
         };
-        if let Some(p) = problem {
-            return Ok(Some(p));
+        if Some(film.tile) != tile || range != (t.s0..t.s1) {
+            return Ok(Some(format!(
+                "result is for tile {:?} samples {range:?}, the task is tile {tile:?} samples {}..{}",
+                film.tile, t.s0, t.s1
+            )));
         }
+        drop(body);
+        // Stored laid out by band, so that the merge of a pass reads each band's part alone.
+        let banded = wire::encode_banded(film, range, &r.grid());
         let path = a.paths.result(&t.job_id, t.pass, t.tile, t.attempt);
-        store::write_atomic(&path, &body).map_err(ApiError::internal)?;
+        store::write_atomic(&path, &banded).map_err(ApiError::internal)?;
         Ok(None)
     })
     .await
