@@ -658,7 +658,7 @@ impl BandedIndex {
             .iter()
             .filter(|(b, _)| bands.contains(&(*b as usize)));
         let first = inside.next()?;
-        let end = inside.last().unwrap_or(first).1.end;
+        let end = inside.next_back().unwrap_or(first).1.end;
         Some(first.1.start..end)
     }
 }
