@@ -553,12 +553,16 @@ const FRAME_VERSION: u32 = 1;
 /// optimal: d_opt u32 (0 = none), then pixels x stride f64, pixels x d_opt u32
 /// ```
 pub struct Checkpoint {
+    /// The merged accumulators.
     pub frame: Film,
+    /// Passes merged into `frame`.
     pub passes: u32,
+    /// Work counters of the merged passes.
     pub stats: RayStats,
 }
 
 impl Checkpoint {
+    /// The checkpoint's bytes (the format above).
     pub fn encode(&self) -> Vec<u8> {
         let n = (self.frame.width * self.frame.height) as usize;
         self.write_to(Vec::with_capacity(64 + n * 76))
