@@ -4,7 +4,7 @@
 /// power).
 #[derive(Clone, Debug, Default)]
 pub struct Distribution1D {
-    /// cdf[i] = sum of pmf[0..i]; cdf.len() = n + 1, cdf[n] = 1.
+    /// `cdf[i] = sum of pmf[0..i]`; `cdf.len() = n + 1`, `cdf[n] = 1`.
     cdf: Vec<f64>,
     pmf: Vec<f32>,
 }

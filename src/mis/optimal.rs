@@ -28,7 +28,7 @@
 //! noisy ("salt and pepper", Cailleau et al. Fig. 7): a technique that never dominated has a tiny A_ii
 //! and a wild x_i. We regularise toward the balance-heuristic solution x_bal (x_bal,i = b_i /
 //! n_i, which gives exactly the balance estimate sum_i b_i / S) with kappa pseudo-samples:
-//! solve (A + kappa M) x = b + kappa M x_bal, M = diag(n_i / S). E[A_ii] <= n_i, so the prior
+//! solve (A + kappa M) x = b + kappa M x_bal, M = diag(n_i / S). `E[A_ii] <= n_i`, so the prior
 //! weighs like kappa of the S samples for a dominant technique and far more for a technique the
 //! samples barely saw; its pull vanishes as O(1/S), like the estimator's own bias.
 
