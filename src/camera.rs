@@ -1,5 +1,8 @@
 //! Perspective pinhole camera: primary rays, and for light tracing the importance We, its
 //! directional pdf and the raster position a direction lands on.
+//!
+//! A [`Scene`](crate::scene::Scene) owns one; the integrators ask it for primary rays (camera
+//! subpaths) and for the pixel a light-tracing connection lands in.
 
 use crate::geometry::{Ray, Vec2, Vec3};
 

@@ -1,6 +1,9 @@
 //! Samplers. Every random number of pixel sample `i` of pixel (x, y) derives from
 //! hash(seed, x, y, i) and a dimension counter, so a render is a deterministic function of
 //! (scene, settings, seed) whatever the thread count, tiling or order of work.
+//!
+//! The integrators make one [`Sampler`] per pixel sample and [`Stream`]; the job settings
+//! choose its [`SamplerKind`].
 
 use crate::geometry::Vec2;
 use serde::{Deserialize, Serialize};

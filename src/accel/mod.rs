@@ -2,6 +2,11 @@
 //!
 //! Triangles are stored in BVH order in the precomputed form obvhs intersects fastest; spheres
 //! follow them. A primitive is named by its index in the scene's own lists ([`Prim`]).
+//!
+//! In the flow scene -> accel -> integrator: [`SceneBuilder::build`](crate::scene::SceneBuilder::build)
+//! builds one BVH over every primitive and one over the emitters; integrators query them only
+//! through [`Scene`](crate::scene::Scene) (`intersect`, `occluded`, `light_pdf_dir`), and
+//! `omis bench` measures the bare ray rates.
 
 use crate::geometry::{Ray, Vec2, Vec3};
 use obvhs::{

@@ -1,6 +1,9 @@
 //! Math for the renderer: rays, orthonormal frames, transforms and sampling warps.
 //!
 //! Geometry and radiance are f32 (glam); sums that accumulate live elsewhere in f64.
+//!
+//! The bottom of the dependency graph: every other module uses these types, and this one
+//! uses none of the crate's.
 
 pub mod warp;
 

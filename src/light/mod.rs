@@ -1,5 +1,9 @@
 //! Emitters: one-sided triangle area lights, sphere lights and point lights, with light selection
 //! proportional to power.
+//!
+//! [`SceneBuilder::build`](crate::scene::SceneBuilder::build) turns emissive primitives and
+//! point lights into [`Light`]s and the selection [`Distribution1D`]; integrators sample them
+//! through [`Scene`](crate::scene::Scene) (next-event estimation, BDPT light subpaths).
 
 mod distribution;
 

@@ -1,4 +1,7 @@
 //! Materials and the BSDF at a surface point: eval, sample and pdf in both directions.
+//!
+//! Scenes hold [`Material`]s (built by the importers); at each hit an integrator makes a
+//! [`Bsdf`] from the material, the normals and the uv, and samples or evaluates it.
 
 pub mod fresnel;
 pub mod lobe;
