@@ -450,7 +450,7 @@ pub struct JobStatus {
     pub started_at: Option<f64>,
     /// When it reached a final state.
     pub finished_at: Option<f64>,
-    /// Seconds from start to finish (or to now).
+    /// Seconds from the first lease to the end (or to now); 0 before the first lease.
     pub elapsed_s: f64,
     /// Estimated seconds left; 0 once the job has ended.
     pub eta_s: Option<f64>,
@@ -536,7 +536,7 @@ pub struct ReferenceInfo {
 pub struct WorkerInfo {
     /// The worker id.
     pub id: String,
-    /// The name it registered with (usually the host name).
+    /// The name it registered with (by default its host name and pid).
     pub name: String,
     /// Render threads it runs.
     pub threads: u32,
@@ -602,7 +602,7 @@ pub struct ErrorBody {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RegisterRequest {
-    /// The worker's name (usually the host name).
+    /// The worker's name (by default its host name and pid).
     pub name: String,
     /// Render threads it will run.
     pub threads: u32,
