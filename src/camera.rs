@@ -1,16 +1,26 @@
 //! Perspective pinhole camera: primary rays, and for light tracing the importance We, its
 //! directional pdf and the raster position a direction lands on.
+//!
+//! A [`Scene`](crate::scene::Scene) owns one; the integrators ask it for primary rays (camera
+//! subpaths) and for the pixel a light-tracing connection lands in.
 
 use crate::geometry::{Ray, Vec2, Vec3};
 
+/// A pinhole camera looking from `position` toward `look_at`, with an image of `width` x
+/// `height` pixels (raster x right, y down).
 #[derive(Clone, Debug)]
 pub struct Camera {
+    /// The eye point in world space.
     pub position: Vec3,
+    /// The point the camera looks at.
     pub look_at: Vec3,
+    /// The up direction, made orthogonal to the viewing direction (unit).
     pub up_hint: Vec3,
     /// Vertical field of view in degrees.
     pub vfov_deg: f32,
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     /// Mirror the image horizontally (see [`Camera::with_flip_x`]).
     flip_x: bool,
@@ -24,6 +34,9 @@ pub struct Camera {
 }
 
 impl Camera {
+    /// A camera from its eye point, target, up hint and vertical field of view; an error when
+    /// they are not finite, `look_at` equals `position`, `up` is parallel to the view, the field
+    /// of view is outside (0, 179) degrees or the resolution is empty.
     pub fn new(
         position: Vec3,
         look_at: Vec3,
@@ -108,6 +121,7 @@ impl Camera {
         self.right
     }
 
+    /// Unit viewing direction (toward `look_at`).
     pub fn forward(&self) -> Vec3 {
         self.forward
     }

@@ -1,6 +1,9 @@
 //! Samplers. Every random number of pixel sample `i` of pixel (x, y) derives from
 //! hash(seed, x, y, i) and a dimension counter, so a render is a deterministic function of
 //! (scene, settings, seed) whatever the thread count, tiling or order of work.
+//!
+//! The integrators make one [`Sampler`] per pixel sample and [`Stream`]; the job settings
+//! choose its [`SamplerKind`].
 
 use crate::geometry::Vec2;
 use serde::{Deserialize, Serialize};
@@ -33,6 +36,7 @@ pub struct Pcg32 {
 impl Pcg32 {
     const MULT: u64 = 6_364_136_223_846_793_005;
 
+    /// A generator seeded with `seed` on sequence `stream` (distinct streams are independent).
     pub fn new(seed: u64, stream: u64) -> Self {
         let mut r = Pcg32 {
             state: 0,
@@ -44,6 +48,7 @@ impl Pcg32 {
         r
     }
 
+    /// The next 32 random bits.
     #[inline]
     pub fn next_u32(&mut self) -> u32 {
         let old = self.state;
@@ -59,6 +64,7 @@ impl Pcg32 {
         u32_to_unit(self.next_u32())
     }
 
+    /// Uniform in [0, 1), with 53 random bits.
     pub fn next_f64(&mut self) -> f64 {
         let hi = (self.next_u32() as u64) << 21;
         let lo = (self.next_u32() >> 11) as u64;
@@ -90,7 +96,9 @@ pub enum SamplerKind {
 /// pixel sample draw from independent streams.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Stream {
+    /// Dimensions of the camera subpath (and the pixel position).
     Camera = 0,
+    /// Dimensions of the light subpath.
     Light = 1,
 }
 
@@ -110,6 +118,8 @@ pub struct Sampler {
 }
 
 impl Sampler {
+    /// The sampler of sample `index` of pixel (`x`, `y`) on `stream`, stratified over blocks of
+    /// `block` samples; its numbers depend only on these arguments and `seed`.
     pub fn new(
         kind: SamplerKind,
         seed: u64,
@@ -132,6 +142,7 @@ impl Sampler {
         }
     }
 
+    /// Which generator this is.
     pub fn kind(&self) -> SamplerKind {
         self.kind
     }
@@ -142,6 +153,7 @@ impl Sampler {
         mix64(self.pixel_hash ^ (d as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15))
     }
 
+    /// The next dimension's number, in [0, 1).
     #[inline]
     pub fn next_1d(&mut self) -> f32 {
         let d = self.dim;
@@ -164,6 +176,7 @@ impl Sampler {
         }
     }
 
+    /// The next dimension's pair of numbers, in [0, 1)^2 (one 2D dimension).
     #[inline]
     pub fn next_2d(&mut self) -> Vec2 {
         let d = self.dim;

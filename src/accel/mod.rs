@@ -2,6 +2,11 @@
 //!
 //! Triangles are stored in BVH order in the precomputed form obvhs intersects fastest; spheres
 //! follow them. A primitive is named by its index in the scene's own lists ([`Prim`]).
+//!
+//! In the flow scene -> accel -> integrator: [`SceneBuilder::build`](crate::scene::SceneBuilder::build)
+//! builds one BVH over every primitive and one over the emitters; integrators query them only
+//! through [`Scene`](crate::scene::Scene) (`intersect`, `occluded`, `light_pdf_dir`), and
+//! `omis bench` measures the bare ray rates.
 
 use crate::geometry::{Ray, Vec2, Vec3};
 use obvhs::{
@@ -18,14 +23,18 @@ use std::time::{Duration, Instant};
 /// A primitive of the scene: triangle `i` or sphere `i`, indices into the scene's lists.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Prim {
+    /// Index into the scene's triangles.
     Triangle(u32),
+    /// Index into the scene's spheres.
     Sphere(u32),
 }
 
 /// Analytic sphere as the BVH sees it.
 #[derive(Clone, Copy, Debug)]
 pub struct SphereGeom {
+    /// Centre in world space.
     pub center: Vec3,
+    /// Radius.
     pub radius: f32,
 }
 
@@ -77,7 +86,9 @@ impl SphereGeom {
 /// What a closest-hit query returns.
 #[derive(Clone, Copy, Debug)]
 pub struct AccelHit {
+    /// The primitive hit.
     pub prim: Prim,
+    /// Distance along the ray.
     pub t: f32,
     /// Barycentrics (b1, b2) of vertices 1 and 2 for triangles; zero for spheres.
     pub bary: Vec2,
@@ -94,7 +105,9 @@ impl Boundable for BoundsOnly {
 /// Build statistics, for benchmarks and the render summary.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct BuildStats {
+    /// Primitives in the BVH.
     pub primitives: usize,
+    /// Build time in seconds.
     pub seconds: f64,
     /// Levels of the wide BVH (root = 1; 0 when empty).
     pub depth: usize,
@@ -261,6 +274,7 @@ fn cwbvh_depth(bvh: &CwBvh) -> usize {
     deepest
 }
 
+/// The BVH over a scene's triangles and spheres, answering closest-hit and occlusion queries.
 pub struct Accel {
     bvh: CwBvh,
     /// Triangles in BVH leaf order (obvhs' `primitive_indices` resolved once).
@@ -270,6 +284,7 @@ pub struct Accel {
     spheres: Vec<SphereGeom>,
     /// Per BVH slot holding a sphere: its index in `spheres`.
     sphere_slot: Vec<u32>,
+    /// How the build went.
     pub stats: BuildStats,
 }
 
@@ -343,6 +358,7 @@ impl Accel {
         }
     }
 
+    /// True when the BVH holds no primitive.
     pub fn is_empty(&self) -> bool {
         self.slots.is_empty()
     }

@@ -14,7 +14,9 @@ use std::path::Path;
 
 /// A named RGB layer; the empty name is the beauty layer.
 pub struct NamedLayer<'a> {
+    /// The layer name (channels `<name>.R`, ...); empty for the beauty layer.
     pub name: String,
+    /// The layer's pixels.
     pub image: &'a Image,
 }
 

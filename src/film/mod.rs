@@ -31,12 +31,16 @@ use crate::geometry::Rgb;
 /// An RGB f32 image, rows top to bottom.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Image {
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
+    /// Row-major pixels, `width * height` of them.
     pub pixels: Vec<Rgb>,
 }
 
 impl Image {
+    /// A black image of `width` x `height` pixels.
     pub fn new(width: usize, height: usize) -> Self {
         Image {
             width,
@@ -45,11 +49,13 @@ impl Image {
         }
     }
 
+    /// The pixel at column `x`, row `y`.
     #[inline]
     pub fn get(&self, x: usize, y: usize) -> Rgb {
         self.pixels[y * self.width + x]
     }
 
+    /// Sets the pixel at column `x`, row `y`.
     #[inline]
     pub fn set(&mut self, x: usize, y: usize, v: Rgb) {
         self.pixels[y * self.width + x] = v;
@@ -72,14 +78,20 @@ impl Image {
 /// Sums merge by addition, so tiles and sample ranges can be rendered apart and combined.
 #[derive(Clone, Debug)]
 pub struct PixelSums {
+    /// Width in pixels.
     pub width: usize,
+    /// Height in pixels.
     pub height: usize,
+    /// Per pixel (row-major), the sum of the sample values.
     pub sum: Vec<[f64; 3]>,
+    /// Per pixel, the sum of the squared sample values (for variance).
     pub sum_sq: Vec<[f64; 3]>,
+    /// Per pixel, the number of samples added.
     pub count: Vec<u32>,
 }
 
 impl PixelSums {
+    /// Empty accumulators for `width` x `height` pixels.
     pub fn new(width: usize, height: usize) -> Self {
         PixelSums {
             width,
@@ -90,6 +102,7 @@ impl PixelSums {
         }
     }
 
+    /// Adds one sample `v` to pixel `idx` (row-major index).
     #[inline]
     pub fn add(&mut self, idx: usize, v: Rgb) {
         let s = &mut self.sum[idx];

@@ -49,6 +49,7 @@ pub fn encode_rgb8(width: usize, height: usize, data: &[u8]) -> Result<Vec<u8>, 
     Ok(buf.into_inner())
 }
 
+/// Tone maps `img` with `exposure` (see [`to_srgb8`]) and writes it as a PNG.
 pub fn write_png(path: &Path, img: &Image, exposure: f32) -> Result<(), String> {
     write_rgb8(path, img.width, img.height, &to_srgb8(img, exposure))
 }

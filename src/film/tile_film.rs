@@ -45,15 +45,18 @@ pub struct Splat {
     pub layer: u8,
     /// Path depth.
     pub depth: u8,
+    /// The contribution (RGB radiance), already weighted.
     pub value: [f32; 3],
 }
 
 /// What a tile task produces: camera-side sums of its own pixels, splats anywhere.
 pub struct TileFilm {
+    /// The tile's pixel rectangle in the frame.
     pub tile: Tile,
     /// Per pixel of the tile, the sum over its samples of the camera-side estimate (for the path
     /// tracer: the whole estimate).
     pub sums: PixelSums,
+    /// Light-tracing contributions, to any pixel of the frame.
     pub splats: Vec<Splat>,
     /// Strategy layers of the tile's pixels (pixel-major, STRATEGY_LAYERS each), when requested.
     pub layers: Vec<[f64; 3]>,
@@ -64,6 +67,7 @@ pub struct TileFilm {
     pub optimal: Option<OptimalAccum>,
     /// Optimal MIS: light-tracing samples that landed outside the tile.
     pub records: LtRecords,
+    /// Work done by the task.
     pub stats: RayStats,
 }
 
@@ -137,16 +141,21 @@ impl TileFilm {
 /// and d + 2 weights followed by C W_s (3 values), as f32.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct LtRecords {
+    /// Frame pixel index of each record.
     pub pixels: Vec<u32>,
+    /// Path depth of each record (it sets how many weights the record has).
     pub depths: Vec<u8>,
+    /// Each record's depth + 2 weights then C W_s (3 values), back to back.
     pub values: Vec<f32>,
 }
 
 impl LtRecords {
+    /// Number of records.
     pub fn len(&self) -> usize {
         self.pixels.len()
     }
 
+    /// True when there are no records.
     pub fn is_empty(&self) -> bool {
         self.pixels.is_empty()
     }

@@ -1,6 +1,9 @@
 //! Math for the renderer: rays, orthonormal frames, transforms and sampling warps.
 //!
 //! Geometry and radiance are f32 (glam); sums that accumulate live elsewhere in f64.
+//!
+//! The bottom of the dependency graph: every other module uses these types, and this one
+//! uses none of the crate's.
 
 pub mod warp;
 
@@ -9,21 +12,30 @@ pub use glam::{Mat4, Vec2, Vec3, Vec3A};
 /// Linear RGB radiance / reflectance triple.
 pub type Rgb = Vec3;
 
+/// pi.
 pub const PI: f32 = std::f32::consts::PI;
+/// 1 / pi.
 pub const INV_PI: f32 = 1.0 / PI;
+/// 1 / (2 pi).
 pub const INV_2PI: f32 = 0.5 / PI;
+/// 1 / (4 pi).
 pub const INV_4PI: f32 = 0.25 / PI;
 
 /// A ray with a parametric interval `[tmin, tmax]`.
 #[derive(Clone, Copy, Debug)]
 pub struct Ray {
+    /// Origin.
     pub o: Vec3,
+    /// Direction (not necessarily unit; `t` is in units of its length).
     pub d: Vec3,
+    /// Start of the interval.
     pub tmin: f32,
+    /// End of the interval.
     pub tmax: f32,
 }
 
 impl Ray {
+    /// An unbounded ray from `o` along `d`.
     pub fn new(o: Vec3, d: Vec3) -> Self {
         Ray {
             o,
@@ -33,6 +45,7 @@ impl Ray {
         }
     }
 
+    /// A ray from `o` along `d` that ends at `tmax`.
     pub fn segment(o: Vec3, d: Vec3, tmax: f32) -> Self {
         Ray {
             o,
@@ -42,6 +55,7 @@ impl Ray {
         }
     }
 
+    /// The point at parameter `t`.
     pub fn at(&self, t: f32) -> Vec3 {
         self.o + self.d * t
     }
@@ -50,8 +64,11 @@ impl Ray {
 /// Orthonormal frame; `n` is the local +z axis.
 #[derive(Clone, Copy, Debug)]
 pub struct Frame {
+    /// First tangent (local +x).
     pub s: Vec3,
+    /// Second tangent (local +y).
     pub t: Vec3,
+    /// The normal (local +z).
     pub n: Vec3,
 }
 
@@ -66,11 +83,13 @@ impl Frame {
         Frame { s, t, n }
     }
 
+    /// World vector `v` in this frame's coordinates.
     #[inline]
     pub fn to_local(&self, v: Vec3) -> Vec3 {
         Vec3::new(v.dot(self.s), v.dot(self.t), v.dot(self.n))
     }
 
+    /// Local vector `v` back in world coordinates.
     #[inline]
     pub fn to_world(&self, v: Vec3) -> Vec3 {
         self.s * v.x + self.t * v.y + self.n * v.z
@@ -119,11 +138,13 @@ pub fn luminance(c: Rgb) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 }
 
+/// The largest of the three channels.
 #[inline]
 pub fn max_component(c: Rgb) -> f32 {
     c.x.max(c.y).max(c.z)
 }
 
+/// True when every channel is exactly zero.
 #[inline]
 pub fn is_black(c: Rgb) -> bool {
     c.x == 0.0 && c.y == 0.0 && c.z == 0.0
@@ -132,7 +153,9 @@ pub fn is_black(c: Rgb) -> bool {
 /// Affine transform with its inverse, applied at load time (scenes are flattened to world space).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Transform {
+    /// Object to world.
     pub m: Mat4,
+    /// World to object.
     pub inv: Mat4,
 }
 
@@ -143,6 +166,7 @@ impl Default for Transform {
 }
 
 impl Transform {
+    /// The identity.
     pub const IDENTITY: Transform = Transform {
         m: Mat4::IDENTITY,
         inv: Mat4::IDENTITY,
@@ -160,6 +184,7 @@ impl Transform {
         })
     }
 
+    /// This transform followed by `outer`.
     pub fn then(&self, outer: &Transform) -> Transform {
         Transform {
             m: outer.m * self.m,
@@ -167,10 +192,12 @@ impl Transform {
         }
     }
 
+    /// Transforms a point.
     pub fn point(&self, p: Vec3) -> Vec3 {
         self.m.transform_point3(p)
     }
 
+    /// Transforms a direction (no translation).
     pub fn vector(&self, v: Vec3) -> Vec3 {
         self.m.transform_vector3(v)
     }

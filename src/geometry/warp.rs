@@ -24,6 +24,7 @@ pub fn cosine_hemisphere(u: Vec2) -> Vec3 {
     Vec3::new(d.x, d.y, z)
 }
 
+/// Density of [`cosine_hemisphere`] for a direction of cosine `cos_theta` (0 below the horizon).
 #[inline]
 pub fn cosine_hemisphere_pdf(cos_theta: f32) -> f32 {
     if cos_theta > 0.0 {
@@ -41,6 +42,7 @@ pub fn uniform_sphere(u: Vec2) -> Vec3 {
     Vec3::new(r * phi.cos(), r * phi.sin(), z)
 }
 
+/// Density of [`uniform_sphere`]: 1 / (4 pi).
 pub const UNIFORM_SPHERE_PDF: f32 = INV_4PI;
 
 /// Uniform direction in the cone of half-angle acos(cos_max) around +z (Lambers, "Path Tracing", sphere lights):
@@ -52,6 +54,7 @@ pub fn uniform_cone(u: Vec2, cos_max: f32) -> Vec3 {
     Vec3::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t)
 }
 
+/// Density of [`uniform_cone`]: 1 / (2 pi (1 - cos_max)).
 #[inline]
 pub fn uniform_cone_pdf(cos_max: f32) -> f32 {
     INV_2PI / (1.0 - cos_max)
@@ -79,6 +82,7 @@ pub fn power_cosine(u: Vec2, s: f32) -> Vec3 {
     Vec3::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t)
 }
 
+/// Density of [`power_cosine`]: (s + 1) / (2 pi) cos^s(theta) (0 below the horizon).
 #[inline]
 pub fn power_cosine_pdf(cos_t: f32, s: f32) -> f32 {
     if cos_t > 0.0 {

@@ -118,8 +118,11 @@ fn survival(lobe: &Lobe) -> f32 {
 /// One BDPT sample as the sinks see it.
 #[derive(Debug)]
 pub struct PathSample<'a> {
+    /// Path depth in bounces (edges - 1): s + t - 2.
     pub depth: u32,
+    /// Vertices of the light subpath.
     pub s: u32,
+    /// Vertices of the camera subpath (t = 1: light tracing, a connection to the camera).
     pub t: u32,
     /// The pixel: the camera pixel for t >= 2, the pixel the light path lands in for t = 1.
     pub pixel: (u32, u32),
@@ -136,6 +139,7 @@ pub trait SampleSink {
     /// Whether samples of depth `depth` with zero contribution, and techniques that produced no
     /// path, must be reported (optimal MIS needs them; the heuristics do not).
     fn wants_zero_samples(&self, depth: u32) -> bool;
+    /// Receives one sample (any technique, any depth).
     fn sample(&mut self, s: &PathSample);
     /// Technique (s, t >= 2) of depth `depth` produced no path for the camera pixel this time
     /// (its subpath ended early, or the connection vertex is specular).
@@ -467,9 +471,13 @@ fn weights_alone(ws: &mut Workspace, s: usize, k: usize) {
 
 /// Everything a pixel sample needs besides the scene.
 pub struct PixelSample<'a> {
+    /// The camera pixel, (x, y).
     pub pixel: (u32, u32),
+    /// Maximum path depth in bounces.
     pub max_depth: u32,
+    /// Numbers for the camera subpath.
     pub cam_sampler: &'a mut Sampler,
+    /// Numbers for the light subpath.
     pub light_sampler: &'a mut Sampler,
 }
 

@@ -19,11 +19,14 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 #[error("{field}: {message}")]
 pub struct FieldError {
+    /// The setting's JSON name.
     pub field: String,
+    /// Why it was refused.
     pub message: String,
 }
 
 impl FieldError {
+    /// The error of setting `field`.
     pub fn new(field: impl Into<String>, message: impl Into<String>) -> FieldError {
         FieldError {
             field: field.into(),
@@ -43,7 +46,9 @@ pub struct JobSettings {
     /// Render passes until this many seconds have passed (at least one pass). With `spp` too,
     /// whichever comes first ends the job.
     pub time_budget_s: Option<f64>,
+    /// Which integrator renders the job.
     pub integrator: IntegratorKind,
+    /// How BDPT's techniques are weighted.
     pub mis: MisKind,
     /// BDPT: which techniques contribute (all, or light tracing / NEE alone for validation).
     pub techniques: Techniques,
@@ -53,7 +58,9 @@ pub struct JobSettings {
     pub kappa: f64,
     /// Maximum path depth in bounces; default: the scene's, else 5.
     pub max_depth: Option<u32>,
+    /// Seed of the sampler's random numbers (equal seeds give equal images).
     pub seed: u64,
+    /// How sample points are generated.
     pub sampler: SamplerKind,
     /// Path tracer: how emitters are reached.
     pub direct: DirectStrategy,
@@ -108,9 +115,13 @@ impl Default for JobSettings {
 /// Limits a coordinator puts on jobs (the command line uses `Limits::default()`).
 #[derive(Clone, Debug)]
 pub struct Limits {
+    /// Largest image width or height.
     pub max_resolution: u32,
+    /// Largest total samples per pixel.
     pub max_spp: u32,
+    /// Most triangles a scene may have.
     pub max_triangles: usize,
+    /// Longest time budget in seconds.
     pub max_time_budget_s: f64,
     /// Tiles of a frame, i.e. tasks of one pass: the coordinator keeps a row per task.
     pub max_tasks_per_pass: u32,
@@ -157,20 +168,25 @@ fn check_tiles(width: u32, height: u32, tile: u32, limits: &Limits) -> Result<()
 /// A job's settings resolved against its scene: everything a worker needs to render a task.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Resolved {
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     /// `render.spp` is the stratification block of the sampler: the total spp of a fixed-spp
     /// job, the pass size of a time-budget job.
     pub render: RenderSettings,
     /// Total samples per pixel, or None for a time budget without spp.
     pub spp: Option<u32>,
+    /// Wall-clock budget in seconds, if any.
     pub time_budget_s: Option<f64>,
+    /// Tile edge in pixels.
     pub tile_size: u32,
     /// Samples of the first pass.
     pub pass_size: u32,
     /// Passes double up to this many samples; None: every pass has `pass_size` samples.
     #[serde(default)]
     pub max_pass_size: Option<u32>,
+    /// eps of relMSE = mean (I - R)^2 / (R^2 + eps).
     pub eps: f64,
 }
 

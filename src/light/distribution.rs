@@ -1,8 +1,10 @@
 //! Discrete distribution proportional to non-negative weights, sampled by CDF inversion.
 
+/// A discrete distribution over indices 0 .. n, proportional to weights (light selection by
+/// power).
 #[derive(Clone, Debug, Default)]
 pub struct Distribution1D {
-    /// cdf[i] = sum of pmf[0..i]; cdf.len() = n + 1, cdf[n] = 1.
+    /// `cdf[i] = sum of pmf[0..i]`; `cdf.len() = n + 1`, `cdf[n] = 1`.
     cdf: Vec<f64>,
     pmf: Vec<f32>,
 }
@@ -29,14 +31,17 @@ impl Distribution1D {
         Some(Distribution1D { cdf, pmf })
     }
 
+    /// Number of outcomes n.
     pub fn len(&self) -> usize {
         self.pmf.len()
     }
 
+    /// True when there are no outcomes.
     pub fn is_empty(&self) -> bool {
         self.pmf.is_empty()
     }
 
+    /// Probability of index `i`.
     #[inline]
     pub fn pmf(&self, i: usize) -> f32 {
         self.pmf[i]

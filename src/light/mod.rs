@@ -1,5 +1,9 @@
 //! Emitters: one-sided triangle area lights, sphere lights and point lights, with light selection
 //! proportional to power.
+//!
+//! [`SceneBuilder::build`](crate::scene::SceneBuilder::build) turns emissive primitives and
+//! point lights into [`Light`]s and the selection [`Distribution1D`]; integrators sample them
+//! through [`Scene`](crate::scene::Scene) (next-event estimation, BDPT light subpaths).
 
 mod distribution;
 
@@ -8,26 +12,42 @@ pub use distribution::Distribution1D;
 use crate::geometry::warp::uniform_sphere;
 use crate::geometry::{Frame, PI, Rgb, Vec2, Vec3, luminance};
 
+/// An emitter, in world space.
 #[derive(Clone, Debug)]
 pub enum Light {
     /// One-sided area light on a triangle; emits on the side of `n`.
     Triangle {
+        /// First vertex.
         p0: Vec3,
+        /// Edge from `p0` to the second vertex.
         e1: Vec3,
+        /// Edge from `p0` to the third vertex.
         e2: Vec3,
+        /// Unit normal of the emitting side.
         n: Vec3,
+        /// Area of the triangle.
         area: f32,
+        /// Emitted radiance (uniform over the surface, cosine-weighted in direction).
         radiance: Rgb,
     },
     /// Sphere emitting outward (or inward when `inward`, e.g. an enclosing furnace).
     Sphere {
+        /// Centre in world space.
         center: Vec3,
+        /// Radius.
         radius: f32,
+        /// Emits into the sphere rather than out of it.
         inward: bool,
+        /// Emitted radiance.
         radiance: Rgb,
     },
     /// Isotropic point light of radiant intensity `intensity`.
-    Point { position: Vec3, intensity: Rgb },
+    Point {
+        /// Position in world space.
+        position: Vec3,
+        /// Radiant intensity (power per unit solid angle).
+        intensity: Rgb,
+    },
 }
 
 /// A point sampled on a light, as seen from a reference point.
@@ -39,15 +59,18 @@ pub struct LightSample {
     pub n: Vec3,
     /// Unit direction from the reference point toward `p`.
     pub wi: Vec3,
+    /// Distance from the reference point to `p`.
     pub dist: f32,
     /// Radiance arriving from `p` along -wi (intensity / dist^2 for point lights).
     pub le: Rgb,
     /// Solid-angle density of `wi` under this light's sampling (1 for point lights).
     pub pdf: f32,
+    /// True for a point light (a delta distribution: no MIS with BSDF sampling).
     pub delta: bool,
 }
 
 impl Light {
+    /// A triangle area light emitting `radiance` on the side of `n`; None when degenerate.
     pub fn triangle(p0: Vec3, p1: Vec3, p2: Vec3, n: Vec3, radiance: Rgb) -> Option<Light> {
         let e1 = p1 - p0;
         let e2 = p2 - p0;
@@ -65,6 +88,7 @@ impl Light {
         })
     }
 
+    /// True for lights that BSDF sampling cannot hit (point lights).
     pub fn is_delta(&self) -> bool {
         matches!(self, Light::Point { .. })
     }
@@ -303,9 +327,11 @@ impl Light {
 /// A ray leaving a light (BDPT light subpaths), with the densities that produced it.
 #[derive(Clone, Copy, Debug)]
 pub struct EmissionSample {
+    /// Point on the light.
     pub p: Vec3,
     /// Oriented normal on the emitting side (zero for point lights).
     pub n: Vec3,
+    /// Unit direction of the ray.
     pub dir: Vec3,
     /// Radiance (area lights) or intensity (point lights) along `dir`.
     pub le: Rgb,

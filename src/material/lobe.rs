@@ -13,55 +13,81 @@ use crate::geometry::warp::{
 };
 use crate::geometry::{Frame, INV_2PI, INV_PI, Rgb, Vec2, Vec3, luminance, max_component};
 
+/// A scattering model with its parameters resolved for one shading point.
 #[derive(Clone, Copy, Debug)]
 pub enum Lobe {
     /// Absorbs everything (e.g. the geometry of an emitter with no reflectance).
     Black,
+    /// Diffuse reflection, r / pi.
     Lambert {
+        /// Reflectance.
         r: Rgb,
     },
     /// Modified Phong (Lafortune & Willems 1994), energy-normalised: kd/pi + ks (n+2)/(2 pi) cos^n a.
     /// The specular lobe is chosen with probability `q` from the albedos (Lambers, "Path Tracing" lecture notes).
     Phong {
+        /// Diffuse reflectance.
         kd: Rgb,
+        /// Specular reflectance.
         ks: Rgb,
+        /// The specular exponent n.
         n: f32,
+        /// Probability of sampling the specular lobe.
         q: f32,
     },
+    /// Ideal specular reflection.
     Mirror {
+        /// Reflectance.
         r: Rgb,
     },
     /// Smooth dielectric; `eta` = interior / exterior index.
     Dielectric {
+        /// Interior / exterior index of refraction.
         eta: f32,
+        /// Scale of the reflected part.
         r: Rgb,
+        /// Scale of the transmitted part.
         t: Rgb,
     },
     /// GGX rough conductor with complex Fresnel, reflectance scaled by `scale`.
     Conductor {
+        /// The microfacet distribution.
         ggx: Ggx,
+        /// Real part of the index of refraction, per channel.
         eta: Rgb,
+        /// Absorption coefficient, per channel.
         k: Rgb,
+        /// Scale of the reflectance.
         scale: Rgb,
     },
     /// Diffuse base under a GGX dielectric coat. `diffuse` is the effective diffuse albedo factor
     /// (already divided by the internal-reflection term when the layered model is used).
     Plastic {
+        /// The coat's microfacet distribution.
         ggx: Ggx,
+        /// Effective diffuse albedo factor.
         kd: Rgb,
+        /// Scale of the coat's specular reflection.
         ks: Rgb,
+        /// Index of refraction of the coat.
         eta: f32,
+        /// Energy-coupled diffuse term (see [`MaterialKind::Plastic`](super::MaterialKind::Plastic)).
         layered: bool,
         /// 1 / (pi eta^2) for the layered model, 1 / pi otherwise.
         diffuse_norm: f32,
     },
 }
 
+/// A sample of a lobe in the local shading frame.
 #[derive(Clone, Copy, Debug)]
 pub struct LocalSample {
+    /// The sampled incident direction (local frame).
     pub wi: Vec3,
+    /// The BSDF value f(wo, wi), without the cosine.
     pub f: Rgb,
+    /// Solid-angle density of `wi`, or the discrete probability of a delta lobe.
     pub pdf: f32,
+    /// True when a delta component was sampled.
     pub delta: bool,
 }
 
@@ -71,10 +97,12 @@ fn reflect_z(w: Vec3) -> Vec3 {
 }
 
 impl Lobe {
+    /// True for mirror and smooth dielectric lobes.
     pub fn is_delta(&self) -> bool {
         matches!(self, Lobe::Mirror { .. } | Lobe::Dielectric { .. })
     }
 
+    /// True for the black lobe.
     pub fn is_black(&self) -> bool {
         matches!(self, Lobe::Black)
     }
@@ -102,6 +130,7 @@ impl Lobe {
         if s + d <= 0.0 { 0.0 } else { s / (s + d) }
     }
 
+    /// f(wo, wi) without the cosine (0 for delta lobes); `mode` is the quantity transported.
     pub fn eval(&self, wo: Vec3, wi: Vec3, mode: Mode) -> Rgb {
         let _ = mode;
         match *self {
@@ -153,6 +182,7 @@ impl Lobe {
         }
     }
 
+    /// Solid-angle density with which [`sample`](Self::sample) produces `wi` (0 for delta lobes).
     pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
         match *self {
             Lobe::Black | Lobe::Mirror { .. } | Lobe::Dielectric { .. } => 0.0,

@@ -8,13 +8,18 @@ use crate::geometry::{PI, Vec2, Vec3};
 /// and f32 densities overflow.
 pub const MIN_ALPHA: f32 = 1e-3;
 
+/// An anisotropic GGX distribution with roughness `ax` along the tangent, `ay` along the
+/// bitangent.
 #[derive(Clone, Copy, Debug)]
 pub struct Ggx {
+    /// Roughness along the local x axis.
     pub ax: f32,
+    /// Roughness along the local y axis.
     pub ay: f32,
 }
 
 impl Ggx {
+    /// A distribution of roughness (`ax`, `ay`), each at least [`MIN_ALPHA`].
     pub fn new(ax: f32, ay: f32) -> Self {
         Ggx {
             ax: ax.max(MIN_ALPHA),
@@ -45,6 +50,7 @@ impl Ggx {
         0.5 * ((1.0 + a2 / z2).sqrt() - 1.0)
     }
 
+    /// Smith masking G1(w) = 1 / (1 + Lambda(w)).
     #[inline]
     pub fn g1(&self, w: Vec3) -> f32 {
         1.0 / (1.0 + self.lambda(w))

@@ -1,4 +1,7 @@
 //! Materials and the BSDF at a surface point: eval, sample and pdf in both directions.
+//!
+//! Scenes hold [`Material`]s (built by the importers); at each hit an integrator makes a
+//! [`Bsdf`] from the material, the normals and the uv, and samples or evaluates it.
 
 pub mod fresnel;
 pub mod lobe;
@@ -14,41 +17,66 @@ pub use texture::{Bitmap, Texture};
 /// Refraction and shading normals make the BSDF non-symmetric (Veach 1997 ch. 5).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Mode {
+    /// The path carries radiance: it started at the camera.
     Radiance,
+    /// The path carries importance: it started at a light.
     Importance,
 }
 
 /// A material as the scene describes it; textures are resolved per hit by [`Bsdf::new`].
 #[derive(Clone, Debug)]
 pub enum MaterialKind {
+    /// Diffuse reflection.
     Lambert {
+        /// Reflectance.
         albedo: Texture,
     },
+    /// Modified Phong: a diffuse term plus a normalised cos^n specular lobe (see [`Lobe::Phong`]).
     Phong {
+        /// Diffuse reflectance.
         kd: Rgb,
+        /// Specular reflectance.
         ks: Rgb,
+        /// The specular exponent n.
         exponent: f32,
     },
+    /// Ideal specular reflection.
     Mirror {
+        /// Reflectance.
         reflectance: Rgb,
     },
+    /// Smooth glass: specular reflection and refraction weighted by Fresnel.
     Dielectric {
         /// Interior / exterior index of refraction.
         ior: f32,
+        /// Scale of the reflected part.
         reflectance: Rgb,
+        /// Scale of the transmitted part.
         transmittance: Rgb,
     },
+    /// Metal: a GGX microfacet conductor (Walter et al. 2007, "Microfacet models for refraction
+    /// through rough surfaces", EGSR) with the complex Fresnel term.
     RoughConductor {
+        /// Real part of the index of refraction, per channel.
         eta: Rgb,
+        /// Absorption coefficient (imaginary part of the index), per channel.
         k: Rgb,
+        /// GGX roughness along the tangent.
         alpha_u: f32,
+        /// GGX roughness along the bitangent.
         alpha_v: f32,
+        /// Scale of the reflectance.
         scale: Rgb,
     },
+    /// A diffuse base under a smooth-to-rough dielectric coat (GGX).
     Plastic {
+        /// Albedo of the diffuse base.
         diffuse: Texture,
+        /// Scale of the coat's specular reflection.
         specular: Rgb,
+        /// Index of refraction of the coat.
         ior: f32,
+        /// GGX roughness of the coat.
         alpha: f32,
         /// Layered (energy-coupled) diffuse term; `false` gives the additive pbrt-v3 model.
         layered: bool,
@@ -57,9 +85,12 @@ pub enum MaterialKind {
     },
 }
 
+/// A named material: its scattering model and sidedness.
 #[derive(Clone, Debug)]
 pub struct Material {
+    /// The name in the scene file (for messages).
     pub name: String,
+    /// The scattering model.
     pub kind: MaterialKind,
     /// Reflection-only models reflect on both sides when true; on the back side they are black
     /// otherwise (Mitsuba's default). Transmissive models always see both sides.
@@ -69,6 +100,7 @@ pub struct Material {
 }
 
 impl Material {
+    /// A material from its model; `two_sided` as for [`Material::two_sided`].
     pub fn new(name: impl Into<String>, kind: MaterialKind, two_sided: bool) -> Self {
         let fdr = match &kind {
             MaterialKind::Plastic { ior, .. } => fresnel::internal_diffuse_reflectance(*ior),
@@ -177,9 +209,13 @@ impl Material {
 /// A BSDF sample in world space.
 #[derive(Clone, Copy, Debug)]
 pub struct BsdfSample {
+    /// The sampled incident direction (unit, world space).
     pub wi: Vec3,
+    /// The BSDF value f(wo, wi), without the cosine (shading-normal correction included).
     pub f: Rgb,
+    /// Solid-angle density of `wi`, or the discrete probability of a delta lobe.
     pub pdf: f32,
+    /// True when a delta lobe was chosen (no MIS with light sampling).
     pub delta: bool,
 }
 
@@ -187,8 +223,11 @@ pub struct BsdfSample {
 /// that decides which side of the surface a direction is on.
 #[derive(Clone, Copy, Debug)]
 pub struct Bsdf {
+    /// The resolved scattering model.
     pub lobe: Lobe,
+    /// The shading frame (its `n` is the shading normal).
     pub frame: Frame,
+    /// The geometric normal (unit).
     pub ng: Vec3,
     two_sided: bool,
 }
@@ -214,10 +253,12 @@ impl Bsdf {
         }
     }
 
+    /// True when the lobe is a delta distribution (mirror, smooth dielectric).
     pub fn is_delta(&self) -> bool {
         self.lobe.is_delta()
     }
 
+    /// True when the BSDF absorbs everything.
     pub fn is_black(&self) -> bool {
         self.lobe.is_black()
     }
@@ -301,6 +342,8 @@ impl Bsdf {
         }
     }
 
+    /// Samples an incident direction for outgoing `wo` (world space) from the numbers `u_lobe`
+    /// (lobe choice) and `u`; None when the sample is absorbed or invalid.
     pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2, mode: Mode) -> Option<BsdfSample> {
         let go = wo.dot(self.ng);
         if go == 0.0 {

@@ -6,7 +6,9 @@ use std::sync::Arc;
 /// An RGB image in linear space, rows top to bottom.
 #[derive(Debug)]
 pub struct Bitmap {
+    /// Width in texels.
     pub width: usize,
+    /// Height in texels.
     pub height: usize,
     texels: Texels,
 }
@@ -116,6 +118,7 @@ impl Bitmap {
         a * (1.0 - fy) + b * fy
     }
 
+    /// Mean of all texels.
     pub fn average(&self) -> Rgb {
         let s: Rgb = self.texels().sum();
         s / (self.width * self.height) as f32
@@ -131,6 +134,7 @@ pub fn srgb_to_linear(c: f32) -> f32 {
     }
 }
 
+/// IEC 61966-2-1 sRGB transfer function (linear to encoded).
 pub fn linear_to_srgb(c: f32) -> f32 {
     if c <= 0.003_130_8 {
         12.92 * c
@@ -139,13 +143,22 @@ pub fn linear_to_srgb(c: f32) -> f32 {
     }
 }
 
+/// A reflectance: constant, or a bitmap looked up by uv.
 #[derive(Clone, Debug)]
 pub enum Texture {
+    /// The same value everywhere.
     Constant(Rgb),
-    Bitmap { image: Arc<Bitmap>, scale: Rgb },
+    /// A bitmap, bilinearly filtered and wrapped, times `scale`.
+    Bitmap {
+        /// The texels.
+        image: Arc<Bitmap>,
+        /// A factor applied to every texel.
+        scale: Rgb,
+    },
 }
 
 impl Texture {
+    /// The value at surface coordinates `uv`.
     #[inline]
     pub fn eval(&self, uv: Vec2) -> Rgb {
         match self {

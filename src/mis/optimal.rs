@@ -13,7 +13,7 @@
 //! sample only it could make (A_ss += 1); light-tracing samples that landed in p are counted (h),
 //! and the N_L - h that did not are added to A_lt,lt before solving.
 //!
-//! Sample counts (DESIGN §3): with S samples per pixel, each camera technique (t >= 2) has n = S
+//! Sample counts: with S samples per pixel, each camera technique (t >= 2) has n = S
 //! samples for p, and light tracing n = N_L = W H S light paths (one per pixel sample of the
 //! frame). With film-wide camera densities, the balance weights BDPT computes are exactly
 //! n_i p_i / sum_k n_k p_k for these counts, and f / sum_k n_k p_k = C W_s / S for every
@@ -28,7 +28,7 @@
 //! noisy ("salt and pepper", Cailleau et al. Fig. 7): a technique that never dominated has a tiny A_ii
 //! and a wild x_i. We regularise toward the balance-heuristic solution x_bal (x_bal,i = b_i /
 //! n_i, which gives exactly the balance estimate sum_i b_i / S) with kappa pseudo-samples:
-//! solve (A + kappa M) x = b + kappa M x_bal, M = diag(n_i / S). E[A_ii] <= n_i, so the prior
+//! solve (A + kappa M) x = b + kappa M x_bal, M = diag(n_i / S). `E[A_ii] <= n_i`, so the prior
 //! weighs like kappa of the S samples for a dominant technique and far more for a technique the
 //! samples barely saw; its pull vanishes as O(1/S), like the estimator's own bias.
 
@@ -43,6 +43,7 @@ pub const MAX_OPTIMAL_DEPTH: u32 = 62;
 /// Where each depth's system lives inside a pixel's block of f64 values.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Layout {
+    /// Depths 1 ..= `d_opt` are weighted optimally.
     pub d_opt: u32,
     /// offsets[d - 1] = start of depth d's block; the block holds the packed upper triangle of A
     /// (N (N + 1) / 2 values, row-major) followed by b (N x 3, row-major).
@@ -63,6 +64,7 @@ fn packed(n: usize, i: usize, j: usize) -> usize {
 }
 
 impl Layout {
+    /// The layout of depths 1 ..= `d_opt` (clamped to [`MAX_OPTIMAL_DEPTH`]).
     pub fn new(d_opt: u32) -> Layout {
         let d_opt = d_opt.min(MAX_OPTIMAL_DEPTH);
         let mut offsets = Vec::with_capacity(d_opt as usize);
@@ -98,7 +100,9 @@ impl Layout {
 /// The accumulators of a set of pixels (a tile, or the frame).
 #[derive(Clone, Debug)]
 pub struct OptimalAccum {
+    /// Where each depth's system lives in a pixel's block.
     pub layout: Layout,
+    /// Number of pixels.
     pub pixels: usize,
     /// `pixels` blocks of `layout.values_per_pixel()` values.
     pub data: Vec<f64>,
@@ -107,6 +111,7 @@ pub struct OptimalAccum {
 }
 
 impl OptimalAccum {
+    /// Zeroed accumulators for `pixels` pixels.
     pub fn new(layout: Layout, pixels: usize) -> OptimalAccum {
         let data = vec![0.0; pixels * layout.values_per_pixel()];
         let hits = vec![0; pixels * layout.d_opt as usize];
@@ -275,7 +280,7 @@ mod tests {
 
     #[test]
     fn layout_matches_the_design_memory_formula() {
-        // DESIGN §3: 155 values per pixel at D_opt = 5.
+        // 155 values per pixel at D_opt = 5.
         let l = Layout::new(5);
         assert_eq!(l.values_per_pixel(), 155);
         assert_eq!(l.bytes_per_pixel(), 155 * 8 + 5 * 4);

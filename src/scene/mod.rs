@@ -17,18 +17,23 @@ use crate::light::{Distribution1D, Light};
 use crate::material::Material;
 use std::path::{Path, PathBuf};
 
+/// The `light` index of a primitive that does not emit.
 pub const NO_LIGHT: u32 = u32::MAX;
 
 /// A load error that names the file and the place in it (JSON path, line, or element).
 #[derive(Debug, thiserror::Error)]
 #[error("{file}: {location}: {message}")]
 pub struct SceneError {
+    /// The scene file.
     pub file: PathBuf,
+    /// Where in the file: a JSON path, a line, or an element.
     pub location: String,
+    /// What is wrong.
     pub message: String,
 }
 
 impl SceneError {
+    /// An error at `location` in `file`.
     pub fn new(file: &Path, location: impl Into<String>, message: impl Into<String>) -> Self {
         SceneError {
             file: file.to_path_buf(),
@@ -41,50 +46,68 @@ impl SceneError {
 /// Settings a scene file may suggest; command-line flags override them.
 #[derive(Clone, Debug, Default)]
 pub struct SceneDefaults {
+    /// Suggested samples per pixel.
     pub spp: Option<u32>,
+    /// Suggested maximum path depth in bounces.
     pub max_depth: Option<u32>,
 }
 
+/// A world-space triangle: three indices into the scene's vertex arrays, its material and light.
 #[derive(Clone, Copy, Debug)]
 pub struct Triangle {
+    /// Indices into [`Scene::positions`] (and `normals`, `uvs` when present).
     pub v: [u32; 3],
+    /// Index into [`Scene::materials`].
     pub material: u32,
+    /// Index into [`Scene::lights`], or [`NO_LIGHT`].
     pub light: u32,
-    /// Vertex normals and uvs are present for this triangle's mesh.
+    /// Vertex normals are present for this triangle's mesh.
     pub has_normals: bool,
+    /// Vertex uvs are present for this triangle's mesh.
     pub has_uvs: bool,
     /// Flip the geometric normal (set when a transform swaps handedness is *not* the reason:
     /// normals are oriented to agree with the vertex normals, as pbrt does).
     pub flip: bool,
 }
 
+/// A world-space sphere.
 #[derive(Clone, Copy, Debug)]
 pub struct Sphere {
+    /// Centre in world space.
     pub center: Vec3,
+    /// Radius (> 0).
     pub radius: f32,
     /// Normals point into the sphere (an enclosure seen from inside).
     pub inward: bool,
+    /// Index into [`Scene::materials`].
     pub material: u32,
+    /// Index into [`Scene::lights`], or [`NO_LIGHT`].
     pub light: u32,
 }
 
 /// A ray-surface intersection with everything shading needs.
 #[derive(Clone, Copy, Debug)]
 pub struct SurfaceHit {
+    /// The hit point in world space.
     pub p: Vec3,
+    /// Distance along the ray (in units of the ray direction's length).
     pub t: f32,
     /// Geometric normal (unit); the side it points to is the emitting side of area lights.
     pub ng: Vec3,
     /// Shading normal (unit), on the same side as `ng`.
     pub ns: Vec3,
+    /// Surface parameterisation (mesh uvs, barycentrics without them, or spherical coordinates).
     pub uv: Vec2,
+    /// Index into [`Scene::materials`].
     pub material: u32,
     /// Light index, or `NO_LIGHT`.
     pub light: u32,
+    /// The primitive hit.
     pub prim: Prim,
 }
 
 impl SurfaceHit {
+    /// True when the surface is an area light.
     pub fn is_emitter(&self) -> bool {
         self.light != NO_LIGHT
     }
@@ -93,23 +116,40 @@ impl SurfaceHit {
 /// Counters a loader can report.
 #[derive(Clone, Debug, Default)]
 pub struct SceneStats {
+    /// Triangles in the scene.
     pub triangles: usize,
+    /// Spheres in the scene.
     pub spheres: usize,
+    /// Lights (area and point).
     pub lights: usize,
+    /// Seconds spent building the BVHs.
     pub bvh_build_seconds: f64,
 }
 
+/// A loaded, validated scene: world-space geometry with its BVHs, materials, lights and camera.
+/// Built by [`SceneBuilder::build`]; read-only while rendering.
 pub struct Scene {
+    /// The camera.
     pub camera: Camera,
+    /// Materials, indexed by the primitives' `material`.
     pub materials: Vec<Material>,
+    /// Triangle vertex positions (world space).
     pub positions: Vec<Vec3>,
+    /// Triangle vertex normals (world space), one per position (zero where a mesh has none).
     pub normals: Vec<Vec3>,
+    /// Triangle vertex uvs, one per position (zero where a mesh has none).
     pub uvs: Vec<Vec2>,
+    /// Every triangle of every mesh.
     pub triangles: Vec<Triangle>,
+    /// Every sphere.
     pub spheres: Vec<Sphere>,
+    /// Area lights then point lights, indexed by the primitives' `light`.
     pub lights: Vec<Light>,
+    /// Light selection proportional to power; None when the scene has no light.
     pub light_select: Option<Distribution1D>,
+    /// Settings the scene file suggests.
     pub defaults: SceneDefaults,
+    /// Load counters.
     pub stats: SceneStats,
     /// What the loader could not represent exactly (each reported once, with its location).
     pub warnings: Vec<String>,
@@ -135,6 +175,7 @@ impl Scene {
         import::load(path)
     }
 
+    /// The closest surface hit along `ray`, if any.
     #[inline]
     pub fn intersect(&self, ray: &Ray) -> Option<SurfaceHit> {
         let h = self.accel.intersect(ray)?;
@@ -232,6 +273,7 @@ impl Scene {
         Ray::new(offset_origin(p, ng, d), d)
     }
 
+    /// The BVH over all primitives.
     pub fn accel(&self) -> &Accel {
         &self.accel
     }
@@ -313,9 +355,13 @@ impl Scene {
 /// Mesh data in object space, as a loader reads it.
 #[derive(Clone, Debug, Default)]
 pub struct MeshData {
+    /// Vertex positions.
     pub positions: Vec<Vec3>,
+    /// Vertex normals (empty or one per position).
     pub normals: Vec<Vec3>,
+    /// Vertex uvs (empty or one per position).
     pub uvs: Vec<Vec2>,
+    /// Triangles, as indices into `positions`.
     pub indices: Vec<[u32; 3]>,
 }
 
@@ -333,6 +379,7 @@ pub struct SceneBuilder {
     spheres: Vec<Sphere>,
     sphere_emission: Vec<Rgb>,
     point_lights: Vec<Light>,
+    /// Settings the scene file suggests.
     pub defaults: SceneDefaults,
     warnings: Vec<String>,
 }
@@ -375,15 +422,18 @@ impl SceneBuilder {
         &mut self.resolver
     }
 
+    /// Sets the camera (the last call wins).
     pub fn set_camera(&mut self, camera: Camera) {
         self.camera = Some(camera);
     }
 
+    /// Adds a material; its index, for primitives.
     pub fn add_material(&mut self, m: Material) -> u32 {
         self.materials.push(m);
         (self.materials.len() - 1) as u32
     }
 
+    /// Materials added so far.
     pub fn material_count(&self) -> usize {
         self.materials.len()
     }
@@ -501,6 +551,7 @@ impl SceneBuilder {
         Ok(())
     }
 
+    /// Adds a sphere; `location` names it in errors. An `emission` makes it an area light.
     pub fn add_sphere(
         &mut self,
         center: Vec3,
@@ -538,6 +589,7 @@ impl SceneBuilder {
         Ok(())
     }
 
+    /// Adds an isotropic point light of radiant `intensity`.
     pub fn add_point_light(
         &mut self,
         position: Vec3,
@@ -557,6 +609,7 @@ impl SceneBuilder {
         Ok(())
     }
 
+    /// Validates and builds the scene: lights, the light-selection distribution and the BVHs.
     pub fn build(mut self) -> Result<Scene, SceneError> {
         let camera = self
             .camera

@@ -1,4 +1,4 @@
-//! The render service's coordinator (DESIGN §4, §5): jobs, tile tasks leased to workers, the
+//! The render service's coordinator: jobs, tile tasks leased to workers, the
 //! merge of their results pass by pass, and the REST API over it. It knows scenes only as
 //! bundles and results only as accumulators: it never touches a BSDF.
 

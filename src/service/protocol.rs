@@ -75,10 +75,15 @@ string_enum! {
     /// A job's state: `queued` until a task is first leased, `running`, then one of the three
     /// final states.
     JobState {
+        /// Created; no task leased yet.
         Queued = "queued",
+        /// At least one task was leased.
         Running = "running",
+        /// Every pass merged: the image is final.
         Done = "done",
+        /// Stopped by an error (see the status's `error`).
         Failed = "failed",
+        /// Cancelled by a client.
         Cancelled = "cancelled",
     }
 }
@@ -93,8 +98,11 @@ impl JobState {
 string_enum! {
     /// A task's state (tasks of merged passes are deleted).
     TaskState {
+        /// Waiting for a worker.
         Queued = "queued",
+        /// Held by a worker until its lease expires.
         Leased = "leased",
+        /// Its result was accepted; waiting for the rest of the pass.
         Done = "done",
     }
 }
@@ -102,9 +110,13 @@ string_enum! {
 string_enum! {
     /// A worker's state: `gone` after two lease times without news, `left` after deregistering.
     WorkerState {
+        /// Registered, holding no lease.
         Idle = "idle",
+        /// Holding at least one lease.
         Busy = "busy",
+        /// Deregistered itself.
         Left = "left",
+        /// Not heard from within two lease times.
         Gone = "gone",
     }
 }
@@ -112,13 +124,21 @@ string_enum! {
 string_enum! {
     /// The kind of a job event (the SSE `event:` line).
     EventKind {
+        /// The job was created.
         Queued = "queued",
+        /// A task's result was accepted.
         TileDone = "tile_done",
+        /// A pass was merged into the job's image.
         PassDone = "pass_done",
+        /// The preview image was rewritten.
         Preview = "preview",
+        /// An attempt at a task failed.
         TaskFailed = "task_failed",
+        /// The job finished (terminal).
         Done = "done",
+        /// The job failed (terminal).
         Failed = "failed",
+        /// The job was cancelled (terminal).
         Cancelled = "cancelled",
     }
 }
@@ -138,7 +158,9 @@ impl EventKind {
 /// `queued`: the job was created.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct QueuedEvent {
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     /// Total samples per pixel; None for a time budget without spp.
     pub spp: Option<u32>,
@@ -147,7 +169,9 @@ pub struct QueuedEvent {
 /// `tile_done`: a task's result was accepted.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TileDoneEvent {
+    /// The pass index (from 0).
     pub pass: u32,
+    /// The tile index in the job's row-major tile order.
     pub tile: u32,
     /// The worker id.
     pub worker: String,
@@ -158,6 +182,7 @@ pub struct TileDoneEvent {
 /// `pass_done`: a pass was merged.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PassDoneEvent {
+    /// The pass index (from 0).
     pub pass: u32,
     /// Samples per pixel merged so far.
     pub spp: u32,
@@ -170,7 +195,9 @@ pub struct PassDoneEvent {
 /// `preview`: preview.png was rewritten after a pass.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PreviewEvent {
+    /// The pass index (from 0).
     pub pass: u32,
+    /// Samples per pixel merged so far.
     pub spp: u32,
     /// The preview's path, /v1/jobs/{id}/preview.png.
     pub url: String,
@@ -179,9 +206,13 @@ pub struct PreviewEvent {
 /// `task_failed`: an attempt failed (reported by its worker, or its result was invalid).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TaskFailedEvent {
+    /// The pass index (from 0).
     pub pass: u32,
+    /// The tile index in the job's row-major tile order.
     pub tile: u32,
+    /// The worker id.
     pub worker: String,
+    /// What went wrong.
     pub error: String,
     /// Failed attempts of the task so far.
     pub failures: u32,
@@ -197,6 +228,7 @@ pub struct DoneEvent {
 /// `failed` (terminal): the job failed.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct FailedEvent {
+    /// Why the job failed.
     pub error: String,
 }
 
@@ -207,13 +239,21 @@ pub struct CancelledEvent {}
 /// One job event: its kind and its data.
 #[derive(Clone, Debug, PartialEq)]
 pub enum JobEvent {
+    /// See [`QueuedEvent`].
     Queued(QueuedEvent),
+    /// See [`TileDoneEvent`].
     TileDone(TileDoneEvent),
+    /// See [`PassDoneEvent`].
     PassDone(PassDoneEvent),
+    /// See [`PreviewEvent`].
     Preview(PreviewEvent),
+    /// See [`TaskFailedEvent`].
     TaskFailed(TaskFailedEvent),
+    /// See [`DoneEvent`].
     Done(DoneEvent),
+    /// See [`FailedEvent`].
     Failed(FailedEvent),
+    /// See [`CancelledEvent`].
     Cancelled(CancelledEvent),
 }
 
@@ -267,6 +307,7 @@ impl JobEvent {
 /// The `data:` of an SSE event: the event's fields plus the job and when it was recorded.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SseData {
+    /// The event's own fields (those of its [`JobEvent`] variant).
     #[serde(flatten)]
     pub fields: serde_json::Map<String, serde_json::Value>,
     /// The job id.
@@ -303,11 +344,15 @@ pub enum ReferenceSource {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct JobRequest {
+    /// Where the scene comes from.
     pub scene: SceneSource,
+    /// Render settings; every omitted field takes its default (see [`JobSettings`]).
     #[serde(default)]
     pub settings: JobSettings,
+    /// An image to measure relMSE against, per pass.
     #[serde(default)]
     pub reference: Option<ReferenceSource>,
+    /// A label for lists and logs.
     #[serde(default)]
     pub name: Option<String>,
 }
@@ -321,13 +366,16 @@ pub struct SeriesPoint {
     pub spp: u32,
     /// Seconds since the job started when the pass was merged.
     pub seconds: f64,
+    /// Against the reference; None without one.
     pub relmse: Option<f64>,
 }
 
 /// A job's scene bundle and the scene file inside it.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SceneRef {
+    /// The bundle id.
     pub id: String,
+    /// The scene file inside the bundle.
     pub main: String,
 }
 
@@ -335,11 +383,17 @@ pub struct SceneRef {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct JobLinks {
     #[serde(rename = "self")]
+    /// This job's status document.
     pub self_: String,
+    /// Its Server-Sent Events stream.
     pub events: String,
+    /// The image so far (OpenEXR).
     pub image: String,
+    /// The tone-mapped preview (PNG).
     pub preview: String,
+    /// The error image against the reference (PNG).
     pub error: String,
+    /// The relMSE-over-time plot (SVG).
     pub convergence: String,
 }
 
@@ -360,47 +414,72 @@ impl JobLinks {
 /// The status document of a job (GET /v1/jobs/{id}, and the answer of create and cancel).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct JobStatus {
+    /// The job id (a UUID).
     pub id: String,
+    /// The client's label, if it gave one.
     pub name: Option<String>,
+    /// Where the job is in its life.
     pub state: JobState,
     /// Why the job failed.
     pub error: Option<String>,
+    /// The scene bundle rendered.
     pub scene: SceneRef,
     /// The request's settings with every field filled in.
     pub settings: JobSettings,
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     /// Total samples per pixel; None for a time budget without spp.
     pub spp_target: Option<u32>,
+    /// Wall-clock budget in seconds, if the job has one.
     pub time_budget_s: Option<f64>,
     /// Samples per pixel of the merged passes.
     pub spp_done: u32,
+    /// Passes merged.
     pub passes_done: u32,
+    /// Passes in the job; None for a time budget without spp.
     pub passes_total: Option<u32>,
+    /// Tasks (tiles) in each pass.
     pub tiles_per_pass: u32,
     /// Finished tiles of passes not merged yet; 0 once the job has ended.
     pub tiles_done: u32,
+    /// When the job was created (seconds since the Unix epoch).
     pub created_at: f64,
+    /// When its first task was leased.
     pub started_at: Option<f64>,
+    /// When it reached a final state.
     pub finished_at: Option<f64>,
+    /// Seconds from the first lease to the end (or to now); 0 before the first lease.
     pub elapsed_s: f64,
+    /// Estimated seconds left; 0 once the job has ended.
     pub eta_s: Option<f64>,
     /// relMSE of the last merged pass against the reference.
     pub relmse: Option<f64>,
+    /// One point per merged pass.
     pub series: Vec<SeriesPoint>,
+    /// Size of the job's accumulators (the merged film), in bytes.
     pub accum_bytes: i64,
+    /// [`accum_bytes`](Self::accum_bytes) per image pixel.
     pub accum_bytes_per_pixel: i64,
+    /// Bytes of task results received.
     pub result_bytes: i64,
+    /// Camera samples merged.
     pub samples: i64,
+    /// Rays traced for the merged samples.
     pub rays: i64,
+    /// Samples discarded because they were NaN or infinite.
     pub non_finite_samples: i64,
+    /// Whether the job has a reference image.
     pub has_reference: bool,
+    /// Paths of the job's resources.
     pub links: JobLinks,
 }
 
 /// GET /v1/jobs.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct JobList {
+    /// Every job, oldest first.
     pub jobs: Vec<JobStatus>,
 }
 
@@ -415,9 +494,12 @@ pub struct SceneMeta {
     pub files: Vec<String>,
     /// Size of the archive.
     pub bytes: u64,
+    /// Triangles of the scene.
     pub triangles: usize,
     /// The scene camera's resolution.
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     /// What the importer could not represent exactly.
     pub warnings: Vec<String>,
@@ -434,6 +516,7 @@ pub struct SceneUploadQuery {
 /// GET /v1/scenes: the library's scene names.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SceneLibrary {
+    /// Scene files of the library, by name.
     pub library: Vec<String>,
 }
 
@@ -442,20 +525,30 @@ pub struct SceneLibrary {
 pub struct ReferenceInfo {
     /// The reference id, for `{"reference": {"upload": id}}`.
     pub id: String,
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
 }
 
 /// A registered worker (GET /v1/workers).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct WorkerInfo {
+    /// The worker id.
     pub id: String,
+    /// The name it registered with (by default its host name and pid).
     pub name: String,
+    /// Render threads it runs.
     pub threads: u32,
+    /// Its crate version.
     pub version: String,
+    /// When it registered (seconds since the Unix epoch).
     pub registered_at: f64,
+    /// When it was last heard from.
     pub last_seen: f64,
+    /// Its state.
     pub state: WorkerState,
+    /// Tasks whose result it delivered.
     pub tasks_done: i64,
     /// The tasks it holds a lease on now.
     #[serde(default)]
@@ -465,16 +558,22 @@ pub struct WorkerInfo {
 /// A task a worker holds a lease on (GET /v1/workers).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct WorkerTask {
+    /// The task id.
     pub id: i64,
+    /// The job the task belongs to.
     pub job_id: String,
+    /// The pass index (from 0).
     pub pass: u32,
+    /// The tile index in the job's row-major tile order.
     pub tile: u32,
+    /// The attempt number (from 1).
     pub attempt: u32,
 }
 
 /// GET /v1/workers.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct WorkerList {
+    /// Every worker the coordinator knows.
     pub workers: Vec<WorkerInfo>,
 }
 
@@ -490,7 +589,9 @@ pub struct Health {
 /// Every error of the API: what went wrong, and the field, parameter or header it is about.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ErrorBody {
+    /// What went wrong.
     pub error: String,
+    /// The request field, query parameter or header at fault, if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub field: Option<String>,
 }
@@ -501,8 +602,11 @@ pub struct ErrorBody {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RegisterRequest {
+    /// The worker's name (by default its host name and pid).
     pub name: String,
+    /// Render threads it will run.
     pub threads: u32,
+    /// Its crate version.
     #[serde(default)]
     pub version: String,
     /// A previous id, to keep it across reconnects.
@@ -513,6 +617,7 @@ pub struct RegisterRequest {
 /// The answer of POST /v1/worker/register.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Registration {
+    /// The id to send with every later request.
     pub worker_id: String,
     /// How long a lease lasts without a heartbeat.
     pub lease_seconds: f64,
@@ -524,6 +629,7 @@ pub struct Registration {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LeaseRequest {
+    /// The id from [`Registration`].
     pub worker_id: String,
     /// Long-poll up to this many seconds (at most 30).
     #[serde(default)]
@@ -533,13 +639,17 @@ pub struct LeaseRequest {
 /// The task of a lease.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct LeasedTask {
+    /// The task id.
     pub id: i64,
     /// Send it back with the result, a failure or a heartbeat.
     pub attempt: u32,
+    /// The job the task belongs to.
     pub job_id: String,
+    /// The pass index (from 0).
     pub pass: u32,
     /// Index of the tile in the job's row-major tile order.
     pub tile: u32,
+    /// The tile's pixel rectangle.
     pub rect: Tile,
     /// The sample range [s0, s1) of the pass.
     pub samples: [u32; 2],
@@ -552,14 +662,18 @@ pub struct LeasedJob {
     pub scene_id: String,
     /// The scene file inside the bundle.
     pub scene_main: String,
+    /// The job's settings resolved against the scene (image size, spp, integrator, seed, ...).
     pub resolved: Resolved,
 }
 
 /// The answer of POST /v1/worker/lease (200).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Lease {
+    /// What to render.
     pub task: LeasedTask,
+    /// The job it belongs to.
     pub job: LeasedJob,
+    /// How long the lease lasts without a heartbeat, in seconds.
     pub lease_seconds: f64,
 }
 
@@ -567,7 +681,9 @@ pub struct Lease {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct HeldTask {
+    /// The task id.
     pub id: i64,
+    /// The attempt number from its [`LeasedTask`].
     pub attempt: u32,
 }
 
@@ -575,7 +691,9 @@ pub struct HeldTask {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct HeartbeatRequest {
+    /// The id from [`Registration`].
     pub worker_id: String,
+    /// The tasks it is rendering; their leases are extended.
     #[serde(default)]
     pub tasks: Vec<HeldTask>,
 }
@@ -583,6 +701,7 @@ pub struct HeartbeatRequest {
 /// The answer of POST /v1/worker/heartbeat: held tasks that are no longer this worker's.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct HeartbeatAnswer {
+    /// Ids of held tasks the worker should stop rendering.
     pub lost: Vec<i64>,
 }
 
@@ -590,12 +709,14 @@ pub struct HeartbeatAnswer {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DeregisterRequest {
+    /// The id from [`Registration`].
     pub worker_id: String,
 }
 
 /// The answer of POST /v1/worker/deregister.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct DeregisterAnswer {
+    /// Always true.
     pub ok: bool,
     /// Leases the worker still held, given back to the queue.
     pub released: usize,
@@ -605,13 +726,16 @@ pub struct DeregisterAnswer {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ResultQuery {
+    /// The id from [`Registration`].
     pub worker_id: String,
+    /// The attempt number from the [`LeasedTask`].
     pub attempt: u32,
 }
 
 /// The answer of PUT /v1/worker/tasks/{id}/result.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ResultAnswer {
+    /// False when the attempt is no longer this worker's (the task was leased again).
     pub accepted: bool,
 }
 
@@ -619,13 +743,17 @@ pub struct ResultAnswer {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FailRequest {
+    /// The id from [`Registration`].
     pub worker_id: String,
+    /// The attempt number from the [`LeasedTask`].
     pub attempt: u32,
+    /// What went wrong.
     pub error: String,
 }
 
 /// `{"ok": true}`.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct OkAnswer {
+    /// Always true.
     pub ok: bool,
 }

@@ -2,6 +2,10 @@
 //! task per thread), uploads each result, and heartbeats its leases meanwhile. Scenes are
 //! downloaded once per bundle and kept loaded (with their BVH) for the tasks that follow.
 //! SIGTERM drains: no new task is taken, the ones in hand are finished and uploaded.
+//!
+//! In the flow film -> worker -> service: the worker takes its tasks and sends its results
+//! in the types of [`crate::service::protocol`], renders with [`crate::integrator`] into a
+//! [`TileFilm`](crate::film::TileFilm), and ships it in the [`crate::film::wire`] format.
 
 use crate::integrator;
 use crate::scene::Scene;

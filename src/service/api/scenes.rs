@@ -147,7 +147,7 @@ pub(crate) fn load_bundle(app: &App, id: &str) -> ApiResult<(SceneMeta, Scene)> 
     Ok((meta, scene))
 }
 
-/// Stores a bundle: unpacks it under scenes/<id>/files, loads it to check it, keeps the tar for
+/// Stores a bundle: unpacks it under `scenes/<id>/files`, loads it to check it, keeps the tar for
 /// workers. Runs on a blocking thread.
 fn store_bundle(
     app: &App,
