@@ -1,6 +1,7 @@
 //! The `omis` command line: one binary, clap subcommands.
 
 mod bench;
+mod bench_coordinator;
 mod bench_service;
 mod choices;
 mod client;
@@ -49,6 +50,10 @@ enum Command {
     /// Measure the render service: throughput with 1, 2, ... worker processes vs in-process,
     /// bytes shipped per sample, coordinator memory, pass latency.
     BenchService(bench_service::BenchServiceArgs),
+    /// Load-test the coordinator alone: real task results recorded once, replayed from N
+    /// simulated workers; results/s, MB/s, coordinator CPU per result, peak RSS, disk written,
+    /// pass latency.
+    BenchCoordinator(bench_coordinator::BenchCoordinatorArgs),
     /// Compare MIS strategies at equal spp (and equal time) against a reference: table and plots.
     Compare(compare::CompareArgs),
     /// Check that a coordinator answers /healthz (exit status 0 when healthy; for containers).
@@ -76,6 +81,7 @@ pub fn main() -> i32 {
         Command::Diff(a) => diff::run(a),
         Command::Bench(a) => bench::run(a),
         Command::BenchService(a) => bench_service::run(a),
+        Command::BenchCoordinator(a) => bench_coordinator::run(a),
         Command::Compare(a) => compare::run(a),
         Command::Healthcheck(a) => healthcheck::run(a),
     };

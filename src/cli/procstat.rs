@@ -56,6 +56,17 @@ pub fn cpu_seconds(pid: Option<u32>) -> f64 {
     }
 }
 
+/// Bytes process `pid` caused to be written to storage (write_bytes of /proc/PID/io); 0 where
+/// unavailable.
+pub fn write_bytes(pid: u32) -> u64 {
+    std::fs::read_to_string(format!("/proc/{pid}/io"))
+        .unwrap_or_default()
+        .lines()
+        .find_map(|l| l.strip_prefix("write_bytes:"))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or(0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

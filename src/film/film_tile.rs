@@ -133,11 +133,18 @@ impl Routed {
     ) -> Vec<(usize, Routed)> {
         let mut out: Vec<(usize, Routed)> = Vec::new();
         let mut slot = std::collections::HashMap::new();
+        // Lists sorted by pixel (`TileFilm::compact`) come in runs of one key: look up once a run.
+        let mut last = (usize::MAX, 0);
         let mut at = |dest: usize, out: &mut Vec<(usize, Routed)>| -> usize {
-            *slot.entry(dest).or_insert_with(|| {
+            if last.0 == dest {
+                return last.1;
+            }
+            let k = *slot.entry(dest).or_insert_with(|| {
                 out.push((dest, Routed::default()));
                 out.len() - 1
-            })
+            });
+            last = (dest, k);
+            k
         };
         for s in splats {
             let k = at(key(s.pixel), &mut out);

@@ -60,23 +60,26 @@ impl Paths {
 
 /// Writes `bytes` to `path` atomically (temporary file, fsync, rename).
 pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    use std::io::Write;
-    write_atomic_with(path, |f| f.write_all(bytes))
+    write_replacing(path, bytes, true)
 }
 
-/// Writes `path` atomically with `write` streaming into a buffered temporary file.
-pub(crate) fn write_atomic_with(
-    path: &Path,
-    write: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> std::io::Result<()>,
-) -> std::io::Result<()> {
+/// Writes `bytes` to `path` atomically (temporary file, rename), fsync'd when `durable`.
+/// Without it a power cut may leave the file empty or damaged (never half-renamed): fine for a
+/// task result, which a merge that cannot read it renders again; not for what a merge produced.
+pub(crate) fn write_replacing(path: &Path, bytes: &[u8], durable: bool) -> std::io::Result<()> {
+    use std::io::Write;
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir)?;
     }
-    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp = path.with_extension(format!("tmp{}.{n}", std::process::id()));
     {
-        let mut f = std::io::BufWriter::with_capacity(1 << 20, std::fs::File::create(&tmp)?);
-        write(&mut f)?;
-        f.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        if durable {
+            f.sync_all()?;
+        }
     }
     std::fs::rename(&tmp, path)
 }

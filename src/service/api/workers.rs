@@ -264,7 +264,7 @@ pub(crate) async fn upload_result(
         // Stored laid out by band, so that the merge of a pass reads each band's part alone.
         let banded = wire::encode_banded(film, range, &r.grid());
         let path = a.paths.result(&t.job_id, t.pass, t.tile, t.attempt);
-        store::write_atomic(&path, &banded).map_err(ApiError::internal)?;
+        store::write_replacing(&path, &banded, false).map_err(ApiError::internal)?;
         Ok(None)
     })
     .await

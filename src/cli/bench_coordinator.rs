@@ -1,0 +1,350 @@
+//! `omis bench-coordinator`: a load generator for the coordinator alone. It renders a few real
+//! task results once (per tile shape and pass length of the job's schedule), then replays them,
+//! relabelled to every task of the job, from N concurrent simulated workers that upload as fast
+//! as the coordinator accepts. The coordinator runs as a process of its own, so its CPU time,
+//! peak memory and bytes written to storage are its own (from /proc). Worker CPU is the measured
+//! render time of the recorded results, so the table also gives the coordinator's CPU as a share
+//! of what real workers would have spent on the same job.
+
+use super::client::Client;
+use super::job_args::JobArgs;
+use super::service_cmds::{runtime, submit_job};
+use crate::film::Tile;
+use crate::job::{Limits, Resolved};
+use crate::scene::Scene;
+use crate::service::bundle;
+use crate::service::protocol::{
+    JobEvent, JobState, Lease, LeaseRequest, RegisterRequest, Registration, ResultQuery,
+    SceneSource,
+};
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use serde_json::json;
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+#[derive(Args)]
+pub struct BenchCoordinatorArgs {
+    /// Scene file.
+    pub scene: PathBuf,
+    #[command(flatten)]
+    pub job: JobArgs,
+    /// Simulated worker counts to measure, e.g. 1,4,16,64.
+    #[arg(long, value_delimiter = ',', default_value = "1,4,16,64")]
+    pub simulated_workers: Vec<usize>,
+    /// Real results recorded per tile shape and pass length (replayed round robin).
+    #[arg(long, default_value_t = 2)]
+    pub record: usize,
+    /// Print one JSON object per line instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Recorded results, by (tile width, tile height, pass length): encoded bytes and the CPU
+/// seconds their render took.
+type Recorded = HashMap<(u32, u32, u32), Vec<(Vec<u8>, f64)>>;
+
+/// Renders `per` results for every tile shape and pass length of the job, from tiles spread
+/// over the frame.
+fn record(scene: &Scene, r: &Resolved, per: usize) -> Recorded {
+    let grid = r.grid();
+    let mut lengths: Vec<u32> = (0..r.total_passes().unwrap_or(1))
+        .filter_map(|p| r.pass_range(p).map(|s| s.end - s.start))
+        .collect();
+    lengths.sort_unstable();
+    lengths.dedup();
+    let mut by_shape: HashMap<(u32, u32), Vec<Tile>> = HashMap::new();
+    for t in grid.tiles() {
+        by_shape
+            .entry((t.width() as u32, t.height() as u32))
+            .or_default()
+            .push(t);
+    }
+    let mut out = Recorded::new();
+    for ((w, h), tiles) in by_shape {
+        for &len in &lengths {
+            let step = (tiles.len() / per.max(1)).max(1);
+            for t in tiles.iter().step_by(step).take(per.max(1)) {
+                let c0 = super::procstat::cpu_seconds(None);
+                let film = crate::integrator::render_tile(scene, &r.render, *t, 0..len);
+                let cpu = super::procstat::cpu_seconds(None) - c0;
+                out.entry((w, h, len))
+                    .or_default()
+                    .push((film.encode(0..len), cpu));
+            }
+        }
+    }
+    out
+}
+
+/// A recorded result relabelled as tile `t`, samples `s0..s1` (the header fields of the wire
+/// format: tile at byte 12, samples at byte 28).
+fn relabel(bytes: &[u8], t: &Tile, s: [u32; 2]) -> Vec<u8> {
+    let mut b = bytes.to_vec();
+    for (k, v) in [t.x0, t.y0, t.x1, t.y1, s[0], s[1]].into_iter().enumerate() {
+        b[12 + 4 * k..16 + 4 * k].copy_from_slice(&v.to_le_bytes());
+    }
+    b
+}
+
+/// What the simulated workers did.
+#[derive(Default)]
+struct Counters {
+    results: AtomicU64,
+    bytes: AtomicU64,
+    /// Render CPU micro-seconds the recorded results stood for.
+    worker_cpu_us: AtomicU64,
+    refused: AtomicU64,
+}
+
+/// One simulated worker: lease, upload a recorded result at once, until `done`.
+async fn simulated_worker(
+    url: String,
+    recorded: Arc<Recorded>,
+    counters: Arc<Counters>,
+    done: Arc<AtomicBool>,
+    k: usize,
+) -> Result<()> {
+    let http = reqwest::Client::new();
+    let reg: Registration = http
+        .post(format!("{url}/v1/worker/register"))
+        .json(&RegisterRequest {
+            name: format!("simulated-{k}"),
+            threads: 1,
+            version: env!("CARGO_PKG_VERSION").to_string(),
+            id: None,
+        })
+        .send()
+        .await?
+        .error_for_status()?
+        .json()
+        .await?;
+    let mut turn = k;
+    while !done.load(Ordering::Relaxed) {
+        let r = http
+            .post(format!("{url}/v1/worker/lease"))
+            .json(&LeaseRequest {
+                worker_id: reg.worker_id.clone(),
+                wait_s: Some(0.5),
+            })
+            .timeout(Duration::from_secs(10))
+            .send()
+            .await?;
+        if r.status() != reqwest::StatusCode::OK {
+            continue;
+        }
+        let lease: Lease = r.json().await?;
+        let t = &lease.task;
+        let key = (
+            t.rect.width() as u32,
+            t.rect.height() as u32,
+            t.samples[1] - t.samples[0],
+        );
+        let list = recorded
+            .get(&key)
+            .with_context(|| format!("no recorded result for tile shape / pass {key:?}"))?;
+        turn += 1;
+        let (bytes, cpu) = &list[turn % list.len()];
+        let body = relabel(bytes, &t.rect, t.samples);
+        let n = body.len() as u64;
+        let r = http
+            .put(format!("{url}/v1/worker/tasks/{}/result", t.id))
+            .query(&ResultQuery {
+                worker_id: reg.worker_id.clone(),
+                attempt: t.attempt,
+            })
+            .header("content-type", "application/octet-stream")
+            .body(body)
+            .timeout(Duration::from_secs(300))
+            .send()
+            .await?;
+        if r.status().is_success() {
+            counters.results.fetch_add(1, Ordering::Relaxed);
+            counters.bytes.fetch_add(n, Ordering::Relaxed);
+            counters
+                .worker_cpu_us
+                .fetch_add((cpu * 1e6) as u64, Ordering::Relaxed);
+        } else {
+            counters.refused.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+    Ok(())
+}
+
+pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
+    if a.simulated_workers.is_empty() || a.simulated_workers.contains(&0) {
+        bail!("--simulated-workers needs counts >= 1");
+    }
+    let settings = a.job.settings()?;
+    if settings.time_budget_s.is_some() {
+        bail!("--time-budget: the replay needs a fixed number of passes (give --spp)");
+    }
+    let mut scene = Scene::load(&a.scene).map_err(anyhow::Error::msg)?;
+    let r = settings
+        .resolve(&mut scene, &Limits::default())
+        .map_err(super::job_args::flag_error)?;
+    let (tar, main) = bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
+    let t0 = Instant::now();
+    let recorded = Arc::new(record(&scene, &r, a.record));
+    let recorded_n: usize = recorded.values().map(Vec::len).sum();
+    eprintln!(
+        "recorded {recorded_n} results in {:.1} s",
+        t0.elapsed().as_secs_f64()
+    );
+    let tmp = std::env::temp_dir().join(format!("omis-bench-coordinator-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp)?;
+    let mut rows = Vec::new();
+    for &n in &a.simulated_workers {
+        let data = tmp.join(format!("data-{n}"));
+        let mut server = std::process::Command::new(std::env::current_exe()?)
+            .args(["serve", "--bind", "127.0.0.1:0", "--data"])
+            .arg(&data)
+            .args(["--workers", "0"])
+            .env("OMIS_LOG", "warn")
+            .stdout(std::process::Stdio::piped())
+            .spawn()?;
+        let pid = server.id();
+        let url = {
+            use std::io::BufRead;
+            let stdout = server.stdout.take().context("coordinator stdout")?;
+            let mut line = String::new();
+            std::io::BufReader::new(stdout).read_line(&mut line)?;
+            line.trim()
+                .strip_prefix("listening on ")
+                .context("the coordinator did not print its address")?
+                .to_string()
+        };
+        let result = runtime()?.block_on(async {
+            let c = Client::new(&url, None)?;
+            let scene = SceneSource::Bundle(c.upload_bundle(tar.clone(), main.clone()).await?);
+            let (rss0, _) = super::procstat::memory(Some(pid));
+            let cpu0 = super::procstat::cpu_seconds(Some(pid));
+            let io0 = super::procstat::write_bytes(pid);
+            let counters = Arc::new(Counters::default());
+            let done = Arc::new(AtomicBool::new(false));
+            let t0 = Instant::now();
+            let st = submit_job(&c, scene, &a.job, None, None).await?;
+            let workers: Vec<_> = (0..n)
+                .map(|k| {
+                    tokio::spawn(simulated_worker(
+                        url.clone(),
+                        recorded.clone(),
+                        counters.clone(),
+                        done.clone(),
+                        k,
+                    ))
+                })
+                .collect();
+            let mut last_tile = Instant::now();
+            let mut latencies = Vec::new();
+            let state = c
+                .follow(&st.id, |e| match e {
+                    JobEvent::TileDone(_) => last_tile = Instant::now(),
+                    JobEvent::PassDone(_) => latencies.push(last_tile.elapsed().as_secs_f64()),
+                    _ => {}
+                })
+                .await?;
+            let seconds = t0.elapsed().as_secs_f64();
+            done.store(true, Ordering::Relaxed);
+            for w in workers {
+                w.await??;
+            }
+            if state != JobState::Done {
+                bail!("the job {state}");
+            }
+            let cpu = super::procstat::cpu_seconds(Some(pid)) - cpu0;
+            let written = super::procstat::write_bytes(pid).saturating_sub(io0);
+            Ok::<_, anyhow::Error>((seconds, cpu, written, rss0, latencies, counters))
+        });
+        let (_, hwm) = super::procstat::memory(Some(pid));
+        // SAFETY: kill(2) on our own child.
+        unsafe {
+            libc::kill(pid as libc::pid_t, libc::SIGTERM);
+        }
+        let _ = server.wait();
+        let _ = std::fs::remove_dir_all(&data);
+        let (seconds, cpu, written, rss0, latencies, counters) = result?;
+        let results = counters.results.load(Ordering::Relaxed);
+        let bytes = counters.bytes.load(Ordering::Relaxed) as f64;
+        let worker_cpu = counters.worker_cpu_us.load(Ordering::Relaxed) as f64 * 1e-6;
+        let samples = r.width as f64 * r.height as f64 * r.spp.unwrap_or(0) as f64;
+        rows.push(json!({
+            "simulated_workers": n,
+            "results": results,
+            "refused": counters.refused.load(Ordering::Relaxed),
+            "seconds": seconds,
+            "results_per_second": results as f64 / seconds,
+            "mb_per_second": bytes / 1e6 / seconds,
+            "bytes_per_pixel_sample": bytes / samples.max(1.0),
+            "coordinator_cpu_s": cpu,
+            "coordinator_cpu_ms_per_result": cpu * 1e3 / results.max(1) as f64,
+            "worker_cpu_s": worker_cpu,
+            "coordinator_cpu_share": cpu / worker_cpu.max(1e-9),
+            "coordinator_idle_bytes": rss0,
+            "coordinator_peak_bytes": hwm,
+            "disk_written_bytes": written,
+            "disk_written_per_result_bytes": written as f64 / results.max(1) as f64,
+            "result_bytes": bytes,
+            "pass_latency_mean_s": latencies.iter().sum::<f64>() / latencies.len().max(1) as f64,
+            "pass_latency_max_s": latencies.iter().cloned().fold(0.0, f64::max),
+            "passes": latencies.len(),
+        }));
+    }
+    let _ = std::fs::remove_dir_all(&tmp);
+    if a.json {
+        for r in &rows {
+            println!("{r}");
+        }
+        return Ok(());
+    }
+    println!(
+        "{}: {}x{}, {} spp, {:?} MIS, tiles {} ({} per pass), passes {} (first {} spp, up to {})",
+        a.scene.display(),
+        r.width,
+        r.height,
+        r.spp.unwrap_or(0),
+        r.render.mis,
+        r.tile_size,
+        r.grid().len(),
+        r.total_passes().unwrap_or(0),
+        r.pass_size,
+        r.pass_len(u32::MAX),
+    );
+    println!(
+        "{:>7} {:>8} {:>8} {:>9} {:>7} {:>9} {:>9} {:>8} {:>9} {:>10} {:>9} {:>9}",
+        "workers",
+        "results",
+        "seconds",
+        "results/s",
+        "MB/s",
+        "B/sample",
+        "coord CPU",
+        "ms/res",
+        "CPU share",
+        "peak RSS",
+        "disk MB",
+        "pass lat"
+    );
+    for row in &rows {
+        let f = |k: &str| row[k].as_f64().unwrap_or(f64::NAN);
+        println!(
+            "{:>7} {:>8} {:>8.2} {:>9.1} {:>7.1} {:>9.1} {:>8.2}s {:>8.2} {:>8.2}% {:>7.0}MB {:>9.1} {:>8.3}s",
+            row["simulated_workers"],
+            row["results"],
+            f("seconds"),
+            f("results_per_second"),
+            f("mb_per_second"),
+            f("bytes_per_pixel_sample"),
+            f("coordinator_cpu_s"),
+            f("coordinator_cpu_ms_per_result"),
+            100.0 * f("coordinator_cpu_share"),
+            f("coordinator_peak_bytes") / 1e6,
+            f("disk_written_bytes") / 1e6,
+            f("pass_latency_mean_s"),
+        );
+    }
+    Ok(())
+}
