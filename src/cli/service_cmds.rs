@@ -95,6 +95,10 @@ pub(crate) struct ServeArgs {
     /// Largest upload (scene bundle, reference, task result) in MiB.
     #[arg(long, default_value_t = 1024)]
     pub max_upload_mb: u64,
+    /// Tile accumulators the merge of a pass holds in memory at once, in MiB, whatever the
+    /// size of the frame (the frame is merged a few bands of tiles at a time).
+    #[arg(long, default_value_t = 256)]
+    pub merge_memory_mb: u64,
 }
 
 pub(crate) fn serve(a: ServeArgs) -> Result<()> {
@@ -121,6 +125,10 @@ pub(crate) fn serve(a: ServeArgs) -> Result<()> {
         ..Limits::default()
     };
     cfg.max_upload_bytes = a.max_upload_mb.saturating_mul(1 << 20);
+    if a.merge_memory_mb == 0 {
+        bail!("--merge-memory-mb must be >= 1");
+    }
+    cfg.merge_memory_bytes = a.merge_memory_mb.saturating_mul(1 << 20);
     let rt = runtime()?;
     let result = rt.block_on(async move {
         let running = service::start(cfg).await?;

@@ -171,9 +171,6 @@ fn finished_all(app: &App, job: &JobRow) -> Result<bool, String> {
     Ok(last.is_none_or(|l| l < job.passes_done))
 }
 
-/// Bytes of tile accumulators one merge thread holds at a time.
-const GROUP_BUDGET: u64 = 64 << 20;
-
 /// Threads that merge band groups of one pass at once.
 fn merge_threads() -> usize {
     std::thread::available_parallelism()
@@ -338,18 +335,21 @@ fn merge_group(
 
 /// Runs `f` on every band group of the job's frame, `merge_threads()` at a time, and puts the
 /// images each returns (tile by tile) into one frame image per layer.
-fn for_groups<F>(r: &Resolved, f: F) -> Result<Vec<Image>, MergeError>
+fn for_groups<F>(app: &App, r: &Resolved, f: F) -> Result<Vec<Image>, MergeError>
 where
     F: Fn(std::ops::Range<usize>) -> Result<Vec<Vec<(Tile, Image)>>, MergeError> + Sync,
 {
     use std::sync::atomic::AtomicUsize;
-    let groups = band_groups(&r.grid(), &r.film_layout(), GROUP_BUDGET);
+    // Each thread holds one group: the threads together at most the configured memory.
+    let threads = merge_threads();
+    let budget = app.cfg.merge_memory_bytes / threads as u64;
+    let groups = band_groups(&r.grid(), &r.film_layout(), budget);
     let next = AtomicUsize::new(0);
     let frames: Mutex<Vec<Image>> = Mutex::new(Vec::new());
     let failed: Mutex<Option<MergeError>> = Mutex::new(None);
     let (w, h) = (r.width as usize, r.height as usize);
     std::thread::scope(|s| {
-        for _ in 0..merge_threads().min(groups.len()) {
+        for _ in 0..threads.min(groups.len()) {
             s.spawn(|| {
                 loop {
                     let g = next.fetch_add(1, Ordering::Relaxed);
@@ -416,7 +416,7 @@ fn merge_pass(
         }
     }
     let spp_done = tasks.first().map_or(0, |t| t.s1);
-    let merged = for_groups(r, |bands| {
+    let merged = for_groups(app, r, |bands| {
         Ok(vec![merge_group(
             app, &job.id, r, pass, &results, bands, spp_done,
         )?])
@@ -533,7 +533,7 @@ fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
     let grid = r.grid();
     let n_l = light_paths(r, job.spp_done);
     let mut names = Vec::new();
-    let frames = for_groups(r, |bands| {
+    let frames = for_groups(app, r, |bands| {
         let tiles = grid.band_tiles(bands.start).start..grid.band_tiles(bands.end - 1).end;
         let mut layers: Vec<Vec<(Tile, Image)>> = Vec::new();
         for t in tiles {

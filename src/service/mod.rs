@@ -48,6 +48,8 @@ pub(crate) struct Config {
     pub max_upload_bytes: u64,
     /// OMIS_LOG of local workers (None: inherit).
     pub worker_log: Option<String>,
+    /// Tile accumulators a pass merge holds in memory at once, in bytes.
+    pub merge_memory_bytes: u64,
 }
 
 impl Config {
@@ -67,6 +69,7 @@ impl Config {
             limits: Limits::default(),
             max_upload_bytes: 1 << 30,
             worker_log: None,
+            merge_memory_bytes: 256 << 20,
         }
     }
 }
@@ -105,6 +108,9 @@ pub(crate) struct App {
     pub stopping: AtomicBool,
     /// Jobs that recovery has not reconciled yet (after a restart).
     pub recovering: Mutex<HashSet<String>>,
+    /// Uploaded results decoded and stored at once: their working memory stays bounded
+    /// however many workers upload together.
+    pub result_slots: tokio::sync::Semaphore,
 }
 
 impl App {
@@ -198,6 +204,9 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
         metrics: Metrics::default(),
         stopping: AtomicBool::new(false),
         recovering: Mutex::new(HashSet::new()),
+        result_slots: tokio::sync::Semaphore::new(
+            std::thread::available_parallelism().map_or(2, |n| n.get().max(2)),
+        ),
     });
     if cfg.client_token.is_none() && cfg.worker_token.is_none() {
         tracing::warn!("no tokens given: serving {addr} (loopback only) without authentication");

@@ -246,6 +246,11 @@ pub(crate) async fn upload_result(
     let t = task.clone();
     let worker = q.worker_id.clone();
     let n = body.len();
+    let _slot = app
+        .result_slots
+        .acquire()
+        .await
+        .map_err(ApiError::internal)?;
     let checked = tokio::task::spawn_blocking(move || -> ApiResult<Option<String>> {
         let r = jobs::resolved_of(&job).map_err(ApiError::internal)?;
         let layout = r.film_layout();
