@@ -1462,10 +1462,10 @@ fn synthetic_result(
     let d_opt = layout.d_opt().unwrap_or(0);
     for i in 0..tile.pixels() {
         for _ in 0..n {
-            let v = [m.unit(), m.unit(), m.unit()];
             for c in 0..3 {
-                f.sums.sum[i][c] += v[c];
-                f.sums.sum_sq[i][c] += v[c] * v[c];
+                let v = m.unit();
+                f.sums.sum[i][c] += v;
+                f.sums.sum_sq[i][c] += v * v;
             }
             f.sums.count[i] += 1;
             if let Some(o) = f.optimal.as_mut() {
