@@ -24,6 +24,8 @@ pub(crate) const MAX_FAILURES: u32 = 3;
 pub(crate) struct Runtime {
     pub resolved: Resolved,
     pub reference: Option<Image>,
+    /// The final EXR (every layer) was written by the merge of the last pass.
+    pub final_written: bool,
 }
 
 /// The resolved settings a job was created with.
@@ -45,6 +47,7 @@ fn runtime(app: &App, job: &JobRow) -> Result<Arc<Mutex<Runtime>>, String> {
     let rt = Arc::new(Mutex::new(Runtime {
         resolved,
         reference,
+        final_written: false,
     }));
     map.insert(job.id.clone(), rt.clone());
     Ok(rt)
@@ -242,18 +245,36 @@ fn light_paths(r: &Resolved, spp: u32) -> u64 {
     r.width as u64 * r.height as u64 * spp as u64
 }
 
+/// What the merge of one pass works from.
+#[derive(Clone, Copy)]
+struct PassMerge<'a> {
+    app: &'a App,
+    job: &'a str,
+    r: &'a Resolved,
+    pass: u32,
+    results: &'a [PassResult],
+    /// Samples per pixel once the pass is merged.
+    spp: u32,
+    /// Return every layer (the last pass), not only the beauty.
+    all_layers: bool,
+}
+
 /// Adds pass `pass` to the tiles of `bands`, writes their checkpoints, and returns the tiles'
 /// beauty images. Tiles that already hold the pass (merged before a restart) are read, not
 /// merged again.
 fn merge_group(
-    app: &App,
-    job: &str,
-    r: &Resolved,
-    pass: u32,
-    results: &[PassResult],
+    m: &PassMerge,
     bands: std::ops::Range<usize>,
-    spp: u32,
-) -> Result<Vec<(Tile, Image)>, MergeError> {
+) -> Result<Vec<Vec<(Tile, Image)>>, MergeError> {
+    let PassMerge {
+        app,
+        job,
+        r,
+        pass,
+        results,
+        spp,
+        all_layers,
+    } = *m;
     let grid = r.grid();
     let layout = r.film_layout();
     let first = grid.band_tiles(bands.start).start;
@@ -319,18 +340,67 @@ fn merge_group(
                 tile: tile.clone(),
                 passes: pass + 1,
             };
-            write_atomic(
+            // Made durable all at once before the pass is recorded (`sync_tiles`).
+            store::write_replacing(
                 &app.paths.tile_checkpoint(job, (first + k) as u32),
                 &ck.encode(),
+                !cfg!(target_os = "linux"),
             )?;
         }
     }
+    Ok(tile_layers(&group.tiles, r, spp, all_layers))
+}
+
+/// The beauty of each tile (and, with `all_layers`, every other layer the job keeps), as one
+/// list of (tile, image) per layer.
+fn tile_layers(
+    tiles: &[FilmTile],
+    r: &Resolved,
+    spp: u32,
+    all_layers: bool,
+) -> Vec<Vec<(Tile, Image)>> {
+    let layout = r.film_layout();
     let n_l = light_paths(r, spp);
-    Ok(group
-        .tiles
-        .iter()
-        .map(|t| (t.tile, t.image(n_l, layout.kappa)))
-        .collect())
+    let mut layers: Vec<Vec<(Tile, Image)>> = Vec::new();
+    for tile in tiles {
+        let mut images = vec![tile.image(n_l, layout.kappa)];
+        if all_layers {
+            images.extend(tile.extra_layers(&layout, n_l).into_iter().map(|(_, i)| i));
+        }
+        layers.resize_with(images.len(), Vec::new);
+        for (l, img) in layers.iter_mut().zip(images) {
+            l.push((tile.tile, img));
+        }
+    }
+    layers
+}
+
+/// The names of the layers besides the beauty that a job's EXR has.
+fn layer_names(r: &Resolved) -> Vec<String> {
+    let layout = r.film_layout();
+    let t = r.grid().tile(0);
+    FilmTile::new(t, &layout)
+        .extra_layers(&layout, 1)
+        .into_iter()
+        .map(|(n, _)| n)
+        .collect()
+}
+
+/// Makes the tile checkpoints written without fsync durable (Linux: one syncfs of the data
+/// folder's file system; elsewhere each file was fsync'd as it was written).
+fn sync_tiles(app: &App, job: &str) -> std::io::Result<()> {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::fd::AsRawFd;
+        let dir = std::fs::File::open(app.paths.tiles_dir(job))?;
+        // SAFETY: syncfs on a file descriptor we own and keep open for the call.
+        if unsafe { libc::syncfs(dir.as_raw_fd()) } != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = (app, job);
+    Ok(())
 }
 
 /// Runs `f` on every band group of the job's frame, `merge_threads()` at a time, and puts the
@@ -416,13 +486,29 @@ fn merge_pass(
         }
     }
     let spp_done = tasks.first().map_or(0, |t| t.s1);
-    let merged = for_groups(app, r, |bands| {
-        Ok(vec![merge_group(
-            app, &job.id, r, pass, &results, bands, spp_done,
-        )?])
-    });
-    let image = match merged {
-        Ok(mut frames) => frames.swap_remove(0),
+    // The last pass of a job with a sample count writes the final EXR at once.
+    let last = r.spp.is_some() && r.pass_range(pass + 1).is_none();
+    let m = PassMerge {
+        app,
+        job: &job.id,
+        r,
+        pass,
+        results: &results,
+        spp: spp_done,
+        all_layers: last,
+    };
+    let merged = for_groups(app, r, |bands| merge_group(&m, bands));
+    let (image, layers) = match merged {
+        Ok(frames) => {
+            let mut frames = frames.into_iter();
+            let image = frames.next().ok_or("no image")?;
+            let layers: Vec<(String, Image)> = if last {
+                layer_names(r).into_iter().zip(frames).collect()
+            } else {
+                Vec::new()
+            };
+            (image, layers)
+        }
         Err(MergeError::Result(u, e)) => {
             let t = tasks
                 .iter()
@@ -432,6 +518,7 @@ fn merge_pass(
         }
         Err(MergeError::Job(e)) => return Err(e),
     };
+    sync_tiles(app, &job.id).map_err(|e| format!("cannot sync the tile checkpoints: {e}"))?;
     app.db()
         .pass_merged(&job.id, pass + 1, spp_done, &stats)
         .map_err(|e| e.to_string())?;
@@ -445,7 +532,8 @@ fn merge_pass(
         .job(&job.id)
         .map_err(|e| e.to_string())?
         .ok_or("job vanished")?;
-    write_outputs(app, &job, rt, &image, &[])?;
+    write_outputs(app, &job, rt, &image, &layers)?;
+    rt.final_written = last;
     let relmse = match &rt.reference {
         Some(r) => Some(
             metrics::compare(&image, r, rt.resolved.eps)
@@ -529,13 +617,10 @@ fn write_outputs(
 /// tile checkpoints.
 fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
     let r = &rt.resolved;
-    let layout = r.film_layout();
     let grid = r.grid();
-    let n_l = light_paths(r, job.spp_done);
-    let mut names = Vec::new();
     let frames = for_groups(app, r, |bands| {
         let tiles = grid.band_tiles(bands.start).start..grid.band_tiles(bands.end - 1).end;
-        let mut layers: Vec<Vec<(Tile, Image)>> = Vec::new();
+        let mut held = Vec::with_capacity(tiles.len());
         for t in tiles {
             let ck = load_tile(app, &job.id, r, t, job.passes_done).map_err(MergeError::Job)?;
             if ck.passes != job.passes_done {
@@ -544,36 +629,23 @@ fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
                     ck.passes, job.passes_done
                 )));
             }
-            let tile = &ck.tile;
-            let extra = tile.extra_layers(&layout, n_l);
-            let mut images = vec![tile.image(n_l, layout.kappa)];
-            images.extend(extra.into_iter().map(|(_, img)| img));
-            layers.resize_with(images.len(), Vec::new);
-            for (l, img) in layers.iter_mut().zip(images) {
-                l.push((tile.tile, img));
-            }
+            held.push(ck.tile);
         }
-        Ok(layers)
+        Ok(tile_layers(&held, r, job.spp_done, true))
     })
     .map_err(|e| match e {
         MergeError::Job(e) | MergeError::Result(_, e) => e,
     })?;
-    if let Some(t) = grid.tiles().first() {
-        let empty = FilmTile::new(*t, &layout);
-        names = empty
-            .extra_layers(&layout, n_l)
-            .into_iter()
-            .map(|(n, _)| n)
-            .collect();
-    }
     let mut frames = frames.into_iter();
     let image = frames.next().ok_or("no image")?;
-    let layers: Vec<(String, Image)> = names.into_iter().zip(frames).collect();
+    let layers: Vec<(String, Image)> = layer_names(r).into_iter().zip(frames).collect();
     write_outputs(app, job, rt, &image, &layers)
 }
 
 fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
-    write_final(app, job, rt)?;
+    if !rt.final_written {
+        write_final(app, job, rt)?;
+    }
     let ended = app
         .db()
         .set_job_state(&job.id, JobState::Done, None)
