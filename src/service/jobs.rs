@@ -410,10 +410,16 @@ where
     F: Fn(std::ops::Range<usize>) -> Result<Vec<Vec<(Tile, Image)>>, MergeError> + Sync,
 {
     use std::sync::atomic::AtomicUsize;
-    // Each thread holds one group: the threads together at most the configured memory.
-    let threads = merge_threads();
-    let budget = app.cfg.merge_memory_bytes / threads as u64;
-    let groups = band_groups(&r.grid(), &r.film_layout(), budget);
+    // Each thread holds one group (at least one band): the threads together at most the
+    // configured memory, so fewer threads when a band alone is large.
+    let layout = r.film_layout();
+    let band = (r.width as u64 * r.tile_size as u64)
+        .saturating_mul(layout.bytes_per_pixel() as u64)
+        .max(1);
+    let total = app.cfg.merge_memory_bytes;
+    let threads = merge_threads().min((total / band).max(1) as usize);
+    let budget = total / threads as u64;
+    let groups = band_groups(&r.grid(), &layout, budget);
     let next = AtomicUsize::new(0);
     let frames: Mutex<Vec<Image>> = Mutex::new(Vec::new());
     let failed: Mutex<Option<MergeError>> = Mutex::new(None);
