@@ -115,18 +115,47 @@ pub(crate) fn ensure_passes(app: &App, job: &JobRow, r: &Resolved) -> rusqlite::
 }
 
 /// Merges every finished pass of a job, in order, and finishes the job after its last one.
-/// Runs on a blocking thread; one merge per job at a time. A job that recovery has not
-/// reconciled yet is left to recovery.
+/// Runs on a blocking thread; one advance per job at a time: a call while one runs only asks it
+/// to look again, so a burst of results never parks a thread per result. A job that recovery
+/// has not reconciled yet is left to recovery.
 pub(crate) fn advance(app: &App, id: &str) {
     if app.is_recovering(id) {
         return;
     }
-    if let Err(e) = advance_inner(app, id) {
-        tracing::error!("job {id}: {e}");
-        if let Ok(true) = app.db().set_job_state(id, JobState::Failed, Some(&e)) {
-            app.event(id, JobEvent::Failed(FailedEvent { error: e }));
+    {
+        let mut running = app.advancing.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(again) = running.get_mut(id) {
+            *again = true;
+            return;
         }
-        drop_runtime(app, id);
+        running.insert(id.to_string(), false);
+    }
+    loop {
+        if let Err(e) = advance_inner(app, id) {
+            tracing::error!("job {id}: {e}");
+            if let Ok(true) = app.db().set_job_state(id, JobState::Failed, Some(&e)) {
+                app.event(id, JobEvent::Failed(FailedEvent { error: e }));
+            }
+            drop_runtime(app, id);
+        }
+        let mut running = app.advancing.lock().unwrap_or_else(|e| e.into_inner());
+        match running.get_mut(id) {
+            Some(again) if *again => *again = false,
+            _ => {
+                running.remove(id);
+                return;
+            }
+        }
+    }
+}
+
+/// Gives the memory a merge freed back to the system (glibc keeps freed blocks of every
+/// thread's arena otherwise, and the merge threads are new each pass).
+fn trim_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only returns free memory to the system.
+    unsafe {
+        libc::malloc_trim(0);
     }
 }
 
@@ -504,6 +533,7 @@ fn merge_pass(
         all_layers: last,
     };
     let merged = for_groups(app, r, |bands| merge_group(&m, bands));
+    trim_memory();
     let (image, layers) = match merged {
         Ok(frames) => {
             let mut frames = frames.into_iter();
@@ -642,6 +672,7 @@ fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
     .map_err(|e| match e {
         MergeError::Job(e) | MergeError::Result(_, e) => e,
     })?;
+    trim_memory();
     let mut frames = frames.into_iter();
     let image = frames.next().ok_or("no image")?;
     let layers: Vec<(String, Image)> = layer_names(r).into_iter().zip(frames).collect();

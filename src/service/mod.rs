@@ -108,6 +108,8 @@ pub(crate) struct App {
     pub stopping: AtomicBool,
     /// Jobs that recovery has not reconciled yet (after a restart).
     pub recovering: Mutex<HashSet<String>>,
+    /// Jobs being advanced (`jobs::advance`), each with whether another call asked to look again.
+    pub advancing: Mutex<HashMap<String, bool>>,
     /// Uploaded results decoded and stored at once: their working memory stays bounded
     /// however many workers upload together.
     pub result_slots: tokio::sync::Semaphore,
@@ -171,6 +173,14 @@ fn is_loopback(addr: &SocketAddr) -> bool {
 /// Opens the data folder, recovers unfinished jobs, binds and serves; spawns the local pool.
 pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
     use anyhow::Context;
+    // Results and tile accumulators are megabyte buffers freed by many threads: glibc's
+    // threshold for serving them from mmap (returned to the system on free) would otherwise grow
+    // with them and leave the coordinator's peak memory to arena fragmentation.
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets an allocator parameter.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 20);
+    }
     if (cfg.client_token.is_none() || cfg.worker_token.is_none()) && !is_loopback(&cfg.bind) {
         anyhow::bail!(
             "refusing to serve {} without both a client token and a worker token (--token, \
@@ -204,6 +214,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
         metrics: Metrics::default(),
         stopping: AtomicBool::new(false),
         recovering: Mutex::new(HashSet::new()),
+        advancing: Mutex::new(HashMap::new()),
         result_slots: tokio::sync::Semaphore::new(
             std::thread::available_parallelism().map_or(2, |n| n.get().max(2)),
         ),
