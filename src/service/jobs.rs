@@ -81,7 +81,7 @@ pub(crate) fn tile_rect(r: &Resolved, i: u32) -> Option<Tile> {
 /// transaction, the store unlocked in between and workers woken after each; it stops early when
 /// the job ends or the coordinator stops. Idempotent: called at creation, after every merge and
 /// after a restart.
-pub(crate) fn ensure_passes(app: &App, job: &JobRow, r: &Resolved) -> rusqlite::Result<()> {
+pub(crate) fn ensure_passes(app: &App, job: &JobRow, r: &Resolved) -> store::StoreResult<()> {
     let within_time = r
         .time_budget_s
         .is_none_or(|b| job.started_at.is_none_or(|s| store::now() - s < b));

@@ -18,7 +18,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-use store::{EventRow, Paths, Store};
+use store::{EventRow, JobStore, Paths, SqliteStore};
 use tokio::sync::{Notify, broadcast};
 
 /// How a coordinator runs.
@@ -97,7 +97,7 @@ impl Metrics {
 pub(crate) struct App {
     pub cfg: Config,
     pub paths: Paths,
-    pub store: Mutex<Store>,
+    pub store: Mutex<Box<dyn JobStore>>,
     pub events: broadcast::Sender<EventRow>,
     /// Woken when tasks may have become available.
     pub work: Notify,
@@ -117,7 +117,7 @@ pub(crate) struct App {
 
 impl App {
     /// Locks the store (a panic while holding it cannot leave SQLite inconsistent).
-    pub fn db(&self) -> std::sync::MutexGuard<'_, Store> {
+    pub fn db(&self) -> std::sync::MutexGuard<'_, Box<dyn JobStore>> {
         self.store.lock().unwrap_or_else(|e| e.into_inner())
     }
 
@@ -196,7 +196,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
             .canonicalize()
             .with_context(|| format!("{}", cfg.data.display()))?,
     };
-    let store = Store::open(&paths.db())
+    let store = SqliteStore::open(&paths.db())
         .with_context(|| format!("cannot open the database {}", paths.db().display()))?;
     let listener = tokio::net::TcpListener::bind(cfg.bind)
         .await
@@ -207,7 +207,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
     let app = Arc::new(App {
         cfg: cfg.clone(),
         paths,
-        store: Mutex::new(store),
+        store: Mutex::new(Box::new(store)),
         events,
         work: Notify::new(),
         runtimes: Mutex::new(HashMap::new()),

@@ -134,7 +134,7 @@ pub(crate) struct EventRow {
 }
 
 /// The database of a coordinator.
-pub(crate) struct Store {
+pub(crate) struct SqliteStore {
     conn: Connection,
 }
 
@@ -252,6 +252,20 @@ fn task_row(r: &rusqlite::Row) -> rusqlite::Result<TaskRow> {
     })
 }
 
+/// A store's error, whatever the engine.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub(crate) struct StoreError(pub String);
+
+impl From<rusqlite::Error> for StoreError {
+    fn from(e: rusqlite::Error) -> Self {
+        StoreError(e.to_string())
+    }
+}
+
+/// The result of a store query.
+pub(crate) type StoreResult<T> = Result<T, StoreError>;
+
 /// A new job's row.
 pub(crate) struct NewJob<'a> {
     pub id: &'a str,
@@ -271,17 +285,116 @@ const T_QUEUED: TaskState = TaskState::Queued;
 const T_LEASED: TaskState = TaskState::Leased;
 const T_DONE: TaskState = TaskState::Done;
 
-impl Store {
+/// The queries the coordinator makes of its job store: jobs, their tasks pass by pass,
+/// leases, workers, the relMSE series and the event log. SQLite (`SqliteStore`) is the embedded
+/// store; a shared one (PostgreSQL, so that several coordinators serve one queue) implements
+/// the same trait. Every method is one short transaction.
+pub(crate) trait JobStore: Send {
+    /// Adds a job, `queued`, after every earlier one.
+    fn insert_job(&self, j: &NewJob) -> StoreResult<()>;
+    /// A job by id.
+    fn job(&self, id: &str) -> StoreResult<Option<JobRow>>;
+    /// Every job, oldest first.
+    fn jobs(&self) -> StoreResult<Vec<JobRow>>;
+    /// Jobs still to be worked on (queued or running).
+    fn active_jobs(&self) -> StoreResult<Vec<JobRow>>;
+    /// Moves an active (queued or running) job to `state`; false when the job had already
+    /// ended (a cancelled job stays cancelled).
+    fn set_job_state(&self, id: &str, state: JobState, error: Option<&str>) -> StoreResult<bool>;
+    /// Gives back every task a worker holds (it said it is leaving).
+    fn release_worker(&self, worker: &str) -> StoreResult<usize>;
+    /// True when `task_id` was ever issued (tasks of merged passes are deleted).
+    fn task_existed(&self, task_id: i64) -> StoreResult<bool>;
+    /// Records a merged pass and adds its work counters `stats` (once: only when the job had
+    /// merged `passes_done - 1` passes); the task rows of the pass are no longer needed.
+    fn pass_merged(
+        &self,
+        id: &str,
+        passes_done: u32,
+        spp_done: u32,
+        stats: &crate::film::RayStats,
+    ) -> StoreResult<()>;
+    /// Records the relMSE point of a merged pass.
+    fn add_series(&self, id: &str, p: &SeriesPoint) -> StoreResult<()>;
+    /// A job's relMSE series, pass by pass.
+    fn series(&self, id: &str) -> StoreResult<Vec<SeriesPoint>>;
+    /// Creates the tasks of `tiles` of one pass in one transaction (idempotent). Callers create
+    /// a pass in bounded chunks, in tile order, so that a pass with tile `t` has every tile
+    /// before it.
+    fn create_tasks(
+        &self,
+        id: &str,
+        pass: u32,
+        tiles: std::ops::Range<u32>,
+        samples: std::ops::Range<u32>,
+    ) -> StoreResult<()>;
+    /// The highest tile of a pass that has its task (None: the pass has none).
+    fn last_tile(&self, id: &str, pass: u32) -> StoreResult<Option<u32>>;
+    /// The highest pass with tasks, if any.
+    fn last_pass(&self, id: &str) -> StoreResult<Option<u32>>;
+    /// Whether a task of the pass is still queued or leased.
+    fn pass_open(&self, id: &str, pass: u32) -> StoreResult<bool>;
+    /// Done tasks of a job's unmerged passes.
+    fn tasks_done(&self, id: &str) -> StoreResult<u32>;
+    /// The tasks of a pass in tile order.
+    fn pass_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>>;
+    /// A task by id.
+    fn task(&self, task_id: i64) -> StoreResult<Option<TaskRow>>;
+    /// Puts a task back in the queue (its result could not be merged).
+    fn requeue(&self, task_id: i64) -> StoreResult<()>;
+    /// Leases the first queued task of the oldest active job (passes in order) to `worker`.
+    fn lease(&self, worker: &str, lease_s: f64) -> StoreResult<Option<TaskRow>>;
+    /// Extends a lease; false when the task is no longer this worker's attempt.
+    fn extend(&self, task_id: i64, attempt: u32, worker: &str, lease_s: f64) -> StoreResult<bool>;
+    /// Marks the task done if it is still this worker's current attempt.
+    fn complete(&self, task_id: i64, attempt: u32, worker: &str, bytes: usize)
+    -> StoreResult<bool>;
+    /// Records a failed attempt and requeues the task; returns the failures so far, or None when
+    /// the attempt was not current.
+    fn fail(
+        &self,
+        task_id: i64,
+        attempt: u32,
+        worker: &str,
+        error: &str,
+    ) -> StoreResult<Option<u32>>;
+    /// Requeues every lease that expired; returns how many.
+    fn expire_leases(&self) -> StoreResult<usize>;
+    /// Registers a worker, or refreshes one that registers again with its id; it is `idle`.
+    fn register_worker(&self, id: &str, name: &str, threads: u32, version: &str)
+    -> StoreResult<()>;
+    /// Notes that a worker is alive, and its state when given (None keeps it, except that a
+    /// worker marked gone is back); false when it is unknown.
+    fn touch_worker(&self, id: &str, state: Option<WorkerState>) -> StoreResult<bool>;
+    /// Workers not heard from for `silent_s` are marked gone.
+    fn mark_gone(&self, silent_s: f64) -> StoreResult<usize>;
+    /// Every worker, in order of first registration.
+    fn workers(&self) -> StoreResult<Vec<WorkerInfo>>;
+    /// Records an event of a job.
+    fn add_event(
+        &self,
+        job: &str,
+        kind: EventKind,
+        data: &serde_json::Value,
+    ) -> StoreResult<EventRow>;
+    /// A job's events after event `after`, in order.
+    fn events_after(&self, job: &str, after: i64) -> StoreResult<Vec<EventRow>>;
+    /// Counts of (state, n) in a table (jobs, tasks or workers).
+    fn state_counts(&self, table: &str) -> StoreResult<Vec<(String, i64)>>;
+}
+
+impl SqliteStore {
     /// Opens (creating if needed) the database at `path`.
-    pub fn open(path: &Path) -> rusqlite::Result<Store> {
+    pub fn open(path: &Path) -> rusqlite::Result<SqliteStore> {
         let conn = Connection::open(path)?;
         conn.busy_timeout(std::time::Duration::from_secs(10))?;
         conn.execute_batch(SCHEMA)?;
-        Ok(Store { conn })
+        Ok(SqliteStore { conn })
     }
+}
 
-    /// Adds a job, `queued`, after every earlier one.
-    pub fn insert_job(&self, j: &NewJob) -> rusqlite::Result<()> {
+impl JobStore for SqliteStore {
+    fn insert_job(&self, j: &NewJob) -> StoreResult<()> {
         let seq: i64 =
             self.conn
                 .query_row("SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs", [], |r| {
@@ -306,9 +419,7 @@ impl Store {
         )?;
         Ok(())
     }
-
-    /// A job by id.
-    pub fn job(&self, id: &str) -> rusqlite::Result<Option<JobRow>> {
+    fn job(&self, id: &str) -> StoreResult<Option<JobRow>> {
         self.conn
             .query_row(
                 &format!("SELECT {JOB_COLS} FROM jobs WHERE id = ?1"),
@@ -316,33 +427,25 @@ impl Store {
                 job_row,
             )
             .optional()
+            .map_err(StoreError::from)
     }
-
-    /// Every job, oldest first.
-    pub fn jobs(&self) -> rusqlite::Result<Vec<JobRow>> {
+    fn jobs(&self) -> StoreResult<Vec<JobRow>> {
         let mut st = self
             .conn
             .prepare(&format!("SELECT {JOB_COLS} FROM jobs ORDER BY seq"))?;
-        st.query_map([], job_row)?.collect()
+        st.query_map([], job_row)?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
     }
-
-    /// Jobs still to be worked on (queued or running).
-    pub fn active_jobs(&self) -> rusqlite::Result<Vec<JobRow>> {
+    fn active_jobs(&self) -> StoreResult<Vec<JobRow>> {
         let mut st = self.conn.prepare(&format!(
             "SELECT {JOB_COLS} FROM jobs WHERE state IN (?1, ?2) ORDER BY seq"
         ))?;
         st.query_map(params![J_QUEUED, J_RUNNING], job_row)?
-            .collect()
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
     }
-
-    /// Moves an active (queued or running) job to `state`; false when the job had already
-    /// ended (a cancelled job stays cancelled).
-    pub fn set_job_state(
-        &self,
-        id: &str,
-        state: JobState,
-        error: Option<&str>,
-    ) -> rusqlite::Result<bool> {
+    fn set_job_state(&self, id: &str, state: JobState, error: Option<&str>) -> StoreResult<bool> {
         let finished = (!state.is_active()).then(now);
         let n = self.conn.execute(
             "UPDATE jobs SET state = ?2, error = COALESCE(?3, error), \
@@ -352,18 +455,16 @@ impl Store {
         )?;
         Ok(n == 1)
     }
-
-    /// Gives back every task a worker holds (it said it is leaving).
-    pub fn release_worker(&self, worker: &str) -> rusqlite::Result<usize> {
-        self.conn.execute(
-            "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL \
+    fn release_worker(&self, worker: &str) -> StoreResult<usize> {
+        self.conn
+            .execute(
+                "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL \
              WHERE worker_id = ?1 AND state = ?3",
-            params![worker, T_QUEUED, T_LEASED],
-        )
+                params![worker, T_QUEUED, T_LEASED],
+            )
+            .map_err(StoreError::from)
     }
-
-    /// True when `task_id` was ever issued (tasks of merged passes are deleted).
-    pub fn task_existed(&self, task_id: i64) -> rusqlite::Result<bool> {
+    fn task_existed(&self, task_id: i64) -> StoreResult<bool> {
         let max: Option<i64> = self
             .conn
             .query_row(
@@ -374,16 +475,13 @@ impl Store {
             .optional()?;
         Ok(task_id >= 1 && max.is_some_and(|m| task_id <= m))
     }
-
-    /// Records a merged pass and adds its work counters `stats` (once: only when the job had
-    /// merged `passes_done - 1` passes); the task rows of the pass are no longer needed.
-    pub fn pass_merged(
+    fn pass_merged(
         &self,
         id: &str,
         passes_done: u32,
         spp_done: u32,
         stats: &crate::film::RayStats,
-    ) -> rusqlite::Result<()> {
+    ) -> StoreResult<()> {
         self.conn.execute(
             "UPDATE jobs SET passes_done = ?2, spp_done = ?3, samples = samples + ?4, \
              rays = rays + ?5, non_finite = non_finite + ?6 \
@@ -403,18 +501,14 @@ impl Store {
         )?;
         Ok(())
     }
-
-    /// Records the relMSE point of a merged pass.
-    pub fn add_series(&self, id: &str, p: &SeriesPoint) -> rusqlite::Result<()> {
+    fn add_series(&self, id: &str, p: &SeriesPoint) -> StoreResult<()> {
         self.conn.execute(
             "INSERT OR REPLACE INTO series (job_id, pass, spp, seconds, relmse) VALUES (?1, ?2, ?3, ?4, ?5)",
             params![id, p.pass, p.spp, p.seconds, p.relmse],
         )?;
         Ok(())
     }
-
-    /// A job's relMSE series, pass by pass.
-    pub fn series(&self, id: &str) -> rusqlite::Result<Vec<SeriesPoint>> {
+    fn series(&self, id: &str) -> StoreResult<Vec<SeriesPoint>> {
         let mut st = self.conn.prepare(
             "SELECT pass, spp, seconds, relmse FROM series WHERE job_id = ?1 ORDER BY pass",
         )?;
@@ -426,19 +520,16 @@ impl Store {
                 relmse: r.get(3)?,
             })
         })?
-        .collect()
+        .collect::<rusqlite::Result<Vec<_>>>()
+        .map_err(StoreError::from)
     }
-
-    /// Creates the tasks of `tiles` of one pass in one transaction (idempotent). Callers create
-    /// a pass in bounded chunks, in tile order, so that a pass with tile `t` has every tile
-    /// before it.
-    pub fn create_tasks(
+    fn create_tasks(
         &self,
         id: &str,
         pass: u32,
         tiles: std::ops::Range<u32>,
         samples: std::ops::Range<u32>,
-    ) -> rusqlite::Result<()> {
+    ) -> StoreResult<()> {
         let tx = self.conn.unchecked_transaction()?;
         {
             let mut st = tx.prepare_cached(
@@ -448,55 +539,52 @@ impl Store {
                 st.execute(params![id, pass, t, samples.start, samples.end, T_QUEUED])?;
             }
         }
-        tx.commit()
+        tx.commit().map_err(StoreError::from)
     }
-
-    /// The highest tile of a pass that has its task (None: the pass has none).
-    pub fn last_tile(&self, id: &str, pass: u32) -> rusqlite::Result<Option<u32>> {
-        self.conn.query_row(
-            "SELECT MAX(tile) FROM tasks WHERE job_id = ?1 AND pass = ?2",
-            params![id, pass],
-            |r| r.get(0),
-        )
+    fn last_tile(&self, id: &str, pass: u32) -> StoreResult<Option<u32>> {
+        self.conn
+            .query_row(
+                "SELECT MAX(tile) FROM tasks WHERE job_id = ?1 AND pass = ?2",
+                params![id, pass],
+                |r| r.get(0),
+            )
+            .map_err(StoreError::from)
     }
-
-    /// The highest pass with tasks, if any.
-    pub fn last_pass(&self, id: &str) -> rusqlite::Result<Option<u32>> {
+    fn last_pass(&self, id: &str) -> StoreResult<Option<u32>> {
         self.conn
             .query_row("SELECT MAX(pass) FROM tasks WHERE job_id = ?1", [id], |r| {
                 r.get(0)
             })
+            .map_err(StoreError::from)
     }
-
-    /// Whether a task of the pass is still queued or leased.
-    pub fn pass_open(&self, id: &str, pass: u32) -> rusqlite::Result<bool> {
-        self.conn.query_row(
-            "SELECT EXISTS (SELECT 1 FROM tasks WHERE state IN (?3, ?4) AND job_id = ?1 \
+    fn pass_open(&self, id: &str, pass: u32) -> StoreResult<bool> {
+        self.conn
+            .query_row(
+                "SELECT EXISTS (SELECT 1 FROM tasks WHERE state IN (?3, ?4) AND job_id = ?1 \
              AND pass = ?2)",
-            params![id, pass, T_QUEUED, T_LEASED],
-            |r| r.get(0),
-        )
+                params![id, pass, T_QUEUED, T_LEASED],
+                |r| r.get(0),
+            )
+            .map_err(StoreError::from)
     }
-
-    /// Done tasks of a job's unmerged passes.
-    pub fn tasks_done(&self, id: &str) -> rusqlite::Result<u32> {
-        self.conn.query_row(
-            "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = ?2",
-            params![id, T_DONE],
-            |r| r.get(0),
-        )
+    fn tasks_done(&self, id: &str) -> StoreResult<u32> {
+        self.conn
+            .query_row(
+                "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = ?2",
+                params![id, T_DONE],
+                |r| r.get(0),
+            )
+            .map_err(StoreError::from)
     }
-
-    /// The tasks of a pass in tile order.
-    pub fn pass_tasks(&self, id: &str, pass: u32) -> rusqlite::Result<Vec<TaskRow>> {
+    fn pass_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>> {
         let mut st = self.conn.prepare(&format!(
             "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND pass = ?2 ORDER BY tile"
         ))?;
-        st.query_map(params![id, pass], task_row)?.collect()
+        st.query_map(params![id, pass], task_row)?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
     }
-
-    /// A task by id.
-    pub fn task(&self, task_id: i64) -> rusqlite::Result<Option<TaskRow>> {
+    fn task(&self, task_id: i64) -> StoreResult<Option<TaskRow>> {
         self.conn
             .query_row(
                 &format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?1"),
@@ -504,19 +592,16 @@ impl Store {
                 task_row,
             )
             .optional()
+            .map_err(StoreError::from)
     }
-
-    /// Puts a task back in the queue (its result could not be merged).
-    pub fn requeue(&self, task_id: i64) -> rusqlite::Result<()> {
+    fn requeue(&self, task_id: i64) -> StoreResult<()> {
         self.conn.execute(
             "UPDATE tasks SET state = ?2, worker_id = NULL WHERE id = ?1",
             params![task_id, T_QUEUED],
         )?;
         Ok(())
     }
-
-    /// Leases the first queued task of the oldest active job (passes in order) to `worker`.
-    pub fn lease(&self, worker: &str, lease_s: f64) -> rusqlite::Result<Option<TaskRow>> {
+    fn lease(&self, worker: &str, lease_s: f64) -> StoreResult<Option<TaskRow>> {
         let tx = self.conn.unchecked_transaction()?;
         // Job by job (few), each an index lookup of (state, job, pass, tile): no sort of the
         // queue, however many tasks it holds.
@@ -562,15 +647,7 @@ impl Store {
         tx.commit()?;
         Ok(Some(row))
     }
-
-    /// Extends a lease; false when the task is no longer this worker's attempt.
-    pub fn extend(
-        &self,
-        task_id: i64,
-        attempt: u32,
-        worker: &str,
-        lease_s: f64,
-    ) -> rusqlite::Result<bool> {
+    fn extend(&self, task_id: i64, attempt: u32, worker: &str, lease_s: f64) -> StoreResult<bool> {
         let n = self.conn.execute(
             "UPDATE tasks SET lease_expires = ?4 WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 \
              AND state = ?5 AND job_id IN (SELECT id FROM jobs WHERE state = ?6)",
@@ -585,15 +662,13 @@ impl Store {
         )?;
         Ok(n == 1)
     }
-
-    /// Marks the task done if it is still this worker's current attempt.
-    pub fn complete(
+    fn complete(
         &self,
         task_id: i64,
         attempt: u32,
         worker: &str,
         bytes: usize,
-    ) -> rusqlite::Result<bool> {
+    ) -> StoreResult<bool> {
         let tx = self.conn.unchecked_transaction()?;
         let n = tx.execute(
             "UPDATE tasks SET state = ?4, lease_expires = NULL WHERE id = ?1 AND attempt = ?2 \
@@ -613,16 +688,13 @@ impl Store {
         tx.commit()?;
         Ok(n == 1)
     }
-
-    /// Records a failed attempt and requeues the task; returns the failures so far, or None when
-    /// the attempt was not current.
-    pub fn fail(
+    fn fail(
         &self,
         task_id: i64,
         attempt: u32,
         worker: &str,
         error: &str,
-    ) -> rusqlite::Result<Option<u32>> {
+    ) -> StoreResult<Option<u32>> {
         let n = self.conn.execute(
             "UPDATE tasks SET state = ?5, worker_id = NULL, lease_expires = NULL, \
              failures = failures + 1, last_error = ?4 WHERE id = ?1 AND attempt = ?2 \
@@ -637,25 +709,24 @@ impl Store {
                 r.get(0)
             })
             .map(Some)
+            .map_err(StoreError::from)
     }
-
-    /// Requeues every lease that expired; returns how many.
-    pub fn expire_leases(&self) -> rusqlite::Result<usize> {
-        self.conn.execute(
-            "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL \
+    fn expire_leases(&self) -> StoreResult<usize> {
+        self.conn
+            .execute(
+                "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL \
              WHERE state = ?3 AND lease_expires < ?1",
-            params![now(), T_QUEUED, T_LEASED],
-        )
+                params![now(), T_QUEUED, T_LEASED],
+            )
+            .map_err(StoreError::from)
     }
-
-    /// Registers a worker, or refreshes one that registers again with its id; it is `idle`.
-    pub fn register_worker(
+    fn register_worker(
         &self,
         id: &str,
         name: &str,
         threads: u32,
         version: &str,
-    ) -> rusqlite::Result<()> {
+    ) -> StoreResult<()> {
         let t = now();
         self.conn.execute(
             "INSERT INTO workers (id, name, threads, version, registered_at, last_seen, state) \
@@ -665,10 +736,7 @@ impl Store {
         )?;
         Ok(())
     }
-
-    /// Notes that a worker is alive, and its state when given (None keeps it, except that a
-    /// worker marked gone is back); false when it is unknown.
-    pub fn touch_worker(&self, id: &str, state: Option<WorkerState>) -> rusqlite::Result<bool> {
+    fn touch_worker(&self, id: &str, state: Option<WorkerState>) -> StoreResult<bool> {
         let n = self.conn.execute(
             "UPDATE workers SET last_seen = ?2, state = COALESCE(?3, \
              CASE state WHEN ?4 THEN ?5 ELSE state END) WHERE id = ?1",
@@ -676,17 +744,15 @@ impl Store {
         )?;
         Ok(n == 1)
     }
-
-    /// Workers not heard from for `silent_s` are marked gone.
-    pub fn mark_gone(&self, silent_s: f64) -> rusqlite::Result<usize> {
-        self.conn.execute(
-            "UPDATE workers SET state = ?2 WHERE state != ?2 AND last_seen < ?1",
-            params![now() - silent_s, WorkerState::Gone],
-        )
+    fn mark_gone(&self, silent_s: f64) -> StoreResult<usize> {
+        self.conn
+            .execute(
+                "UPDATE workers SET state = ?2 WHERE state != ?2 AND last_seen < ?1",
+                params![now() - silent_s, WorkerState::Gone],
+            )
+            .map_err(StoreError::from)
     }
-
-    /// Every worker, in order of first registration.
-    pub fn workers(&self) -> rusqlite::Result<Vec<WorkerInfo>> {
+    fn workers(&self) -> StoreResult<Vec<WorkerInfo>> {
         let mut held: HashMap<String, Vec<WorkerTask>> = HashMap::new();
         let mut st = self.conn.prepare(
             "SELECT worker_id, id, job_id, pass, tile, attempt FROM tasks \
@@ -726,16 +792,15 @@ impl Store {
                 tasks_done: r.get(7)?,
             })
         })?
-        .collect()
+        .collect::<rusqlite::Result<Vec<_>>>()
+        .map_err(StoreError::from)
     }
-
-    /// Records an event of a job.
-    pub fn add_event(
+    fn add_event(
         &self,
         job: &str,
         kind: EventKind,
         data: &serde_json::Value,
-    ) -> rusqlite::Result<EventRow> {
+    ) -> StoreResult<EventRow> {
         let at = now();
         self.conn.execute(
             "INSERT INTO events (job_id, kind, data, at) VALUES (?1, ?2, ?3, ?4)",
@@ -749,9 +814,7 @@ impl Store {
             at,
         })
     }
-
-    /// A job's events after event `after`, in order.
-    pub fn events_after(&self, job: &str, after: i64) -> rusqlite::Result<Vec<EventRow>> {
+    fn events_after(&self, job: &str, after: i64) -> StoreResult<Vec<EventRow>> {
         let mut st = self.conn.prepare(
             "SELECT id, job_id, kind, data, at FROM events WHERE job_id = ?1 AND id > ?2 ORDER BY id",
         )?;
@@ -765,11 +828,10 @@ impl Store {
                 at: r.get(4)?,
             })
         })?
-        .collect()
+        .collect::<rusqlite::Result<Vec<_>>>()
+        .map_err(StoreError::from)
     }
-
-    /// Counts of (state, n) in a table (jobs, tasks or workers).
-    pub fn state_counts(&self, table: &str) -> rusqlite::Result<Vec<(String, i64)>> {
+    fn state_counts(&self, table: &str) -> StoreResult<Vec<(String, i64)>> {
         let table = match table {
             "jobs" | "tasks" | "workers" => table,
             _ => return Ok(Vec::new()),
@@ -777,6 +839,8 @@ impl Store {
         let mut st = self.conn.prepare(&format!(
             "SELECT state, COUNT(*) FROM {table} GROUP BY state"
         ))?;
-        st.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?.collect()
+        st.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
     }
 }

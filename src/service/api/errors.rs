@@ -61,6 +61,12 @@ impl From<rusqlite::Error> for ApiError {
     }
 }
 
+impl From<crate::service::store::StoreError> for ApiError {
+    fn from(e: crate::service::store::StoreError) -> Self {
+        ApiError::internal(format!("database: {e}"))
+    }
+}
+
 /// The result of a handler.
 pub(crate) type ApiResult<T> = Result<T, ApiError>;
 
