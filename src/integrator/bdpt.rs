@@ -14,20 +14,21 @@
 //! make it). Balance- and power-weighted BDPT and the optimal-MIS accumulators are sinks.
 //!
 //! Densities are stored per vertex in area measure, in both directions (pbrt-v3 convention:
-//! `pdf_fwd` from the vertex's predecessor in its own subpath, `pdf_rev` from its successor),
-//! without Russian-roulette factors, which are applied per technique when weights are formed:
-//! a subpath continues past its vertex j (j >= RR_START) with a survival probability that
-//! depends only on that vertex, so every technique's exact density is known.
+//! `pdf_fwd` from the vertex's predecessor in its own subpath, `pdf_rev` from its successor).
+//!
+//! Subpaths end only where a BSDF is black or fails to sample, at an escape, or at the max
+//! depth: there is no Russian roulette, as in pbrt-v3's BDPT (Pharr, Jakob and Humphreys,
+//! "Physically Based Rendering", 3rd ed., §16.3). Roulette multiplies a surviving subpath's
+//! throughput by 1/q, and on paths that only one technique can make (caustics seen through
+//! glass or in a mirror) MIS cannot take that back: it made the glass-and-mirror Cornell box
+//! 1.2-1.4x noisier per sample, all of it in fireflies (BENCHMARKS.md, issue 13).
 
 use crate::camera::Camera;
 use crate::film::RayStats;
 use crate::geometry::{Ray, Rgb, Vec2, Vec3};
-use crate::material::{Bsdf, Lobe, Mode};
+use crate::material::{Bsdf, Mode};
 use crate::sampler::Sampler;
 use crate::scene::{NO_LIGHT, Scene};
-
-/// Subpath vertices with index >= this are subject to Russian roulette (the path tracer's depth 3).
-pub const RR_START: usize = super::path::RR_START_DEPTH as usize;
 
 /// Longest supported max depth (subpaths have at most max_depth + 2 vertices).
 pub const MAX_DEPTH: u32 = 64;
@@ -62,8 +63,6 @@ pub struct Vertex {
     delta: bool,
     /// Point light: a delta in position, never hit.
     delta_pos: bool,
-    /// Survival probability of Russian roulette when a subpath continues past this vertex.
-    rr_q: f32,
 }
 
 impl Vertex {
@@ -80,7 +79,6 @@ impl Vertex {
             pdf_rev: 0.0,
             delta: false,
             delta_pos: false,
-            rr_q: 1.0,
         }
     }
 
@@ -108,11 +106,6 @@ impl Vertex {
         let w = d / dist2.sqrt();
         pdf_dir * next.abs_cos_ng(w) / dist2
     }
-}
-
-/// Russian-roulette survival probability at a surface: its rough albedo, within [0.05, 0.95].
-fn survival(lobe: &Lobe) -> f32 {
-    lobe.albedo_estimate().clamp(0.05, 0.95)
 }
 
 /// One BDPT sample as the sinks see it.
@@ -206,7 +199,6 @@ fn random_walk(
             pdf_rev: 0.0,
             delta: bsdf.is_delta(),
             delta_pos: false,
-            rr_q: survival(&bsdf.lobe),
         };
         v.pdf_fwd = if via_delta {
             1.0
@@ -232,13 +224,6 @@ fn random_walk(
             path[cur].area_density(back, &path[prev])
         };
         beta *= s.f * (s.wi.dot(hit.ns).abs() / s.pdf);
-        if cur >= RR_START {
-            let q = path[cur].rr_q;
-            if !(sampler.next_1d() < q) {
-                break;
-            }
-            beta /= q;
-        }
         if beta == Rgb::ZERO {
             break;
         }
@@ -351,23 +336,12 @@ struct Connection {
     q1: f32,
 }
 
-/// Russian-roulette factor for continuing past `v` at subpath index `idx`.
-#[inline]
-fn rr_factor(v: &Vertex, idx: usize) -> f64 {
-    if idx >= RR_START && v.kind == Kind::Surface {
-        v.rr_q as f64
-    } else {
-        1.0
-    }
-}
-
 /// Computes into `ws.weights[0..k]` the balance weights of every technique s' = 0 .. k-1 for the
 /// full path made of `light[0..s]` (or `nee` as v_0 when s = 1 and t >= 2), and `cam[0..t]`.
 /// Returns false if the densities are degenerate (the caller then weights the sample 1 alone).
 ///
 /// Ratio recurrence (Veach 1997 §10.2): p_{s'+1} / p_{s'} = pL(v_{s'}) / pE(v_{s'}), where pL is
-/// the density of a vertex generated from the light side and pE from the camera side, RR
-/// survival included.
+/// the density of a vertex generated from the light side and pE from the camera side.
 fn balance_weights(
     ws: &mut Workspace,
     nee: Option<&Vertex>,
@@ -411,12 +385,6 @@ fn balance_weights(
             l = c.pl_z1 as f64;
         } else if i == s + 1 {
             l = c.pl_z2 as f64;
-        }
-        if i >= 1 {
-            l *= rr_factor(vert(i - 1), i - 1);
-        }
-        if i + 1 < k {
-            e *= rr_factor(vert(i + 1), k - 2 - i);
         }
         pl[i] = l;
         pe[i] = e;
@@ -883,7 +851,6 @@ mod tests {
         let k = v.len();
         let light = &scene.lights[v[0].light as usize];
         let pmf = scene.light_pmf(v[0].light) as f64;
-        let rr = |x: &Vertex, idx: usize| rr_factor(x, idx);
         let mut p = vec![0.0f64; k];
         for sp in 0..k {
             let valid = if sp == 0 {
@@ -914,7 +881,7 @@ mod tests {
                     )
                 } else {
                     let b = &v[i - 1];
-                    let dens = if b.delta {
+                    if b.delta {
                         1.0
                     } else {
                         area(
@@ -922,8 +889,7 @@ mod tests {
                             b.bsdf.pdf(dir(b, &v[i - 2]), dir(b, &v[i])) as f64,
                             &v[i],
                         )
-                    };
-                    dens * rr(b, i - 1)
+                    }
                 };
             }
             for i in sp..k {
@@ -938,7 +904,7 @@ mod tests {
                     )
                 } else {
                     let b = &v[i + 1];
-                    let dens = if b.delta {
+                    if b.delta {
                         1.0
                     } else {
                         area(
@@ -946,8 +912,7 @@ mod tests {
                             b.bsdf.pdf(dir(b, &v[i + 2]), dir(b, &v[i])) as f64,
                             &v[i],
                         )
-                    };
-                    dens * rr(b, k - 2 - i)
+                    }
                 };
             }
             p[sp] = d;
