@@ -349,6 +349,12 @@ impl omis::integrator::bdpt::SampleSink for FurnaceSink {
     fn wants_zero_samples(&self, _depth: u32) -> bool {
         false
     }
+    fn wants_vector(&self, _depth: u32) -> bool {
+        false
+    }
+    fn heuristic(&self) -> MisKind {
+        MisKind::Balance
+    }
     fn sample(&mut self, s: &omis::integrator::bdpt::PathSample) {
         if s.t >= 2 && s.contribution.y != 0.0 {
             let expected = 0.5f64.powi(s.depth as i32);
