@@ -744,8 +744,8 @@ fn hit_emitter(
     zero: bool,
     sink: &mut dyn SampleSink,
 ) -> bool {
-    let z = ws.cam[t - 1];
-    let zp = ws.cam[t - 2];
+    let z = &ws.cam[t - 1];
+    let zp = &ws.cam[t - 2];
     let (w_out, _) = dir_to(z.p, zp.p);
     let contribution = if z.light == NO_LIGHT {
         Rgb::ZERO
@@ -764,17 +764,17 @@ fn hit_emitter(
     let pmf = scene.light_pmf(z.light) as f64;
     let (pdf_pos, pdf_dir) = light.pdf_le(z.ng, w_out);
     // The camera-side vertex treated as a light vertex: emission densities from the light side.
-    let mut v0 = z;
+    let mut v0 = *z;
     v0.kind = Kind::Light;
     v0.pdf_fwd = (pmf * pdf_pos as f64) as f32;
     let c = Connection {
         pe_y1: 0.0,
         pe_y2: 0.0,
         pl_z1: v0.pdf_fwd,
-        pl_z2: v0.area_density(pdf_dir, &zp),
+        pl_z2: v0.area_density(pdf_dir, zp),
         q1: if t >= 3 {
             let (wi, _) = dir_to(zp.p, z.p);
-            (pmf as f32) * zp.area_density(light.pdf_li(zp.p, wi), &z)
+            (pmf as f32) * zp.area_density(light.pdf_li(zp.p, wi), z)
         } else {
             0.0
         },
@@ -797,7 +797,7 @@ fn next_event(
     sink: &mut dyn SampleSink,
     stats: &mut RayStats,
 ) -> bool {
-    let z = ws.cam[t - 1];
+    let z = &ws.cam[t - 1];
     if z.delta || z.bsdf.is_black() {
         return false;
     }
@@ -810,7 +810,7 @@ fn next_event(
     let Some(ls) = light.sample_li(z.p, u) else {
         return false;
     };
-    let zp = ws.cam[t - 2];
+    let zp = &ws.cam[t - 2];
     let (wo, _) = dir_to(z.p, zp.p);
     let f = z.bsdf.eval(wo, ls.wi, Mode::Radiance);
     let contribution = z.beta * f * ls.le * (ls.wi.dot(z.ns).abs() / (pmf * ls.pdf));
@@ -840,8 +840,8 @@ fn next_event(
             z.area_density(z.bsdf.pdf(wo, ls.wi), &v0)
         },
         pe_y2: 0.0,
-        pl_z1: v0.area_density(pdf_dir, &z),
-        pl_z2: z.area_density(z.bsdf.pdf(ls.wi, wo), &zp),
+        pl_z1: v0.area_density(pdf_dir, z),
+        pl_z2: z.area_density(z.bsdf.pdf(ls.wi, wo), zp),
         q1: if ls.delta {
             pmf
         } else {
@@ -866,13 +866,13 @@ fn connect(
     sink: &mut dyn SampleSink,
     stats: &mut RayStats,
 ) -> bool {
-    let y = ws.light[s - 1];
-    let z = ws.cam[t - 1];
+    let y = &ws.light[s - 1];
+    let z = &ws.cam[t - 1];
     if y.delta || z.delta || y.bsdf.is_black() || z.bsdf.is_black() {
         return false;
     }
-    let yp = ws.light[s - 2];
-    let zp = ws.cam[t - 2];
+    let yp = &ws.light[s - 2];
+    let zp = &ws.cam[t - 2];
     let (w_yz, d2) = dir_to(y.p, z.p);
     if !(d2 > 0.0) {
         return false;
@@ -898,10 +898,10 @@ fn connect(
         return true;
     }
     let c = Connection {
-        pe_y1: z.area_density(z.bsdf.pdf(wo_z, -w_yz), &y),
-        pe_y2: y.area_density(y.bsdf.pdf(w_yz, wo_y), &yp),
-        pl_z1: y.area_density(y.bsdf.pdf(wo_y, w_yz), &z),
-        pl_z2: z.area_density(z.bsdf.pdf(-w_yz, wo_z), &zp),
+        pe_y1: z.area_density(z.bsdf.pdf(wo_z, -w_yz), y),
+        pe_y2: y.area_density(y.bsdf.pdf(w_yz, wo_y), yp),
+        pl_z1: y.area_density(y.bsdf.pdf(wo_y, w_yz), z),
+        pl_z2: z.area_density(z.bsdf.pdf(-w_yz, wo_z), zp),
         q1: ws.q1,
     };
     report(ws, sink, None, s, t, &c, depth, pixel, contribution);
@@ -927,7 +927,7 @@ fn connect_to_camera(
     sink: &mut dyn SampleSink,
     stats: &mut RayStats,
 ) {
-    let y = ws.light[s - 1];
+    let y = &ws.light[s - 1];
     // A point light seen directly through the pinhole, (1, 1) with y_0 a delta in position, is a
     // path of two fixed points: no other technique can make it (the camera cannot hit a point,
     // so the path tracer and (0, t) never see point lights), and it would put the light's
@@ -952,7 +952,7 @@ fn connect_to_camera(
         let light = &scene.lights[y.light as usize];
         (light.le(y.ng, w_yc), y.abs_cos_ng(w_yc), Vec3::ZERO)
     } else {
-        let yp = ws.light[s - 2];
+        let yp = &ws.light[s - 2];
         let (wo_y, _) = dir_to(y.p, yp.p);
         (
             y.bsdf.eval(wo_y, w_yc, Mode::Importance),
@@ -971,11 +971,11 @@ fn connect_to_camera(
     if scene.occluded(y.p, y.ng, cam.position, Vec3::ZERO) {
         return;
     }
-    let z0 = ws.cam[0];
-    let pe_y1 = z0.area_density(cam.pdf_dir(w_cy), &y);
+    let z0 = &ws.cam[0];
+    let pe_y1 = z0.area_density(cam.pdf_dir(w_cy), y);
     let pe_y2 = if s >= 2 {
-        let yp = ws.light[s - 2];
-        y.area_density(y.bsdf.pdf(w_yc, wo_y), &yp)
+        let yp = &ws.light[s - 2];
+        y.area_density(y.bsdf.pdf(w_yc, wo_y), yp)
     } else {
         0.0
     };
