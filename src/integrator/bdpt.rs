@@ -15,8 +15,8 @@
 //! it), an O(d) loop over the path per connection. Elsewhere the balance or power weight of the
 //! sample's own technique comes in O(1) per connection from partial sums kept per subpath vertex
 //! (the recursive MIS of Georgiev, Křivánek, Davidovič and Slusallek, "Light Transport
-//! Simulation with Vertex Connection and Merging", SIGGRAPH Asia 2012, and its technical report
-//! "Implementing Vertex Connection and Merging", §4: their dVC quantities; see
+//! Simulation with Vertex Connection and Merging", SIGGRAPH Asia 2012, and Georgiev's technical report
+//! "Implementing Vertex Connection and Merging": their dVC quantities; see
 //! [`Workspace::prepare`]). Balance- and power-weighted BDPT and the optimal-MIS accumulators are
 //! sinks.
 //!
