@@ -337,3 +337,88 @@ fn every_light_type_agrees_across_strategies_in_a_one_sided_box() {
         assert_agree(&format!("{what}: balance vs PT"), &bal, &reference, 2);
     }
 }
+
+/// Collects the unweighted contribution of every camera-side technique (t >= 2) relative to the
+/// furnace's closed form.
+struct FurnaceSink {
+    /// (s, t, contribution / 0.5^depth) per sample with a contribution.
+    ratios: Vec<(u32, u32, f64)>,
+}
+
+impl omis::integrator::bdpt::SampleSink for FurnaceSink {
+    fn wants_zero_samples(&self, _depth: u32) -> bool {
+        false
+    }
+    fn wants_vector(&self, _depth: u32) -> bool {
+        false
+    }
+    fn heuristic(&self) -> MisKind {
+        MisKind::Balance
+    }
+    fn sample(&mut self, s: &omis::integrator::bdpt::PathSample) {
+        if s.t >= 2 && s.contribution.y != 0.0 {
+            let expected = 0.5f64.powi(s.depth as i32);
+            self.ratios
+                .push((s.s, s.t, s.contribution.y as f64 / expected));
+        }
+    }
+    fn unsampled(&mut self, _: (u32, u32), _: u32, _: u32) {}
+}
+
+/// Catches Russian roulette (or any other random throughput factor) in the BDPT subpaths, the
+/// cause of the fireflies of issue 13. Inside the furnace (a sphere of albedo a = 0.5 and
+/// emission 1, seen from inside) every camera-side technique (s, t >= 2) has an unweighted
+/// contribution f / p_s of exactly a^d for a path of depth d, whatever its vertices: cosine
+/// sampling gives f cos / p = a at each bounce, and between two points of a sphere
+/// cos cos / r^2 = 1 / (4 R^2), so that uniform area sampling (of the light point, and of the
+/// emitted ray's origin) cancels the connection's geometry (Veach 1997 eq. 8.3; the sphere
+/// identity is Lambert's). The closed-form variance of each technique is therefore 0: a roulette
+/// survivor would carry 1/q = 2 per surviving vertex past the roulette's start.
+#[test]
+fn bdpt_subpath_throughputs_have_zero_variance_in_the_furnace() {
+    use omis::film::RayStats;
+    use omis::integrator::bdpt::{PixelSample, Workspace, pixel_sample};
+    use omis::sampler::{Sampler, Stream};
+    let scene = load("furnace.json", 16, 16);
+    let max_depth = 6;
+    let mut ws = Workspace::default();
+    let mut stats = RayStats::default();
+    let mut sink = FurnaceSink { ratios: Vec::new() };
+    for y in 0..16 {
+        for x in 0..16 {
+            for i in 0..4 {
+                let kind = SamplerKind::Independent;
+                let mut cs = Sampler::new(kind, 7, x, y, i, 4, Stream::Camera);
+                let mut ls = Sampler::new(kind, 7, x, y, i, 4, Stream::Light);
+                let ps = PixelSample {
+                    pixel: (x, y),
+                    max_depth,
+                    cam_sampler: &mut cs,
+                    light_sampler: &mut ls,
+                };
+                pixel_sample(&scene, ps, &mut ws, &mut sink, &mut stats);
+            }
+        }
+    }
+    let r = &sink.ratios;
+    let n = r.len() as f64;
+    let mean = r.iter().map(|x| x.2).sum::<f64>() / n;
+    let var = r.iter().map(|x| (x.2 - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    let worst = r
+        .iter()
+        .max_by(|a, b| (a.2 - 1.0).abs().total_cmp(&(b.2 - 1.0).abs()))
+        .copied();
+    // f32 rounding of the throughputs and of the sphere geometry only.
+    assert!(
+        (mean - 1.0).abs() < 1e-4 && var < 1e-7,
+        "contribution / a^d: mean {mean}, variance {var}, worst (s, t, ratio) {worst:?}"
+    );
+    // Every technique of every depth is there, the deepest ones included (the subpaths run to
+    // the max depth: 1024 pixel samples, each with its techniques of depths 0 ..= 6).
+    for s in 0..=max_depth {
+        let n = r.iter().filter(|x| x.0 == s).count();
+        assert!(n >= 1024, "technique s = {s}: only {n} samples");
+    }
+    let deep = r.iter().filter(|x| x.0 + x.1 == max_depth + 2).count();
+    assert!(deep >= 1024 * 6, "only {deep} samples of depth {max_depth}");
+}

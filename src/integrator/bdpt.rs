@@ -9,25 +9,34 @@
 //! - t = 1: light tracing, y_{s-1} connected to the camera and splatted where it lands;
 //! - otherwise y_{s-1} is connected to z_{t-1}.
 //!
-//! Each sample is handed to a [`SampleSink`] with its unweighted contribution f / p_s and the
-//! vector of *balance* weights over all d + 2 techniques of its depth (zero for those that cannot
-//! make it). Balance- and power-weighted BDPT and the optimal-MIS accumulators are sinks.
+//! Each sample is handed to a [`SampleSink`] with its unweighted contribution f / p_s and its
+//! MIS weight. Where the sink asks for it (optimal MIS, depths <= D_opt) it also gets the vector
+//! of *balance* weights over all d + 2 techniques of its depth (zero for those that cannot make
+//! it), an O(d) loop over the path per connection. Elsewhere the balance or power weight of the
+//! sample's own technique comes in O(1) per connection from partial sums kept per subpath vertex
+//! (the recursive MIS of Georgiev, Křivánek, Davidovič and Slusallek, "Light Transport
+//! Simulation with Vertex Connection and Merging", SIGGRAPH Asia 2012, and Georgiev's technical report
+//! "Implementing Vertex Connection and Merging": their dVC quantities; see
+//! [`Workspace::prepare`]). Balance- and power-weighted BDPT and the optimal-MIS accumulators are
+//! sinks.
 //!
 //! Densities are stored per vertex in area measure, in both directions (pbrt-v3 convention:
-//! `pdf_fwd` from the vertex's predecessor in its own subpath, `pdf_rev` from its successor),
-//! without Russian-roulette factors, which are applied per technique when weights are formed:
-//! a subpath continues past its vertex j (j >= RR_START) with a survival probability that
-//! depends only on that vertex, so every technique's exact density is known.
+//! `pdf_fwd` from the vertex's predecessor in its own subpath, `pdf_rev` from its successor).
+//!
+//! Subpaths end only where a BSDF is black or fails to sample, at an escape, or at the max
+//! depth: there is no Russian roulette, as in pbrt-v3's BDPT (Pharr, Jakob and Humphreys,
+//! "Physically Based Rendering", 3rd ed., §16.3). Roulette multiplies a surviving subpath's
+//! throughput by 1/q, and on paths that only one technique can make (caustics seen through
+//! glass or in a mirror) MIS cannot take that back: it made the glass-and-mirror Cornell box
+//! 1.2-1.4x noisier per sample, all of it in fireflies (BENCHMARKS.md, issue 13).
 
 use crate::camera::Camera;
 use crate::film::RayStats;
 use crate::geometry::{Ray, Rgb, Vec2, Vec3};
-use crate::material::{Bsdf, Lobe, Mode};
+use crate::material::{Bsdf, Mode};
+use crate::mis::{self, MisKind};
 use crate::sampler::Sampler;
 use crate::scene::{NO_LIGHT, Scene};
-
-/// Subpath vertices with index >= this are subject to Russian roulette (the path tracer's depth 3).
-pub const RR_START: usize = super::path::RR_START_DEPTH as usize;
 
 /// Longest supported max depth (subpaths have at most max_depth + 2 vertices).
 pub const MAX_DEPTH: u32 = 64;
@@ -62,8 +71,6 @@ pub struct Vertex {
     delta: bool,
     /// Point light: a delta in position, never hit.
     delta_pos: bool,
-    /// Survival probability of Russian roulette when a subpath continues past this vertex.
-    rr_q: f32,
 }
 
 impl Vertex {
@@ -80,7 +87,6 @@ impl Vertex {
             pdf_rev: 0.0,
             delta: false,
             delta_pos: false,
-            rr_q: 1.0,
         }
     }
 
@@ -110,11 +116,6 @@ impl Vertex {
     }
 }
 
-/// Russian-roulette survival probability at a surface: its rough albedo, within [0.05, 0.95].
-fn survival(lobe: &Lobe) -> f32 {
-    lobe.albedo_estimate().clamp(0.05, 0.95)
-}
-
 /// One BDPT sample as the sinks see it.
 #[derive(Debug)]
 pub struct PathSample<'a> {
@@ -129,8 +130,11 @@ pub struct PathSample<'a> {
     /// Unweighted contribution f / p_s(x) (zero for occluded or zero-BSDF connections).
     /// Camera and light-tracing samples share one normalisation: divide pixel sums by spp.
     pub contribution: Rgb,
-    /// Balance weights over techniques s' = 0 ..= depth + 1 (t' = depth + 2 - s'); zero where a
-    /// technique cannot produce the path. Sums to 1.
+    /// The weight of technique (s, t) by the sink's heuristic ([`SampleSink::heuristic`]).
+    pub weight: f64,
+    /// Only where the sink asked for it ([`SampleSink::wants_vector`]), else empty: balance
+    /// weights over techniques s' = 0 ..= depth + 1 (t' = depth + 2 - s'); zero where a technique
+    /// cannot produce the path. Sums to 1.
     pub balance: &'a [f64],
 }
 
@@ -139,6 +143,11 @@ pub trait SampleSink {
     /// Whether samples of depth `depth` with zero contribution, and techniques that produced no
     /// path, must be reported (optimal MIS needs them; the heuristics do not).
     fn wants_zero_samples(&self, depth: u32) -> bool;
+    /// Whether samples of depth `depth` must carry the whole vector of balance weights (O(depth)
+    /// per sample; optimal MIS needs it), not only their own weight (O(1)).
+    fn wants_vector(&self, depth: u32) -> bool;
+    /// The heuristic of [`PathSample::weight`]: balance or power (optimal counts as balance).
+    fn heuristic(&self) -> MisKind;
     /// Receives one sample (any technique, any depth).
     fn sample(&mut self, s: &PathSample);
     /// Technique (s, t >= 2) of depth `depth` produced no path for the camera pixel this time
@@ -153,6 +162,14 @@ pub struct Workspace {
     pl: Vec<f64>,
     pe: Vec<f64>,
     weights: Vec<f64>,
+    /// Per light vertex j: the partial sum S_j of the recursive weights (see `prepare`).
+    light_sums: Vec<f64>,
+    /// Per camera vertex j: the partial sum T_j of the recursive weights.
+    cam_sums: Vec<f64>,
+    /// Density with which next-event estimation from y_1 picks y_0 (0 without y_1).
+    q1: f32,
+    /// Exponent of the heuristic the partial sums are for: 1 balance, 2 power.
+    exponent: i32,
     /// The light vertex of the latest next-event sample (for tests of the weights).
     last_nee: Option<Vertex>,
 }
@@ -166,6 +183,10 @@ impl Default for Workspace {
             pl: vec![0.0; 2 * n],
             pe: vec![0.0; 2 * n],
             weights: vec![0.0; 2 * n],
+            light_sums: Vec::with_capacity(n),
+            cam_sums: Vec::with_capacity(n),
+            q1: 0.0,
+            exponent: 1,
             last_nee: None,
         }
     }
@@ -210,7 +231,6 @@ fn random_walk(
             pdf_rev: 0.0,
             delta: bsdf.is_delta(),
             delta_pos: false,
-            rr_q: survival(&bsdf.lobe),
         };
         v.pdf_fwd = if via_delta {
             1.0
@@ -236,13 +256,6 @@ fn random_walk(
             path[cur].area_density(back, &path[prev])
         };
         beta *= s.f * (s.wi.dot(hit.ns).abs() / s.pdf);
-        if cur >= RR_START {
-            let q = path[cur].rr_q;
-            if !(sampler.next_1d() < q) {
-                break;
-            }
-            beta /= q;
-        }
         if beta == Rgb::ZERO {
             break;
         }
@@ -355,23 +368,12 @@ struct Connection {
     q1: f32,
 }
 
-/// Russian-roulette factor for continuing past `v` at subpath index `idx`.
-#[inline]
-fn rr_factor(v: &Vertex, idx: usize) -> f64 {
-    if idx >= RR_START && v.kind == Kind::Surface {
-        v.rr_q as f64
-    } else {
-        1.0
-    }
-}
-
 /// Computes into `ws.weights[0..k]` the balance weights of every technique s' = 0 .. k-1 for the
 /// full path made of `light[0..s]` (or `nee` as v_0 when s = 1 and t >= 2), and `cam[0..t]`.
 /// Returns false if the densities are degenerate (the caller then weights the sample 1 alone).
 ///
 /// Ratio recurrence (Veach 1997 §10.2): p_{s'+1} / p_{s'} = pL(v_{s'}) / pE(v_{s'}), where pL is
-/// the density of a vertex generated from the light side and pE from the camera side, RR
-/// survival included.
+/// the density of a vertex generated from the light side and pE from the camera side.
 fn balance_weights(
     ws: &mut Workspace,
     nee: Option<&Vertex>,
@@ -415,12 +417,6 @@ fn balance_weights(
             l = c.pl_z1 as f64;
         } else if i == s + 1 {
             l = c.pl_z2 as f64;
-        }
-        if i >= 1 {
-            l *= rr_factor(vert(i - 1), i - 1);
-        }
-        if i + 1 < k {
-            e *= rr_factor(vert(i + 1), k - 2 - i);
         }
         pl[i] = l;
         pe[i] = e;
@@ -469,6 +465,212 @@ fn weights_alone(ws: &mut Workspace, s: usize, k: usize) {
     w[s] = 1.0;
 }
 
+/// The heuristic's function of a density ratio: x for balance, x^2 for power (Veach 1997 eq. 9.13).
+#[inline]
+fn mis_pow(x: f64, exponent: i32) -> f64 {
+    if exponent == 2 { x * x } else { x }
+}
+
+impl Workspace {
+    /// Partial sums of the recursive weights, once both subpaths are traced, for `heuristic`
+    /// (balance: exponent b = 1; power: b = 2). Notation of `balance_weights`: p_{s'} is the
+    /// density of technique s' for a full path v_0 .. v_{k-1}, pL_i / pE_i the densities of v_i
+    /// from the light / camera side, q1 the next-event density of v_0, and v(s') = 1 when
+    /// technique s' can make the path (no delta vertex at its connection), else 0. For light
+    /// vertices (v_i = y_i):
+    ///
+    ///   S_0 = v(0),  S_1 = (v(0) pE_0^b + v(1) q1^b) / pL_0^b,  S_j = v(j) + (pE_{j-1}/pL_{j-1})^b S_{j-1},
+    ///
+    /// so that sum_{s' < s} (p_{s'}/p_s)^b = (pE_{s-1}/pL_{s-1})^b S_{s-1} for s >= 2; for camera
+    /// vertices z_j, with v'(t') = v(k - t') (technique with t' camera vertices):
+    ///
+    ///   T_1 = v'(1),  T_j = v'(j) + (pL(z_{j-1})/pE(z_{j-1}))^b T_{j-1},
+    ///
+    /// so that sum_{t' < t} (p_{k-t'}/p_{k-t})^b = (pL(z_{t-1})/pE(z_{t-1}))^b T_{t-1}. This is
+    /// Veach's ratio recurrence (Veach 1997 §10.2) summed from the ends, the dVC quantity of
+    /// Georgiev, "Implementing Vertex Connection and Merging" (tech. report, 2012) as a ratio.
+    /// A connection changes only the last two densities on each side (the `Connection`), so it
+    /// completes S_{s-1} from S_{s-2} and T_{t-1} from T_{t-2} in O(1): `heuristic_weight`.
+    /// S_j needs pE_{j-1}, known once y_j has sampled its successor; the last vertex's sum is
+    /// never used.
+    pub fn prepare(&mut self, scene: &Scene, heuristic: MisKind) {
+        let b = if heuristic == MisKind::Power { 2 } else { 1 };
+        self.exponent = b;
+        let light = &self.light;
+        self.q1 = if light.len() >= 2 {
+            nee_density(scene, &light[0], &light[1])
+        } else {
+            0.0
+        };
+        self.light_sums.clear();
+        for j in 0..light.len() {
+            let y = &light[j];
+            let sum = match j {
+                0 => !y.delta_pos as u8 as f64,
+                1 => {
+                    let y0 = &light[0];
+                    let v0 = !y0.delta_pos as u8 as f64;
+                    let v1 = !y.delta as u8 as f64;
+                    (v0 * mis_pow(y0.pdf_rev as f64, b) + v1 * mis_pow(self.q1 as f64, b))
+                        / mis_pow(y0.pdf_fwd as f64, b)
+                }
+                _ => {
+                    let yp = &light[j - 1];
+                    let v = !(yp.delta || y.delta) as u8 as f64;
+                    v + mis_pow(yp.pdf_rev as f64 / yp.pdf_fwd as f64, b) * self.light_sums[j - 1]
+                }
+            };
+            self.light_sums.push(sum);
+        }
+        self.cam_sums.clear();
+        let cam = &self.cam;
+        for j in 0..cam.len() {
+            let sum = match j {
+                0 => 0.0,
+                _ => {
+                    let (z, zp) = (&cam[j], &cam[j - 1]);
+                    let v = !(z.delta || zp.delta) as u8 as f64;
+                    let prev = if j == 1 {
+                        0.0
+                    } else {
+                        mis_pow(zp.pdf_rev as f64 / zp.pdf_fwd as f64, b) * self.cam_sums[j - 1]
+                    };
+                    v + prev
+                }
+            };
+            self.cam_sums.push(sum);
+        }
+    }
+}
+
+/// The weight of technique (s, t) by the heuristic of `Workspace::prepare`, in O(1): the same
+/// number as `mis::weight` of the `balance_weights` vector (up to rounding), p_s^b / sum p_{s'}^b
+/// = 1 / (1 + sum over s' != s of (p_{s'}/p_s)^b), both sides' sums completed from the partial
+/// sums with the densities the connection changes. `nee` is v_0 of a next-event sample, `emitter`
+/// the camera vertex on an emitter for s = 0. Degenerate densities weight the sample 1, as
+/// `balance_weights` does.
+fn heuristic_weight(
+    ws: &Workspace,
+    nee: Option<&Vertex>,
+    s: usize,
+    t: usize,
+    c: &Connection,
+) -> f64 {
+    let b = ws.exponent;
+    let m = |x: f64| mis_pow(x, b);
+    let (pe_y1, pe_y2) = (c.pe_y1 as f64, c.pe_y2 as f64);
+    let (pl_z1, pl_z2, q1) = (c.pl_z1 as f64, c.pl_z2 as f64, c.q1 as f64);
+    // Techniques s' < s, relative to p_s.
+    let light_side = match s {
+        0 => 0.0,
+        1 => {
+            let v0 = nee.unwrap_or_else(|| &ws.light[0]);
+            if v0.delta_pos {
+                0.0
+            } else if t >= 2 {
+                // p_1 picks v_0 by next-event estimation.
+                m(pe_y1 / q1)
+            } else {
+                m(pe_y1 / v0.pdf_fwd as f64)
+            }
+        }
+        _ => {
+            let y = &ws.light[s - 1];
+            let yp = &ws.light[s - 2];
+            let inner = if s == 2 {
+                let v0 = !yp.delta_pos as u8 as f64;
+                (v0 * m(pe_y2) + m(ws.q1 as f64)) / m(yp.pdf_fwd as f64)
+            } else {
+                let v = !yp.delta as u8 as f64;
+                v + m(pe_y2 / yp.pdf_fwd as f64) * ws.light_sums[s - 2]
+            };
+            m(pe_y1 / y.pdf_fwd as f64) * inner
+        }
+    };
+    // Techniques s' > s (t' < t), relative to p_s.
+    let cam_side = if t == 1 {
+        0.0
+    } else {
+        let z = &ws.cam[t - 1];
+        let zp = &ws.cam[t - 2];
+        let v = !(z.delta || zp.delta) as u8 as f64;
+        let pe_z1 = z.pdf_fwd as f64;
+        // sum_{t' < t - 1} relative to p_{s+1}; T_0 = 0.
+        let rest = if t >= 3 {
+            m(pl_z2 / zp.pdf_fwd as f64) * ws.cam_sums[t - 2]
+        } else {
+            0.0
+        };
+        match s {
+            // p_1 picks v_0 = z_{t-1} by next-event estimation, p_{s' >= 2} by emission (k >= 3).
+            0 if t >= 3 => v * m(q1 / pe_z1) + m(pl_z1 / pe_z1) * rest,
+            // p_1 itself picked v_0 by next-event estimation: every p_{s' >= 2} has the emission
+            // density pL_0 where p_1 has q1.
+            1 => {
+                let pl0 = nee.map_or(0.0, |v| v.pdf_fwd as f64);
+                m(pl0 / q1) * m(pl_z1 / pe_z1) * (v + rest)
+            }
+            _ => m(pl_z1 / pe_z1) * (v + rest),
+        }
+    };
+    let total = 1.0 + light_side + cam_side;
+    if total.is_finite() { 1.0 / total } else { 1.0 }
+}
+
+/// Reports a sample with a contribution: its weight, and the balance vector where the sink wants
+/// it.
+#[allow(clippy::too_many_arguments)]
+fn report(
+    ws: &mut Workspace,
+    sink: &mut dyn SampleSink,
+    nee: Option<&Vertex>,
+    s: usize,
+    t: usize,
+    c: &Connection,
+    depth: u32,
+    pixel: (u32, u32),
+    contribution: Rgb,
+) {
+    let k = s + t;
+    let (weight, n) = if sink.wants_vector(depth) {
+        balance_weights(ws, nee, s, t, c);
+        (mis::weight(sink.heuristic(), &ws.weights[..k], s as u32), k)
+    } else {
+        (heuristic_weight(ws, nee, s, t, c), 0)
+    };
+    sink.sample(&PathSample {
+        depth,
+        s: s as u32,
+        t: t as u32,
+        pixel,
+        contribution,
+        weight,
+        balance: &ws.weights[..n],
+    });
+}
+
+/// Reports a sample only technique `s` of the `k` of its depth could make (see `weights_alone`).
+fn report_alone(
+    ws: &mut Workspace,
+    sink: &mut dyn SampleSink,
+    s: usize,
+    t: usize,
+    depth: u32,
+    pixel: (u32, u32),
+) {
+    weights_alone(ws, s, s + t);
+    let n = if sink.wants_vector(depth) { s + t } else { 0 };
+    sink.sample(&PathSample {
+        depth,
+        s: s as u32,
+        t: t as u32,
+        pixel,
+        contribution: Rgb::ZERO,
+        weight: 1.0,
+        balance: &ws.weights[..n],
+    });
+}
+
 /// Everything a pixel sample needs besides the scene.
 pub struct PixelSample<'a> {
     /// The camera pixel, (x, y).
@@ -493,6 +695,7 @@ pub fn pixel_sample(
     let raster = Vec2::new(ps.pixel.0 as f32 + film.x, ps.pixel.1 as f32 + film.y);
     camera_subpath(scene, raster, ps.cam_sampler, ps.max_depth, ws, stats);
     light_subpath(scene, ps.light_sampler, ps.max_depth, ws, stats);
+    ws.prepare(scene, sink.heuristic());
     let n_c = ws.cam.len();
     let n_l = ws.light.len();
     let max_d = ps.max_depth as usize;
@@ -549,8 +752,8 @@ fn hit_emitter(
     zero: bool,
     sink: &mut dyn SampleSink,
 ) -> bool {
-    let z = ws.cam[t - 1];
-    let zp = ws.cam[t - 2];
+    let z = &ws.cam[t - 1];
+    let zp = &ws.cam[t - 2];
     let (w_out, _) = dir_to(z.p, zp.p);
     let contribution = if z.light == NO_LIGHT {
         Rgb::ZERO
@@ -561,15 +764,7 @@ fn hit_emitter(
         // A camera subpath that does not end on (the front of) an emitter: a zero-contribution
         // sample only this technique could make (Cailleau et al. §V-C, Fig. 4 bottom left).
         if zero {
-            weights_alone(ws, 0, t);
-            sink.sample(&PathSample {
-                depth,
-                s: 0,
-                t: t as u32,
-                pixel,
-                contribution,
-                balance: &ws.weights[..t],
-            });
+            report_alone(ws, sink, 0, t, depth, pixel);
         }
         return true;
     }
@@ -577,31 +772,23 @@ fn hit_emitter(
     let pmf = scene.light_pmf(z.light) as f64;
     let (pdf_pos, pdf_dir) = light.pdf_le(z.ng, w_out);
     // The camera-side vertex treated as a light vertex: emission densities from the light side.
-    let mut v0 = z;
+    let mut v0 = *z;
     v0.kind = Kind::Light;
     v0.pdf_fwd = (pmf * pdf_pos as f64) as f32;
     let c = Connection {
         pe_y1: 0.0,
         pe_y2: 0.0,
         pl_z1: v0.pdf_fwd,
-        pl_z2: v0.area_density(pdf_dir, &zp),
+        pl_z2: v0.area_density(pdf_dir, zp),
         q1: if t >= 3 {
             let (wi, _) = dir_to(zp.p, z.p);
-            (pmf as f32) * zp.area_density(light.pdf_li(zp.p, wi), &z)
+            (pmf as f32) * zp.area_density(light.pdf_li(zp.p, wi), z)
         } else {
             0.0
         },
     };
     // v_0 is cam[t-1]; its own light-side density is pl_z1 (set above), pe is its pdf_fwd.
-    balance_weights(ws, None, 0, t, &c);
-    sink.sample(&PathSample {
-        depth,
-        s: 0,
-        t: t as u32,
-        pixel,
-        contribution,
-        balance: &ws.weights[..t],
-    });
+    report(ws, sink, None, 0, t, &c, depth, pixel, contribution);
     true
 }
 
@@ -618,7 +805,7 @@ fn next_event(
     sink: &mut dyn SampleSink,
     stats: &mut RayStats,
 ) -> bool {
-    let z = ws.cam[t - 1];
+    let z = &ws.cam[t - 1];
     if z.delta || z.bsdf.is_black() {
         return false;
     }
@@ -631,7 +818,7 @@ fn next_event(
     let Some(ls) = light.sample_li(z.p, u) else {
         return false;
     };
-    let zp = ws.cam[t - 2];
+    let zp = &ws.cam[t - 2];
     let (wo, _) = dir_to(z.p, zp.p);
     let f = z.bsdf.eval(wo, ls.wi, Mode::Radiance);
     let contribution = z.beta * f * ls.le * (ls.wi.dot(z.ns).abs() / (pmf * ls.pdf));
@@ -645,15 +832,7 @@ fn next_event(
     };
     if !visible {
         if zero {
-            weights_alone(ws, 1, t + 1);
-            sink.sample(&PathSample {
-                depth,
-                s: 1,
-                t: t as u32,
-                pixel,
-                contribution: Rgb::ZERO,
-                balance: &ws.weights[..t + 1],
-            });
+            report_alone(ws, sink, 1, t, depth, pixel);
         }
         return true;
     }
@@ -669,8 +848,8 @@ fn next_event(
             z.area_density(z.bsdf.pdf(wo, ls.wi), &v0)
         },
         pe_y2: 0.0,
-        pl_z1: v0.area_density(pdf_dir, &z),
-        pl_z2: z.area_density(z.bsdf.pdf(ls.wi, wo), &zp),
+        pl_z1: v0.area_density(pdf_dir, z),
+        pl_z2: z.area_density(z.bsdf.pdf(ls.wi, wo), zp),
         q1: if ls.delta {
             pmf
         } else {
@@ -678,15 +857,7 @@ fn next_event(
         },
     };
     ws.last_nee = Some(v0);
-    balance_weights(ws, Some(&v0), 1, t, &c);
-    sink.sample(&PathSample {
-        depth,
-        s: 1,
-        t: t as u32,
-        pixel,
-        contribution,
-        balance: &ws.weights[..t + 1],
-    });
+    report(ws, sink, Some(&v0), 1, t, &c, depth, pixel, contribution);
     true
 }
 
@@ -703,13 +874,13 @@ fn connect(
     sink: &mut dyn SampleSink,
     stats: &mut RayStats,
 ) -> bool {
-    let y = ws.light[s - 1];
-    let z = ws.cam[t - 1];
+    let y = &ws.light[s - 1];
+    let z = &ws.cam[t - 1];
     if y.delta || z.delta || y.bsdf.is_black() || z.bsdf.is_black() {
         return false;
     }
-    let yp = ws.light[s - 2];
-    let zp = ws.cam[t - 2];
+    let yp = &ws.light[s - 2];
+    let zp = &ws.cam[t - 2];
     let (w_yz, d2) = dir_to(y.p, z.p);
     if !(d2 > 0.0) {
         return false;
@@ -730,34 +901,18 @@ fn connect(
     };
     if !visible {
         if zero {
-            weights_alone(ws, s, s + t);
-            sink.sample(&PathSample {
-                depth,
-                s: s as u32,
-                t: t as u32,
-                pixel,
-                contribution: Rgb::ZERO,
-                balance: &ws.weights[..s + t],
-            });
+            report_alone(ws, sink, s, t, depth, pixel);
         }
         return true;
     }
     let c = Connection {
-        pe_y1: z.area_density(z.bsdf.pdf(wo_z, -w_yz), &y),
-        pe_y2: y.area_density(y.bsdf.pdf(w_yz, wo_y), &yp),
-        pl_z1: y.area_density(y.bsdf.pdf(wo_y, w_yz), &z),
-        pl_z2: z.area_density(z.bsdf.pdf(-w_yz, wo_z), &zp),
-        q1: nee_density(scene, &ws.light[0], &ws.light[1]),
+        pe_y1: z.area_density(z.bsdf.pdf(wo_z, -w_yz), y),
+        pe_y2: y.area_density(y.bsdf.pdf(w_yz, wo_y), yp),
+        pl_z1: y.area_density(y.bsdf.pdf(wo_y, w_yz), z),
+        pl_z2: z.area_density(z.bsdf.pdf(-w_yz, wo_z), zp),
+        q1: ws.q1,
     };
-    balance_weights(ws, None, s, t, &c);
-    sink.sample(&PathSample {
-        depth,
-        s: s as u32,
-        t: t as u32,
-        pixel,
-        contribution,
-        balance: &ws.weights[..s + t],
-    });
+    report(ws, sink, None, s, t, &c, depth, pixel, contribution);
     true
 }
 
@@ -780,7 +935,7 @@ fn connect_to_camera(
     sink: &mut dyn SampleSink,
     stats: &mut RayStats,
 ) {
-    let y = ws.light[s - 1];
+    let y = &ws.light[s - 1];
     // A point light seen directly through the pinhole, (1, 1) with y_0 a delta in position, is a
     // path of two fixed points: no other technique can make it (the camera cannot hit a point,
     // so the path tracer and (0, t) never see point lights), and it would put the light's
@@ -805,7 +960,7 @@ fn connect_to_camera(
         let light = &scene.lights[y.light as usize];
         (light.le(y.ng, w_yc), y.abs_cos_ng(w_yc), Vec3::ZERO)
     } else {
-        let yp = ws.light[s - 2];
+        let yp = &ws.light[s - 2];
         let (wo_y, _) = dir_to(y.p, yp.p);
         (
             y.bsdf.eval(wo_y, w_yc, Mode::Importance),
@@ -824,19 +979,15 @@ fn connect_to_camera(
     if scene.occluded(y.p, y.ng, cam.position, Vec3::ZERO) {
         return;
     }
-    let z0 = ws.cam[0];
-    let pe_y1 = z0.area_density(cam.pdf_dir(w_cy), &y);
+    let z0 = &ws.cam[0];
+    let pe_y1 = z0.area_density(cam.pdf_dir(w_cy), y);
     let pe_y2 = if s >= 2 {
-        let yp = ws.light[s - 2];
-        y.area_density(y.bsdf.pdf(w_yc, wo_y), &yp)
+        let yp = &ws.light[s - 2];
+        y.area_density(y.bsdf.pdf(w_yc, wo_y), yp)
     } else {
         0.0
     };
-    let q1 = if s >= 2 {
-        nee_density(scene, &ws.light[0], &ws.light[1])
-    } else {
-        0.0
-    };
+    let q1 = if s >= 2 { ws.q1 } else { 0.0 };
     let c = Connection {
         pe_y1,
         pe_y2,
@@ -844,15 +995,7 @@ fn connect_to_camera(
         pl_z2: 0.0,
         q1,
     };
-    balance_weights(ws, None, s, 1, &c);
-    sink.sample(&PathSample {
-        depth,
-        s: s as u32,
-        t: 1,
-        pixel,
-        contribution,
-        balance: &ws.weights[..s + 1],
-    });
+    report(ws, sink, None, s, 1, &c, depth, pixel, contribution);
 }
 
 #[cfg(test)]
@@ -863,16 +1006,24 @@ mod tests {
     use std::path::Path;
 
     struct Capture {
-        samples: Vec<(u32, u32, Vec<f64>, Rgb)>,
+        /// None: the balance vector; Some(h): only the weight by heuristic h.
+        mode: Option<MisKind>,
+        samples: Vec<(u32, u32, Vec<f64>, Rgb, f64)>,
     }
 
     impl SampleSink for Capture {
         fn wants_zero_samples(&self, _depth: u32) -> bool {
             true
         }
+        fn wants_vector(&self, _depth: u32) -> bool {
+            self.mode.is_none()
+        }
+        fn heuristic(&self) -> MisKind {
+            self.mode.unwrap_or(MisKind::Balance)
+        }
         fn sample(&mut self, s: &PathSample) {
             self.samples
-                .push((s.s, s.t, s.balance.to_vec(), s.contribution));
+                .push((s.s, s.t, s.balance.to_vec(), s.contribution, s.weight));
         }
         fn unsampled(&mut self, _: (u32, u32), _: u32, _: u32) {}
     }
@@ -891,7 +1042,6 @@ mod tests {
         let k = v.len();
         let light = &scene.lights[v[0].light as usize];
         let pmf = scene.light_pmf(v[0].light) as f64;
-        let rr = |x: &Vertex, idx: usize| rr_factor(x, idx);
         let mut p = vec![0.0f64; k];
         for sp in 0..k {
             let valid = if sp == 0 {
@@ -922,7 +1072,7 @@ mod tests {
                     )
                 } else {
                     let b = &v[i - 1];
-                    let dens = if b.delta {
+                    if b.delta {
                         1.0
                     } else {
                         area(
@@ -930,8 +1080,7 @@ mod tests {
                             b.bsdf.pdf(dir(b, &v[i - 2]), dir(b, &v[i])) as f64,
                             &v[i],
                         )
-                    };
-                    dens * rr(b, i - 1)
+                    }
                 };
             }
             for i in sp..k {
@@ -946,7 +1095,7 @@ mod tests {
                     )
                 } else {
                     let b = &v[i + 1];
-                    let dens = if b.delta {
+                    if b.delta {
                         1.0
                     } else {
                         area(
@@ -954,8 +1103,7 @@ mod tests {
                             b.bsdf.pdf(dir(b, &v[i + 2]), dir(b, &v[i])) as f64,
                             &v[i],
                         )
-                    };
-                    dens * rr(b, k - 2 - i)
+                    }
                 };
             }
             p[sp] = d;
@@ -1012,14 +1160,16 @@ mod tests {
         out
     }
 
-    /// Every technique's sample of the pixel sample, with the full path it made.
+    /// Every technique's sample of the pixel sample, with the full path it made, its weight
+    /// vector (empty unless `mode` is None) and its own weight.
     fn techniques(
         scene: &Scene,
         x: u32,
         y: u32,
         i: u32,
         seed: u64,
-    ) -> Vec<(Vec<Vertex>, u32, Vec<f64>)> {
+        mode: Option<MisKind>,
+    ) -> Vec<(Vec<Vertex>, u32, Vec<f64>, f64)> {
         let max_depth = 5u32;
         let mut ws = Workspace::default();
         let mut stats = RayStats::default();
@@ -1035,6 +1185,7 @@ mod tests {
             &mut stats,
         );
         light_subpath(scene, &mut ls, max_depth, &mut ws, &mut stats);
+        ws.prepare(scene, mode.unwrap_or(MisKind::Balance));
         let mut out = Vec::new();
         for t in 1..=ws.cam.len() {
             for s in 0..=ws.light.len() {
@@ -1043,6 +1194,7 @@ mod tests {
                 }
                 let depth = (s + t - 2) as u32;
                 let mut cap = Capture {
+                    mode,
                     samples: Vec::new(),
                 };
                 ws.last_nee = None;
@@ -1078,10 +1230,13 @@ mod tests {
                         );
                     }
                 }
-                for (ss, tt, w, c) in cap.samples {
+                for (ss, tt, w, c, own) in cap.samples {
                     if c == Rgb::ZERO {
                         // Weighted e_s by design (see `connect`): checked by tests/optimal.rs.
-                        assert_eq!(w.iter().filter(|x| **x != 0.0).count(), 1);
+                        if mode.is_none() {
+                            assert_eq!(w.iter().filter(|x| **x != 0.0).count(), 1);
+                        }
+                        assert_eq!(own, 1.0);
                         continue;
                     }
                     let mut full: Vec<Vertex> = Vec::new();
@@ -1092,7 +1247,7 @@ mod tests {
                     }
                     full.extend(ws.cam[..t].iter().rev());
                     assert_eq!((ss as usize, tt as usize), (s, t));
-                    out.push((full, ss, w));
+                    out.push((full, ss, w, own));
                 }
             }
         }
@@ -1109,7 +1264,7 @@ mod tests {
             let mut checked = 0;
             let mut multi = 0;
             for (si, scene) in scenes().iter().enumerate() {
-                for (full, s, w) in techniques(scene, x, y, i, seed) {
+                for (full, s, w, _) in techniques(scene, x, y, i, seed, None) {
                     if ill_conditioned(&full) {
                         continue;
                     }
@@ -1148,6 +1303,33 @@ mod tests {
             }
             // Each pixel sample yields many techniques, most of them shared by several.
             prop_assert!(checked >= 10 && multi >= 5, "only {checked} paths ({multi} multi-technique)");
+        }
+
+        /// The O(1) recursive weights (`heuristic_weight`) equal the balance and power weights of
+        /// the O(k) vector for every technique of random paths in every test scene, degenerate
+        /// paths included (both then weight the sample 1).
+        #[test]
+        fn recursive_weights_equal_the_vector_weights(x in 0u32..32, y in 0u32..32, i in 0u32..16, seed in 0u64..1000) {
+            let mut checked = 0;
+            let mut shared = 0;
+            for (si, scene) in scenes().iter().enumerate() {
+                let vector = techniques(scene, x, y, i, seed, None);
+                for mis in [MisKind::Balance, MisKind::Power] {
+                    let fast = techniques(scene, x, y, i, seed, Some(mis));
+                    prop_assert_eq!(fast.len(), vector.len());
+                    for ((full, s, w, _), (_, fs, fw, own)) in vector.iter().zip(&fast) {
+                        prop_assert_eq!(s, fs);
+                        prop_assert!(fw.is_empty());
+                        let expect = crate::mis::weight(mis, w, *s);
+                        checked += 1;
+                        if expect < 1.0 {
+                            shared += 1;
+                        }
+                        prop_assert!((own - expect).abs() <= 1e-6 * (1.0 + expect), "scene {si} {mis:?} s={s} k={}: recursive {own} vs vector {expect} from {w:?}", full.len());
+                    }
+                }
+            }
+            prop_assert!(checked >= 20 && shared >= 10, "only {checked} samples ({shared} shared)");
         }
     }
 }

@@ -4,7 +4,7 @@
 use super::{IntegratorKind, RenderSettings, Techniques, bdpt, path};
 use crate::film::{LtRecords, STRATEGY_LAYERS, Splat, Tile, TileFilm, strategy_layer};
 use crate::geometry::{Rgb, Vec2};
-use crate::mis::{self, MisKind, OptimalAccum};
+use crate::mis::{MisKind, OptimalAccum};
 use crate::sampler::{Sampler, Stream};
 use crate::scene::Scene;
 use std::ops::Range;
@@ -42,14 +42,28 @@ impl bdpt::SampleSink for FilmSink<'_> {
         depth >= 1 && depth <= self.d_opt()
     }
 
+    fn wants_vector(&self, depth: u32) -> bool {
+        depth >= 1 && depth <= self.d_opt()
+    }
+
+    fn heuristic(&self) -> MisKind {
+        // The validation modes weight nothing; optimal MIS is balance outside its systems.
+        if self.techniques == Techniques::All && self.mis == MisKind::Power {
+            MisKind::Power
+        } else {
+            MisKind::Balance
+        }
+    }
+
     fn sample(&mut self, s: &bdpt::PathSample) {
         // A non-finite sample is counted and dropped the same way in every mode: its
         // contribution becomes zero; if its weights are not finite either, nothing of it is kept
         // (one NaN in an optimal system would spoil its pixel for the rest of the job).
         let mut c = s.contribution;
-        if !c.is_finite() || !s.balance.iter().all(|w| w.is_finite()) {
+        let weights_finite = s.weight.is_finite() && s.balance.iter().all(|w| w.is_finite());
+        if !c.is_finite() || !weights_finite {
             self.non_finite += 1;
-            if !s.balance.iter().all(|w| w.is_finite()) {
+            if !weights_finite {
                 return;
             }
             c = Rgb::ZERO;
@@ -96,9 +110,9 @@ impl bdpt::SampleSink for FilmSink<'_> {
             return;
         }
         let w = if self.techniques == Techniques::All {
-            mis::weight(self.mis, s.balance, s.s)
+            s.weight
         } else {
-            self.techniques.selects(s.s, s.t, s.balance.len()) as u8 as f64
+            self.techniques.selects(s.s, s.t, s.depth as usize + 2) as u8 as f64
         };
         if w == 0.0 {
             return;
@@ -271,6 +285,7 @@ mod tests {
             t: depth + 2 - s,
             pixel,
             contribution: c,
+            weight: balance[s as usize],
             balance,
         }
     }

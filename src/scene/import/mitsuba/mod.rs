@@ -36,8 +36,8 @@ use xml::{Node, parse_xml, substitute};
 
 type R<T> = Result<T, SceneError>;
 
-/// Our depth limit for Mitsuba's `maxDepth = -1` (unlimited); Russian roulette ends most paths
-/// long before.
+/// Our depth limit for Mitsuba's `maxDepth = -1` (unlimited); the path tracer's Russian roulette
+/// ends most paths long before (BDPT has none: give it a `--max-depth`).
 pub(crate) const UNLIMITED_DEPTH: u32 = 64;
 
 // ------------------------------------------------------------------------------------------
