@@ -501,8 +501,7 @@ fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
                                 let b = *b as usize;
                                 (
                                     b,
-                                    wire::decode_section(part, b, &grid, layout.d_opt())
-                                        .expect("section"),
+                                    wire::decode_section(part, b, &grid, &layout).expect("section"),
                                 )
                             })
                             .collect();
@@ -549,8 +548,6 @@ fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
         .clone();
     let part = &bytes[r.start as usize..r.end as usize];
     let other = (b as usize + 1) % grid.rows() as usize;
-    assert!(wire::decode_section(part, other, &grid, layout.d_opt()).is_err());
-    assert!(
-        wire::decode_section(&part[..part.len() - 1], b as usize, &grid, layout.d_opt()).is_err()
-    );
+    assert!(wire::decode_section(part, other, &grid, &layout).is_err());
+    assert!(wire::decode_section(&part[..part.len() - 1], b as usize, &grid, &layout).is_err());
 }

@@ -7,7 +7,8 @@
 //! tile x0 y0 x1 y1 u32, samples s0 s1 u32
 //! stats closest shadow samples non_finite u64
 //! per tile pixel: count u32, sum 3 x f64, sum_sq 3 x f64
-//! splats: n u32, then n x (pixel step, layer u8, depth u8, value 3 x f32)
+//! splats: n u32, then n x (pixel step, [layer u8], [depth u8], value 3 x f32); layer and depth
+//! only when the job keeps strategy / depth layers
 //! layers: n u32 (0 or pixels x 14), then n x 3 x f64
 //! depths: n u32 (0 or pixels x depth layers), then n x 3 x f64
 //! optimal: d_opt u32 (0 = none), then pixels x stride f64 (A, b), pixels x d_opt u32 (hits)
@@ -24,7 +25,32 @@ use super::{
 use crate::mis::OptimalAccum;
 
 const MAGIC: &[u8; 8] = b"OMISTILE";
-const VERSION: u32 = 3;
+const VERSION: u32 = 4;
+
+/// Which of a splat's keys the wire carries: its strategy layer and its depth only when the
+/// film keeps strategy / depth layers (otherwise both are u8::MAX after `TileFilm::compact`,
+/// and nothing reads them).
+#[derive(Clone, Copy, Debug)]
+struct SplatKeys {
+    layer: bool,
+    depth: bool,
+}
+
+impl SplatKeys {
+    fn of_layout(l: &FilmLayout) -> SplatKeys {
+        SplatKeys {
+            layer: l.strategy_layers,
+            depth: l.depth_layers > 0,
+        }
+    }
+    /// The keys of a film made with some layout (its layer lists are empty when not kept).
+    fn of_film(f: &TileFilm) -> SplatKeys {
+        SplatKeys {
+            layer: !f.layers.is_empty(),
+            depth: !f.depths.is_empty(),
+        }
+    }
+}
 
 /// A result that failed validation.
 #[derive(Debug, thiserror::Error)]
@@ -94,15 +120,20 @@ impl<T: std::io::Write> Writer<T> {
             }
         }
     }
-    /// A counted list of splats with delta-coded pixels.
-    fn splats(&mut self, splats: &[Splat]) {
+    /// A counted list of splats with delta-coded pixels; their layer and depth only where the
+    /// film keeps them (`keys`).
+    fn splats(&mut self, splats: &[Splat], keys: SplatKeys) {
         self.u32(splats.len() as u32);
         let mut prev = 0;
         for s in splats {
             self.step(prev, s.pixel);
             prev = s.pixel;
-            self.u8(s.layer);
-            self.u8(s.depth);
+            if keys.layer {
+                self.u8(s.layer);
+            }
+            if keys.depth {
+                self.u8(s.depth);
+            }
             for v in s.value {
                 self.f32(v);
             }
@@ -195,9 +226,14 @@ impl Reader<'_> {
         }
         Err(WireError("pixel step longer than 5 bytes".into()))
     }
-    /// A counted splat list whose pixels must lie in `pixels`.
-    fn splats(&mut self, pixels: std::ops::Range<u64>) -> Result<Vec<Splat>, WireError> {
-        let n = self.count(15, "splats")?;
+    /// A counted splat list whose pixels must lie in `pixels`; layer and depth where `keys` has
+    /// them (u8::MAX, "not kept", otherwise).
+    fn splats(
+        &mut self,
+        pixels: std::ops::Range<u64>,
+        keys: SplatKeys,
+    ) -> Result<Vec<Splat>, WireError> {
+        let n = self.count(13, "splats")?;
         let mut splats = Vec::with_capacity(n);
         let mut prev = 0;
         for _ in 0..n {
@@ -208,8 +244,8 @@ impl Reader<'_> {
                     "splat pixel {pixel} outside pixels {pixels:?}"
                 )));
             }
-            let layer = self.u8()?;
-            let depth = self.u8()?;
+            let layer = if keys.layer { self.u8()? } else { u8::MAX };
+            let depth = if keys.depth { self.u8()? } else { u8::MAX };
             let value = [self.f32()?, self.f32()?, self.f32()?];
             splats.push(Splat {
                 pixel,
@@ -314,7 +350,7 @@ impl TileFilm {
                 w.f64(self.sums.sum_sq[i][c]);
             }
         }
-        w.splats(&self.splats);
+        w.splats(&self.splats, SplatKeys::of_film(self));
         w.rgb_list(&self.layers);
         w.rgb_list(&self.depths);
         w.optimal(self.optimal.as_ref());
@@ -365,7 +401,7 @@ impl TileFilm {
             }
         }
         let frame_px = width as u64 * height as u64;
-        let splats = r.splats(0..frame_px)?;
+        let splats = r.splats(0..frame_px, SplatKeys::of_layout(layout))?;
         let n = r.count(24, "layers")?;
         let want = if layout.strategy_layers {
             px * STRATEGY_LAYERS
@@ -561,7 +597,7 @@ impl TileCheckpoint {
 }
 
 const BAND_MAGIC: &[u8; 8] = b"OMISBAND";
-const BAND_VERSION: u32 = 1;
+const BAND_VERSION: u32 = 2;
 /// Bytes before a banded result's section table.
 const BAND_HEAD: usize = 8 + 4 + 16 + 8 + 32 + 8 + 4;
 
@@ -670,6 +706,7 @@ pub fn encode_banded(
     grid: &super::TileGrid,
 ) -> Vec<u8> {
     let bands = film.route_bands(grid);
+    let keys = SplatKeys::of_film(&film);
     film.splats = Vec::new();
     film.records = LtRecords::default();
     let own = film.encode(samples.clone());
@@ -677,7 +714,7 @@ pub fn encode_banded(
         .into_iter()
         .map(|(b, routed)| {
             let mut w = Writer::new(Vec::new());
-            w.splats(&routed.splats);
+            w.splats(&routed.splats, keys);
             w.records(&routed.records);
             (b, w.out)
         })
@@ -704,18 +741,18 @@ pub fn encode_banded(
     w.out
 }
 
-/// Parses the section of `band` (its bytes) of a banded result for `grid`, whose films have at
-/// most optimal depth `d_opt`: everything must land in the band.
+/// Parses the section of `band` (its bytes) of a banded result for `grid`, whose films have
+/// `layout`: everything must land in the band.
 pub fn decode_section(
     bytes: &[u8],
     band: usize,
     grid: &super::TileGrid,
-    d_opt: Option<u32>,
+    layout: &FilmLayout,
 ) -> Result<super::Routed, WireError> {
     let mut r = Reader { b: bytes, at: 0 };
     let pixels = grid.band_pixels(band);
-    let splats = r.splats(pixels.clone())?;
-    let records = r.records(pixels, d_opt)?;
+    let splats = r.splats(pixels.clone(), SplatKeys::of_layout(layout))?;
+    let records = r.records(pixels, layout.d_opt())?;
     if r.at != bytes.len() {
         return Err(WireError(format!(
             "section of band {band}: {} trailing bytes",

@@ -354,7 +354,7 @@ fn merge_group(
                     }
                     let part = &bytes[(range.start - span.start) as usize..]
                         [..(range.end - range.start) as usize];
-                    let routed = wire::decode_section(part, b, &grid, layout.d_opt())
+                    let routed = wire::decode_section(part, b, &grid, &layout)
                         .map_err(|e| bad(u)(e.to_string()))?;
                     sections.push((b, routed));
                 }
