@@ -6,6 +6,7 @@
 //! render time of the recorded results, so the table also gives the coordinator's CPU as a share
 //! of what real workers would have spent on the same job.
 
+use super::child_coordinator::ChildCoordinator;
 use super::client::Client;
 use super::job_args::JobArgs;
 use super::service_cmds::{runtime, submit_job};
@@ -199,24 +200,8 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
     let mut rows = Vec::new();
     for &n in &a.simulated_workers {
         let data = tmp.join(format!("data-{n}"));
-        let mut server = std::process::Command::new(std::env::current_exe()?)
-            .args(["serve", "--bind", "127.0.0.1:0", "--data"])
-            .arg(&data)
-            .args(["--workers", "0"])
-            .env("OMIS_LOG", "warn")
-            .stdout(std::process::Stdio::piped())
-            .spawn()?;
-        let pid = server.id();
-        let url = {
-            use std::io::BufRead;
-            let stdout = server.stdout.take().context("coordinator stdout")?;
-            let mut line = String::new();
-            std::io::BufReader::new(stdout).read_line(&mut line)?;
-            line.trim()
-                .strip_prefix("listening on ")
-                .context("the coordinator did not print its address")?
-                .to_string()
-        };
+        let server = ChildCoordinator::start(&data, 0)?;
+        let (pid, url) = (server.pid, server.url.clone());
         let result = runtime()?.block_on(async {
             let c = Client::new(&url, None)?;
             let scene = SceneSource::Bundle(c.upload_bundle(tar.clone(), main.clone()).await?);
@@ -260,11 +245,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
             Ok::<_, anyhow::Error>((seconds, cpu, written, rss0, latencies, counters))
         });
         let (_, hwm) = super::procstat::memory(Some(pid));
-        // SAFETY: kill(2) on our own child.
-        unsafe {
-            libc::kill(pid as libc::pid_t, libc::SIGTERM);
-        }
-        let _ = server.wait();
+        server.stop();
         let _ = std::fs::remove_dir_all(&data);
         let (seconds, cpu, written, rss0, latencies, counters) = result?;
         let results = counters.results.load(Ordering::Relaxed);

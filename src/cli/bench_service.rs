@@ -3,6 +3,7 @@
 //! sample, coordinator memory per megapixel, pass latency (last tile of a pass in, pass merged
 //! and solved), and whether the images are equal.
 
+use super::child_coordinator::ChildCoordinator;
 use super::client::Client;
 use super::job_args::JobArgs;
 use super::service_cmds::{runtime, submit_job};
@@ -11,7 +12,7 @@ use crate::job::Limits;
 use crate::scene::Scene;
 use crate::service::bundle;
 use crate::service::protocol::{JobEvent, JobState, SceneSource, WorkerList};
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use clap::Args;
 use serde_json::json;
 use std::path::PathBuf;
@@ -50,24 +51,8 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
         let data = tmp.join(format!("data-{n}"));
         let out = tmp.join(format!("svc-{n}.exr"));
         // The coordinator is a process of its own, so its memory is measured alone.
-        let mut server = std::process::Command::new(std::env::current_exe()?)
-            .args(["serve", "--bind", "127.0.0.1:0", "--data"])
-            .arg(&data)
-            .args(["--workers", &n.to_string()])
-            .env("OMIS_LOG", "warn")
-            .stdout(std::process::Stdio::piped())
-            .spawn()?;
-        let pid = server.id();
-        let url = {
-            use std::io::BufRead;
-            let stdout = server.stdout.take().context("coordinator stdout")?;
-            let mut line = String::new();
-            std::io::BufReader::new(stdout).read_line(&mut line)?;
-            line.trim()
-                .strip_prefix("listening on ")
-                .context("the coordinator did not print its address")?
-                .to_string()
-        };
+        let server = ChildCoordinator::start(&data, n)?;
+        let (pid, url) = (server.pid, server.url.clone());
         let (rss0, _) = super::procstat::memory(Some(pid));
         let result = runtime()?.block_on(async {
             // Let the workers start and register before the clock starts.
@@ -104,11 +89,7 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
             Ok::<_, anyhow::Error>(((st, seconds), latencies))
         });
         let (_, hwm) = super::procstat::memory(Some(pid));
-        // SAFETY: kill(2) on our own child; SIGTERM drains its workers.
-        unsafe {
-            libc::kill(pid as libc::pid_t, libc::SIGTERM);
-        }
-        let _ = server.wait();
+        server.stop();
         let (row, passes) = result?;
         let (st, seconds) = row;
         let samples = st.samples as f64;

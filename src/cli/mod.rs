@@ -3,6 +3,7 @@
 mod bench;
 mod bench_coordinator;
 mod bench_service;
+mod child_coordinator;
 mod choices;
 mod client;
 mod compare;
