@@ -57,22 +57,17 @@ impl SplatKeys {
 #[error("invalid tile result: {0}")]
 pub struct WireError(pub String);
 
-/// A little-endian writer that keeps the first I/O error (writes into a Vec never fail).
-struct Writer<T: std::io::Write> {
-    out: T,
-    err: Option<std::io::Error>,
+/// A little-endian writer into a byte vector.
+struct Writer {
+    out: Vec<u8>,
 }
 
-impl<T: std::io::Write> Writer<T> {
-    fn new(out: T) -> Self {
-        Writer { out, err: None }
+impl Writer {
+    fn new(out: Vec<u8>) -> Self {
+        Writer { out }
     }
     fn bytes(&mut self, b: &[u8]) {
-        if self.err.is_none()
-            && let Err(e) = self.out.write_all(b)
-        {
-            self.err = Some(e);
-        }
+        self.out.extend_from_slice(b);
     }
     fn u8(&mut self, v: u8) {
         self.bytes(&[v]);
@@ -105,7 +100,7 @@ impl<T: std::io::Write> Writer<T> {
     }
 }
 
-impl<T: std::io::Write> Writer<T> {
+impl Writer {
     fn stats(&mut self, s: &RayStats) {
         for v in [s.closest, s.shadow, s.samples, s.non_finite] {
             self.u64(v);
@@ -225,6 +220,26 @@ impl Reader<'_> {
             }
         }
         Err(WireError("pixel step longer than 5 bytes".into()))
+    }
+    /// A format's magic and version, or an error naming `what` was expected.
+    fn header(&mut self, magic: &[u8; 8], version: u32, what: &str) -> Result<(), WireError> {
+        if self.take(8)? != magic {
+            return Err(WireError(format!("not a {what} (bad magic)")));
+        }
+        let v = self.u32()?;
+        if v != version {
+            return Err(WireError(format!("{what} version {v}, expected {version}")));
+        }
+        Ok(())
+    }
+    /// A tile rectangle (x0 y0 x1 y1).
+    fn tile(&mut self) -> Result<Tile, WireError> {
+        Ok(Tile {
+            x0: self.u32()?,
+            y0: self.u32()?,
+            x1: self.u32()?,
+            y1: self.u32()?,
+        })
     }
     /// A counted splat list whose pixels must lie in `pixels`; layer and depth where `keys` has
     /// them (u8::MAX, "not kept", otherwise).
@@ -368,19 +383,8 @@ impl TileFilm {
     ) -> Result<(TileFilm, std::ops::Range<u32>), WireError> {
         let d_opt = layout.d_opt();
         let mut r = Reader { b: bytes, at: 0 };
-        if r.take(8)? != MAGIC {
-            return Err(WireError("bad magic".into()));
-        }
-        let version = r.u32()?;
-        if version != VERSION {
-            return Err(WireError(format!("version {version}, expected {VERSION}")));
-        }
-        let tile = Tile {
-            x0: r.u32()?,
-            y0: r.u32()?,
-            x1: r.u32()?,
-            y1: r.u32()?,
-        };
+        r.header(MAGIC, VERSION, "tile result")?;
+        let tile = r.tile()?;
         if !(tile.x0 < tile.x1 && tile.y0 < tile.y1 && tile.x1 <= width && tile.y1 <= height) {
             return Err(WireError(format!("tile {tile:?} outside {width}x{height}")));
         }
@@ -466,7 +470,7 @@ impl TileFilm {
 /// layers: n u32, n x 3 x f64; depths: n u32, n x 3 x f64
 /// optimal: d_opt u32 (0 = none), then pixels x stride f64, pixels x d_opt u32
 /// ```
-fn write_tile_body<T: std::io::Write>(w: &mut Writer<T>, t: &FilmTile) {
+fn write_tile_body(w: &mut Writer, t: &FilmTile) {
     for i in 0..t.tile.pixels() {
         w.u32(t.sums.count[i]);
         for v in t.sums.sum[i]
@@ -551,14 +555,19 @@ pub struct TileCheckpoint {
 impl TileCheckpoint {
     /// The encoding.
     pub fn encode(&self) -> Vec<u8> {
-        let mut w = Writer::new(Vec::with_capacity(36 + self.tile.tile.pixels() * 76));
+        TileCheckpoint::encode_parts(&self.tile, self.passes)
+    }
+
+    /// The encoding of the checkpoint of `tile` holding `passes` passes (without making one).
+    pub fn encode_parts(tile: &FilmTile, passes: u32) -> Vec<u8> {
+        let mut w = Writer::new(Vec::with_capacity(36 + tile.tile.pixels() * 76));
         w.bytes(TILE_MAGIC);
         w.u32(TILE_VERSION);
-        let t = &self.tile.tile;
-        for v in [t.x0, t.y0, t.x1, t.y1, self.passes] {
+        let t = &tile.tile;
+        for v in [t.x0, t.y0, t.x1, t.y1, passes] {
             w.u32(v);
         }
-        write_tile_body(&mut w, &self.tile);
+        write_tile_body(&mut w, tile);
         w.out
     }
 
@@ -569,21 +578,8 @@ impl TileCheckpoint {
         layout: &FilmLayout,
     ) -> Result<TileCheckpoint, WireError> {
         let mut r = Reader { b: bytes, at: 0 };
-        if r.take(8)? != TILE_MAGIC {
-            return Err(WireError("not a tile checkpoint (bad magic)".into()));
-        }
-        let version = r.u32()?;
-        if version != TILE_VERSION {
-            return Err(WireError(format!(
-                "tile checkpoint version {version}, expected {TILE_VERSION}"
-            )));
-        }
-        let got = Tile {
-            x0: r.u32()?,
-            y0: r.u32()?,
-            x1: r.u32()?,
-            y1: r.u32()?,
-        };
+        r.header(TILE_MAGIC, TILE_VERSION, "tile checkpoint")?;
+        let got = r.tile()?;
         if got != tile {
             return Err(WireError(format!(
                 "checkpoint of tile {got:?}, expected {tile:?}"
@@ -632,21 +628,8 @@ impl BandedIndex {
         let mut head = [0u8; BAND_HEAD];
         r.read_exact(&mut head).map_err(io)?;
         let mut h = Reader { b: &head, at: 0 };
-        if h.take(8)? != BAND_MAGIC {
-            return Err(WireError("not a banded result (bad magic)".into()));
-        }
-        let version = h.u32()?;
-        if version != BAND_VERSION {
-            return Err(WireError(format!(
-                "banded result version {version}, expected {BAND_VERSION}"
-            )));
-        }
-        let tile = Tile {
-            x0: h.u32()?,
-            y0: h.u32()?,
-            x1: h.u32()?,
-            y1: h.u32()?,
-        };
+        h.header(BAND_MAGIC, BAND_VERSION, "banded result")?;
+        let tile = h.tile()?;
         let samples = h.u32()?..h.u32()?;
         let stats = h.stats()?;
         let own_len = h.u64()?;
