@@ -479,8 +479,7 @@ fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
             for (g, bands) in groups.iter().enumerate() {
                 let rounds = if restarts && g == 0 { 2 } else { 1 };
                 for _ in 0..rounds {
-                    let range =
-                        grid.band_tiles(bands.start).start..grid.band_tiles(bands.end - 1).end;
+                    let range = grid.tiles_of_bands(bands.clone());
                     let open: Vec<bool> = range.clone().map(|t| done[t] == p as u32).collect();
                     let mut group =
                         BandGroup::new(&grid, bands.clone(), acc[range.clone()].to_vec(), open);

@@ -8,6 +8,13 @@ use super::film_tile::{FilmTile, Routed, TileGrid};
 use super::layers::FilmLayout;
 use super::tile_film::TileFilm;
 
+/// Bytes of accumulators of one full band (row of tiles) of `grid` (at least 1).
+pub fn band_bytes(grid: &TileGrid, layout: &FilmLayout) -> u64 {
+    (grid.width as u64 * grid.size as u64)
+        .saturating_mul(layout.bytes_per_pixel() as u64)
+        .max(1)
+}
+
 /// Splits the bands of `grid` into consecutive groups whose accumulators take at most `budget`
 /// bytes each (at least one band per group).
 pub fn band_groups(
@@ -15,10 +22,7 @@ pub fn band_groups(
     layout: &FilmLayout,
     budget: u64,
 ) -> Vec<std::ops::Range<usize>> {
-    let band_bytes = (grid.width as u64 * grid.size as u64)
-        .saturating_mul(layout.bytes_per_pixel() as u64)
-        .max(1);
-    let per = (budget / band_bytes).max(1) as usize;
+    let per = (budget / band_bytes(grid, layout)).max(1) as usize;
     let rows = grid.rows() as usize;
     (0..rows.div_ceil(per))
         .map(|g| g * per..((g + 1) * per).min(rows))
@@ -46,7 +50,7 @@ impl BandGroup {
         tiles: Vec<FilmTile>,
         open: Vec<bool>,
     ) -> BandGroup {
-        let first = grid.band_tiles(bands.start).start;
+        let first = grid.tiles_of_bands(bands.clone()).start;
         BandGroup {
             bands,
             first,

@@ -79,6 +79,14 @@ impl TileGrid {
         (y / self.size) as usize * self.columns() as usize + (x / self.size) as usize
     }
 
+    /// The tiles of the bands `bands`, as indices (consecutive: the grid is row-major).
+    pub fn tiles_of_bands(&self, bands: std::ops::Range<usize>) -> std::ops::Range<usize> {
+        if bands.is_empty() {
+            return 0..0;
+        }
+        self.band_tiles(bands.start).start..self.band_tiles(bands.end - 1).end
+    }
+
     /// The band (row of tiles) holding frame pixel `p`.
     #[inline]
     pub fn band_of(&self, p: u32) -> usize {
@@ -363,22 +371,28 @@ impl FilmTile {
     }
 
     /// The EXR layers besides the beauty, for the tile's pixels, with `light_paths` light paths
-    /// traced for the whole frame: the per-pixel variance of the mean (path tracer; BDPT's
-    /// light-tracing splats have no per-pixel samples), strategy layers `s<S>_t<T>`, and depth
-    /// layers `depth<d>`, as `layout` keeps them.
+    /// traced for the whole frame, named as `FilmLayout::extra_layer_names` says.
     pub fn extra_layers(&self, layout: &FilmLayout, light_paths: u64) -> Vec<(String, Image)> {
-        let mut layers = Vec::new();
+        layout
+            .extra_layer_names()
+            .into_iter()
+            .zip(self.extra_images(layout, light_paths))
+            .collect()
+    }
+
+    /// The images of `extra_layers`, in the same order, without their names.
+    pub fn extra_images(&self, layout: &FilmLayout, light_paths: u64) -> Vec<Image> {
+        let mut images = Vec::new();
         if layout.variance_layer {
-            layers.push(("variance".to_string(), self.sums.variance_of_mean()));
+            images.push(self.sums.variance_of_mean());
         }
-        layers.extend(self.strategy_images(layout));
-        layers.extend((0..layout.depth_layers).map(|d| {
-            (
-                format!("depth{d}"),
-                self.depth_image(d, light_paths, layout.kappa),
-            )
-        }));
-        layers
+        if layout.strategy_layers {
+            images.extend((0..STRATEGY_LAYERS).map(|l| self.strategy_image(l)));
+        }
+        images.extend(
+            (0..layout.depth_layers).map(|d| self.depth_image(d, light_paths, layout.kappa)),
+        );
+        images
     }
 
     /// The strategy layers as (name, image) pairs, when `layout` keeps them.

@@ -49,6 +49,21 @@ impl FilmLayout {
         self.optimal.as_ref().map(|l| l.d_opt)
     }
 
+    /// The names of the EXR layers besides the beauty: the per-pixel variance of the mean
+    /// (`variance`, path tracer; BDPT's light-tracing splats have no per-pixel samples), the
+    /// strategy layers `s<S>_t<T>` and the depth layers `depth<d>`, as the layout keeps them.
+    pub fn extra_layer_names(&self) -> Vec<String> {
+        let mut names = Vec::new();
+        if self.variance_layer {
+            names.push("variance".to_string());
+        }
+        if self.strategy_layers {
+            names.extend((0..STRATEGY_LAYERS).map(strategy_layer_name));
+        }
+        names.extend((0..self.depth_layers).map(|d| format!("depth{d}")));
+        names
+    }
+
     /// Bytes of accumulator memory per pixel of a whole-frame film.
     pub fn bytes_per_pixel(&self) -> usize {
         // Camera sums and sums of squares (2 x 3 f64), count (u32), splat (3 f64).

@@ -17,7 +17,7 @@ mod tile;
 mod tile_film;
 pub mod wire;
 
-pub use bands::{BandGroup, band_groups};
+pub use bands::{BandGroup, band_bytes, band_groups};
 pub use film_tile::{FilmTile, Routed, TileGrid};
 pub use frame::Film;
 pub use layers::{

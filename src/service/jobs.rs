@@ -9,7 +9,7 @@ use super::protocol::{
 };
 use super::store::{self, JobRow, TaskRow, write_atomic};
 use crate::film::wire::{self, BandedIndex, TileCheckpoint};
-use crate::film::{BandGroup, FilmTile, RayStats, Tile, TileFilm, band_groups};
+use crate::film::{BandGroup, FilmTile, RayStats, Routed, Tile, TileFilm, band_bytes, band_groups};
 use crate::film::{Image, exr_io, metrics, plot, png};
 use crate::job::Resolved;
 use std::path::{Path, PathBuf};
@@ -305,12 +305,11 @@ fn merge_group(
         all_layers,
     } = *m;
     let grid = r.grid();
-    let layout = r.film_layout();
-    let first = grid.band_tiles(bands.start).start;
-    let end = grid.band_tiles(bands.end - 1).end;
-    let mut tiles = Vec::with_capacity(end - first);
-    let mut open = Vec::with_capacity(end - first);
-    for t in first..end {
+    let tiles = grid.tiles_of_bands(bands.clone());
+    let first = tiles.start;
+    let mut held = Vec::with_capacity(tiles.len());
+    let mut open = Vec::with_capacity(tiles.len());
+    for t in tiles {
         let ck = load_tile(app, job, r, t, pass).map_err(MergeError::Job)?;
         if ck.passes != pass && ck.passes != pass + 1 {
             return Err(MergeError::Job(format!(
@@ -319,65 +318,78 @@ fn merge_group(
             )));
         }
         open.push(ck.passes == pass);
-        tiles.push(ck.tile);
+        held.push(ck.tile);
     }
-    let mut group = BandGroup::new(&grid, bands.clone(), tiles, open);
+    let mut group = BandGroup::new(&grid, bands.clone(), held, open);
     if group.open.iter().any(|&o| o) {
-        let bad = |u: usize| move |e: String| MergeError::Result(u, e);
         for res in results {
             let own_needed = group.holds(res.tile) && group.open[res.tile - first];
             let span = res.index.span(bands.clone());
             if !own_needed && span.is_none() {
                 continue;
             }
-            let u = res.tile;
-            let mut f = std::fs::File::open(&res.path).map_err(|e| bad(u)(e.to_string()))?;
-            let own = if own_needed {
-                let bytes =
-                    read_range(&mut f, &res.index.own).map_err(|e| bad(u)(e.to_string()))?;
-                let (film, _) = TileFilm::decode(&bytes, r.width, r.height, &layout)
-                    .map_err(|e| bad(u)(e.to_string()))?;
-                if film.tile != grid.tile(u) {
-                    return Err(bad(u)(format!("result of tile {:?}", film.tile)));
-                }
-                Some(film)
-            } else {
-                None
-            };
-            let mut sections = Vec::new();
-            if let Some(span) = span {
-                let bytes = read_range(&mut f, &span).map_err(|e| bad(u)(e.to_string()))?;
-                for (b, range) in &res.index.sections {
-                    let b = *b as usize;
-                    if !bands.contains(&b) {
-                        continue;
-                    }
-                    let part = &bytes[(range.start - span.start) as usize..]
-                        [..(range.end - range.start) as usize];
-                    let routed = wire::decode_section(part, b, &grid, &layout)
-                        .map_err(|e| bad(u)(e.to_string()))?;
-                    sections.push((b, routed));
-                }
-            }
-            group.add_task(&grid, u, own.as_ref(), &sections);
+            let parts = read_parts(r, res, own_needed, span, &bands)
+                .map_err(|e| MergeError::Result(res.tile, e))?;
+            group.add_task(&grid, res.tile, parts.own.as_ref(), &parts.sections);
         }
         for (k, tile) in group.tiles.iter().enumerate() {
-            if !group.open[k] {
-                continue;
+            if group.open[k] {
+                // Made durable all at once before the pass is recorded (`sync_tiles`).
+                store::write_replacing(
+                    &app.paths.tile_checkpoint(job, (first + k) as u32),
+                    &TileCheckpoint::encode_parts(tile, pass + 1),
+                    !cfg!(target_os = "linux"),
+                )?;
             }
-            let ck = TileCheckpoint {
-                tile: tile.clone(),
-                passes: pass + 1,
-            };
-            // Made durable all at once before the pass is recorded (`sync_tiles`).
-            store::write_replacing(
-                &app.paths.tile_checkpoint(job, (first + k) as u32),
-                &ck.encode(),
-                !cfg!(target_os = "linux"),
-            )?;
         }
     }
     Ok(tile_layers(&group.tiles, r, spp, all_layers))
+}
+
+/// The parts of one result a band group adds.
+struct ResultParts {
+    own: Option<TileFilm>,
+    sections: Vec<(usize, Routed)>,
+}
+
+/// What a band group needs of one stored result: its own pixels (when `own_needed`) and its
+/// sections of `bands` (the byte range `span` holds them).
+fn read_parts(
+    r: &Resolved,
+    res: &PassResult,
+    own_needed: bool,
+    span: Option<std::ops::Range<u64>>,
+    bands: &std::ops::Range<usize>,
+) -> Result<ResultParts, String> {
+    let layout = r.film_layout();
+    let grid = r.grid();
+    let mut f = std::fs::File::open(&res.path).map_err(|e| e.to_string())?;
+    let own = if own_needed {
+        let bytes = read_range(&mut f, &res.index.own).map_err(|e| e.to_string())?;
+        let (film, _) =
+            TileFilm::decode(&bytes, r.width, r.height, &layout).map_err(|e| e.to_string())?;
+        if film.tile != grid.tile(res.tile) {
+            return Err(format!("result of tile {:?}", film.tile));
+        }
+        Some(film)
+    } else {
+        None
+    };
+    let mut sections = Vec::new();
+    if let Some(span) = span {
+        let bytes = read_range(&mut f, &span).map_err(|e| e.to_string())?;
+        for (b, range) in &res.index.sections {
+            let b = *b as usize;
+            if bands.contains(&b) {
+                let part =
+                    &bytes[(range.start - span.start) as usize..(range.end - span.start) as usize];
+                let routed =
+                    wire::decode_section(part, b, &grid, &layout).map_err(|e| e.to_string())?;
+                sections.push((b, routed));
+            }
+        }
+    }
+    Ok(ResultParts { own, sections })
 }
 
 /// The beauty of each tile (and, with `all_layers`, every other layer the job keeps), as one
@@ -394,7 +406,7 @@ fn tile_layers(
     for tile in tiles {
         let mut images = vec![tile.image(n_l, layout.kappa)];
         if all_layers {
-            images.extend(tile.extra_layers(&layout, n_l).into_iter().map(|(_, i)| i));
+            images.extend(tile.extra_images(&layout, n_l));
         }
         layers.resize_with(images.len(), Vec::new);
         for (l, img) in layers.iter_mut().zip(images) {
@@ -402,17 +414,6 @@ fn tile_layers(
         }
     }
     layers
-}
-
-/// The names of the layers besides the beauty that a job's EXR has.
-fn layer_names(r: &Resolved) -> Vec<String> {
-    let layout = r.film_layout();
-    let t = r.grid().tile(0);
-    FilmTile::new(t, &layout)
-        .extra_layers(&layout, 1)
-        .into_iter()
-        .map(|(n, _)| n)
-        .collect()
 }
 
 /// Makes the tile checkpoints written without fsync durable (Linux: one syncfs of the data
@@ -442,11 +443,8 @@ where
     // Each thread holds one group (at least one band): the threads together at most the
     // configured memory, so fewer threads when a band alone is large.
     let layout = r.film_layout();
-    let band = (r.width as u64 * r.tile_size as u64)
-        .saturating_mul(layout.bytes_per_pixel() as u64)
-        .max(1);
     let total = app.cfg.merge_memory_bytes;
-    let threads = merge_threads().min((total / band).max(1) as usize);
+    let threads = merge_threads().min((total / band_bytes(&r.grid(), &layout)).max(1) as usize);
     let budget = total / threads as u64;
     let groups = band_groups(&r.grid(), &layout, budget);
     let next = AtomicUsize::new(0);
@@ -539,7 +537,11 @@ fn merge_pass(
             let mut frames = frames.into_iter();
             let image = frames.next().ok_or("no image")?;
             let layers: Vec<(String, Image)> = if last {
-                layer_names(r).into_iter().zip(frames).collect()
+                r.film_layout()
+                    .extra_layer_names()
+                    .into_iter()
+                    .zip(frames)
+                    .collect()
             } else {
                 Vec::new()
             };
@@ -655,7 +657,7 @@ fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
     let r = &rt.resolved;
     let grid = r.grid();
     let frames = for_groups(app, r, |bands| {
-        let tiles = grid.band_tiles(bands.start).start..grid.band_tiles(bands.end - 1).end;
+        let tiles = grid.tiles_of_bands(bands);
         let mut held = Vec::with_capacity(tiles.len());
         for t in tiles {
             let ck = load_tile(app, &job.id, r, t, job.passes_done).map_err(MergeError::Job)?;
@@ -675,7 +677,12 @@ fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
     trim_memory();
     let mut frames = frames.into_iter();
     let image = frames.next().ok_or("no image")?;
-    let layers: Vec<(String, Image)> = layer_names(r).into_iter().zip(frames).collect();
+    let layers: Vec<(String, Image)> = r
+        .film_layout()
+        .extra_layer_names()
+        .into_iter()
+        .zip(frames)
+        .collect();
     write_outputs(app, job, rt, &image, &layers)
 }
 
