@@ -465,12 +465,6 @@ fn weights_alone(ws: &mut Workspace, s: usize, k: usize) {
     w[s] = 1.0;
 }
 
-/// The heuristic's function of a density ratio: x for balance, x^2 for power (Veach 1997 eq. 9.13).
-#[inline]
-fn mis_pow(x: f64, exponent: i32) -> f64 {
-    if exponent == 2 { x * x } else { x }
-}
-
 impl Workspace {
     /// Partial sums of the recursive weights, once both subpaths are traced, for `heuristic`
     /// (balance: exponent b = 1; power: b = 2). Notation of `balance_weights`: p_{s'} is the
@@ -494,7 +488,7 @@ impl Workspace {
     /// S_j needs pE_{j-1}, known once y_j has sampled its successor; the last vertex's sum is
     /// never used.
     pub fn prepare(&mut self, scene: &Scene, heuristic: MisKind) {
-        let b = if heuristic == MisKind::Power { 2 } else { 1 };
+        let b = heuristic.beta();
         self.exponent = b;
         let light = &self.light;
         self.q1 = if light.len() >= 2 {
@@ -511,13 +505,15 @@ impl Workspace {
                     let y0 = &light[0];
                     let v0 = !y0.delta_pos as u8 as f64;
                     let v1 = !y.delta as u8 as f64;
-                    (v0 * mis_pow(y0.pdf_rev as f64, b) + v1 * mis_pow(self.q1 as f64, b))
-                        / mis_pow(y0.pdf_fwd as f64, b)
+                    (v0 * mis::ratio_term(y0.pdf_rev as f64, b)
+                        + v1 * mis::ratio_term(self.q1 as f64, b))
+                        / mis::ratio_term(y0.pdf_fwd as f64, b)
                 }
                 _ => {
                     let yp = &light[j - 1];
                     let v = !(yp.delta || y.delta) as u8 as f64;
-                    v + mis_pow(yp.pdf_rev as f64 / yp.pdf_fwd as f64, b) * self.light_sums[j - 1]
+                    v + mis::ratio_term(yp.pdf_rev as f64 / yp.pdf_fwd as f64, b)
+                        * self.light_sums[j - 1]
                 }
             };
             self.light_sums.push(sum);
@@ -533,7 +529,8 @@ impl Workspace {
                     let prev = if j == 1 {
                         0.0
                     } else {
-                        mis_pow(zp.pdf_rev as f64 / zp.pdf_fwd as f64, b) * self.cam_sums[j - 1]
+                        mis::ratio_term(zp.pdf_rev as f64 / zp.pdf_fwd as f64, b)
+                            * self.cam_sums[j - 1]
                     };
                     v + prev
                 }
@@ -557,7 +554,7 @@ fn heuristic_weight(
     c: &Connection,
 ) -> f64 {
     let b = ws.exponent;
-    let m = |x: f64| mis_pow(x, b);
+    let m = |x: f64| mis::ratio_term(x, b);
     let (pe_y1, pe_y2) = (c.pe_y1 as f64, c.pe_y2 as f64);
     let (pl_z1, pl_z2, q1) = (c.pl_z1 as f64, c.pl_z2 as f64, c.q1 as f64);
     // Techniques s' < s, relative to p_s.

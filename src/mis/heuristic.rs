@@ -18,6 +18,21 @@ pub enum MisKind {
     Optimal,
 }
 
+impl MisKind {
+    /// The heuristic's exponent beta (Veach 1997 eq. 9.13): 2 for power, 1 for balance (and for
+    /// optimal MIS outside its systems).
+    pub fn beta(self) -> i32 {
+        if self == MisKind::Power { 2 } else { 1 }
+    }
+}
+
+/// What a heuristic of exponent `beta` makes of a density ratio x: x^beta (Veach 1997 eq. 9.13;
+/// the recursive weights sum these terms).
+#[inline]
+pub fn ratio_term(x: f64, beta: i32) -> f64 {
+    if beta == 2 { x * x } else { x }
+}
+
 /// The weight of technique `s` for a path whose balance weights over all techniques of its depth
 /// are `balance` (n_i p_i / sum_k n_k p_k). Power heuristic, beta = 2 (Veach 1997 eq. 9.13):
 /// (n_s p_s)^2 / sum_k (n_k p_k)^2 = b_s^2 / sum_k b_k^2. Optimal MIS weights its depths through

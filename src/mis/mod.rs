@@ -6,5 +6,5 @@ pub mod heuristic;
 pub mod optimal;
 pub mod solve;
 
-pub use heuristic::{MisKind, power_heuristic, weight};
+pub use heuristic::{MisKind, power_heuristic, ratio_term, weight};
 pub use optimal::{DEFAULT_KAPPA, Layout, OptimalAccum, SolveScratch};
