@@ -433,6 +433,47 @@ fn a_late_result_of_an_expired_lease_is_refused_and_changes_nothing() {
     assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(64));
 }
 
+/// A metric's value from GET /metrics.
+fn metric(c: &Client, url: &str, name: &str) -> f64 {
+    let text = c
+        .get(format!("{url}/metrics"))
+        .send()
+        .expect("GET /metrics")
+        .text()
+        .expect("text");
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no metric {name} in {text}"))
+}
+
+#[test]
+fn a_recorded_result_damaged_on_disk_is_rendered_again() {
+    let dir = folder("damaged");
+    let data = dir.join("data");
+    let (_server, url) = serve(&data, &[]);
+    let c = http();
+    let id = submit(&c, &url, 4);
+    let w = register(&c, &url, "manual");
+    let t = lease(&c, &url, &w);
+    assert_eq!(upload(&c, &url, &t, &w, tile_result(&t["task"], 7)), 200);
+    // Damage the stored record before its pass is merged: one byte in the middle of the first
+    // pixel's radiance sum (it would still decode, and the image would show it).
+    let log = data.join(format!("jobs/{id}/pass-000000/results.log"));
+    let mut bytes = std::fs::read(&log).expect("the pass's result log");
+    let sections = u32::from_le_bytes(bytes[80..84].try_into().expect("4 bytes")) as usize;
+    let own = 84 + sections * 16 + 4;
+    let first_sum = own + 68 + 4;
+    bytes[first_sum + 5] ^= 0x10;
+    std::fs::write(&log, &bytes).expect("write the log");
+    // The workers finish the pass; its merge finds the damage and the tile is rendered again.
+    let _w = worker(&url, "w", &[]);
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 4);
+    let tasks = 6.0; // 40x32 in tiles of 16
+    assert_eq!(metric(&c, &url, "omis_results_accepted_total"), tasks + 1.0);
+    assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(4));
+}
+
 #[test]
 fn a_task_that_fails_three_times_fails_the_job_with_the_workers_error() {
     let dir = folder("fail");
