@@ -396,6 +396,8 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
                 passes: 2,
             }
             .encode();
+            let len = TileCheckpoint::encoded_len(t.tile.pixels(), &layout);
+            assert_eq!(bytes.len() as u64, len, "checkpoints have a fixed length");
             let back = TileCheckpoint::decode(&bytes, t.tile, &layout).expect("decodes");
             assert_eq!(back.passes, 2);
             assert!(TileCheckpoint::decode(&bytes[..bytes.len() - 1], t.tile, &layout).is_err());

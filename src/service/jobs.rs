@@ -262,9 +262,53 @@ fn read_index(
         .at(stored.start))
 }
 
+/// Where the checkpoint of tile `t` holding `n` passes lies: its band's file, the byte offset
+/// and the length. Each tile has two slots of the length of a full tile's checkpoint, side by
+/// side in the band's file, written in turn (`n % 2`): a write torn by a crash leaves the
+/// previous pass in the other slot. The files are made once per job and rewritten in place.
+fn checkpoint_slot(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    t: usize,
+    n: u32,
+) -> (std::path::PathBuf, u64, u64) {
+    let grid = r.grid();
+    let layout = r.film_layout();
+    let columns = grid.columns() as usize;
+    let full = TileCheckpoint::encoded_len(grid.size as usize * grid.size as usize, &layout);
+    let len = TileCheckpoint::encoded_len(grid.tile(t).pixels(), &layout);
+    let slot = 2 * (t % columns) as u64 + (n % 2) as u64;
+    (
+        app.paths.band_checkpoints(job, (t / columns) as u32),
+        slot * full,
+        len,
+    )
+}
+
+/// Writes the checkpoint of `tile` (tile `t` of the frame) holding `n` passes into its slot.
+fn write_tile(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    t: usize,
+    tile: &FilmTile,
+    n: u32,
+) -> std::io::Result<()> {
+    let (path, at, _) = checkpoint_slot(app, job, r, t, n);
+    // Made durable all at once before the pass is recorded (`sync_tiles`) on Linux.
+    store::write_at(
+        &path,
+        at,
+        &TileCheckpoint::encode_parts(tile, n),
+        !cfg!(target_os = "linux"),
+    )
+}
+
 /// The accumulators of tile `t` of a job that has merged `passes` passes: the tile's checkpoint
 /// holding `passes + 1` passes when a merge interrupted by a restart wrote it already, else the
-/// one holding `passes`. A slot whose checksum fails (a write torn by a crash) is passed over.
+/// one holding `passes`. A slot whose checksum fails (a write torn by a crash) or that was never
+/// written is passed over.
 fn load_tile(
     app: &App,
     job: &str,
@@ -272,17 +316,27 @@ fn load_tile(
     t: usize,
     passes: u32,
 ) -> Result<TileCheckpoint, String> {
+    use std::io::{Read, Seek, SeekFrom};
     let grid = r.grid();
     let layout = r.film_layout();
     let read = |n: u32| -> Result<Option<TileCheckpoint>, String> {
-        let path = app.paths.tile_checkpoint(job, t as u32, n);
-        match std::fs::read(&path) {
-            Ok(bytes) => Ok(TileCheckpoint::decode(&bytes, grid.tile(t), &layout)
-                .ok()
-                .filter(|ck| ck.passes == n)),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-            Err(e) => Err(format!("tile checkpoint {t}: {e}")),
+        let (path, at, len) = checkpoint_slot(app, job, r, t, n);
+        let mut f = match std::fs::File::open(&path) {
+            Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(format!("tile checkpoint {t}: {e}")),
+        };
+        let mut bytes = vec![0u8; len as usize];
+        f.seek(SeekFrom::Start(at))
+            .map_err(|e| format!("tile checkpoint {t}: {e}"))?;
+        match f.read_exact(&mut bytes) {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(None),
+            Err(e) => return Err(format!("tile checkpoint {t}: {e}")),
         }
+        Ok(TileCheckpoint::decode(&bytes, grid.tile(t), &layout)
+            .ok()
+            .filter(|ck| ck.passes == n))
     };
     if let Some(ck) = read(passes + 1)? {
         return Ok(ck);
@@ -370,13 +424,8 @@ fn merge_group(
         }
         for (k, tile) in group.tiles.iter().enumerate() {
             if group.open[k] {
-                // Into the slot that does not hold the previous pass; made durable all at once
-                // before the pass is recorded (`sync_tiles`).
-                store::write_in_place(
-                    &app.paths.tile_checkpoint(job, (first + k) as u32, pass + 1),
-                    &TileCheckpoint::encode_parts(tile, pass + 1),
-                    !cfg!(target_os = "linux"),
-                )?;
+                // Into the slot that does not hold the previous pass.
+                write_tile(app, job, r, first + k, tile, pass + 1)?;
             }
         }
     }

@@ -43,12 +43,10 @@ impl Paths {
     pub fn tiles_dir(&self, id: &str) -> PathBuf {
         self.job(id).join("tiles")
     }
-    /// The merged accumulators of one tile of a job: two slots, rewritten in place in turn
-    /// (a tile that holds `n` passes was written to slot `n % 2`), so a write torn by a crash
-    /// leaves the previous pass in the other slot.
-    pub fn tile_checkpoint(&self, id: &str, tile: u32, slot: u32) -> PathBuf {
-        self.tiles_dir(id)
-            .join(format!("tile-{tile:06}.acc{}", slot % 2))
+    /// The merged accumulators of the tiles of one band (row of tiles) of a job: two slots per
+    /// tile, rewritten in place (`jobs::checkpoint_slot` says where).
+    pub fn band_checkpoints(&self, id: &str, band: u32) -> PathBuf {
+        self.tiles_dir(id).join(format!("band-{band:06}.acc"))
     }
     pub fn output(&self, id: &str, name: &str) -> PathBuf {
         self.job(id).join(name)
@@ -116,11 +114,12 @@ pub(crate) fn append(path: &Path, bytes: &[u8]) -> std::io::Result<std::ops::Ran
     Ok(at..at + bytes.len() as u64)
 }
 
-/// Overwrites `path` with `bytes` in place (created when missing; no new file or rename once
-/// it exists), fsync'd when `durable`. A crash in the middle leaves it torn: only for files that
-/// carry a checksum and have a second copy (the tile checkpoints' two slots).
-pub(crate) fn write_in_place(path: &Path, bytes: &[u8], durable: bool) -> std::io::Result<()> {
-    use std::io::Write;
+/// Overwrites bytes `at..` of the file at `path` with `bytes` in place (the file is created
+/// with its folder when missing; no new file or rename once it exists), fsync'd when `durable`.
+/// A crash in the middle leaves them torn: only for what carries a checksum and has a second
+/// copy (the tile checkpoints' two slots).
+pub(crate) fn write_at(path: &Path, at: u64, bytes: &[u8], durable: bool) -> std::io::Result<()> {
+    use std::io::{Seek, SeekFrom, Write};
     let open = || {
         std::fs::OpenOptions::new()
             .write(true)
@@ -137,8 +136,8 @@ pub(crate) fn write_in_place(path: &Path, bytes: &[u8], durable: bool) -> std::i
         }
         f => f?,
     };
+    f.seek(SeekFrom::Start(at))?;
     f.write_all(bytes)?;
-    f.set_len(bytes.len() as u64)?;
     if durable {
         f.sync_all()?;
     }
