@@ -475,6 +475,38 @@ fn a_recorded_result_damaged_on_disk_is_rendered_again() {
 }
 
 #[test]
+fn a_tile_checkpoint_torn_mid_write_falls_back_to_the_previous_pass() {
+    let dir = folder("torn");
+    let data = dir.join("data");
+    let (_server, url) = serve(&data, &[]);
+    let c = http();
+    let id = submit(&c, &url, 8); // two passes of 4 spp, 6 tiles of at most 16x16
+    let w = register(&c, &url, "manual");
+    for _ in 0..6 {
+        let t = lease(&c, &url, &w);
+        assert_eq!(t["task"]["pass"], 0, "{t}");
+        assert_eq!(upload(&c, &url, &t, &w, tile_result(&t["task"], 7)), 200);
+    }
+    wait_state(&c, &url, &id, |s| s["passes_done"] == 1);
+    // Tile 0 holds pass 1 in its slot 1. What a crash in the middle of writing pass 2 into its
+    // slot 0 leaves: a checkpoint that claims 2 passes, torn (one byte of its sums differs).
+    let layout = synthetic_layout(&settings(8));
+    let len = omis::film::wire::TileCheckpoint::encoded_len(16 * 16, &layout) as usize;
+    let band = data.join(format!("jobs/{id}/tiles/band-000000.acc"));
+    let mut bytes = std::fs::read(&band).expect("the band's checkpoints");
+    let mut torn = bytes[len..2 * len].to_vec();
+    torn[28..32].copy_from_slice(&2u32.to_le_bytes()); // passes
+    torn[len / 2] ^= 0x10;
+    bytes[..len].copy_from_slice(&torn);
+    std::fs::write(&band, &bytes).expect("write the checkpoints");
+    // The merge of pass 2 passes over the torn slot and merges tile 0 from pass 1.
+    let _w = worker(&url, "w", &[]);
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 8);
+    assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(8));
+}
+
+#[test]
 fn a_task_that_fails_three_times_fails_the_job_with_the_workers_error() {
     let dir = folder("fail");
     let (_server, url) = serve(&dir.join("data"), &[]);
