@@ -396,9 +396,15 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
                 passes: 2,
             }
             .encode();
+            let len = TileCheckpoint::encoded_len(t.tile.pixels(), &layout);
+            assert_eq!(bytes.len() as u64, len, "checkpoints have a fixed length");
             let back = TileCheckpoint::decode(&bytes, t.tile, &layout).expect("decodes");
             assert_eq!(back.passes, 2);
             assert!(TileCheckpoint::decode(&bytes[..bytes.len() - 1], t.tile, &layout).is_err());
+            // A torn or damaged checkpoint fails its checksum.
+            let mut torn = bytes.clone();
+            torn[bytes.len() / 2] ^= 1;
+            assert!(TileCheckpoint::decode(&torn, t.tile, &layout).is_err());
             assert!(
                 TileCheckpoint::decode(&bytes, tiles[0], &layout).is_err() || t.tile == tiles[0]
             );
@@ -549,4 +555,20 @@ fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
     let other = (b as usize + 1) % grid.rows() as usize;
     assert!(wire::decode_section(part, other, &grid, &layout).is_err());
     assert!(wire::decode_section(&part[..part.len() - 1], b as usize, &grid, &layout).is_err());
+    // Every part has its checksum; the header and table have theirs.
+    assert!(index.check_section(0, part).is_ok());
+    let mut flipped = part.to_vec();
+    flipped[part.len() / 2] ^= 4;
+    assert!(index.check_section(0, &flipped).is_err());
+    let own = &bytes[index.own.start as usize..index.own.end as usize];
+    assert!(index.check_own(own).is_ok());
+    let mut flipped = own.to_vec();
+    flipped[own.len() / 2] ^= 4;
+    assert!(index.check_own(&flipped).is_err());
+    let mut bad = bytes.clone();
+    bad[84 + 12] ^= 1; // the first section's checksum: only the header's own catches it
+    assert!(BandedIndex::read(&mut &bad[..], len).is_err());
+    // Moved to where the record lies in a log, the ranges follow.
+    let moved = index.clone().at(1000);
+    assert_eq!(moved.own, index.own.start + 1000..index.own.end + 1000);
 }

@@ -433,6 +433,79 @@ fn a_late_result_of_an_expired_lease_is_refused_and_changes_nothing() {
     assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(64));
 }
 
+/// A metric's value from GET /metrics.
+fn metric(c: &Client, url: &str, name: &str) -> f64 {
+    let text = c
+        .get(format!("{url}/metrics"))
+        .send()
+        .expect("GET /metrics")
+        .text()
+        .expect("text");
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no metric {name} in {text}"))
+}
+
+#[test]
+fn a_recorded_result_damaged_on_disk_is_rendered_again() {
+    let dir = folder("damaged");
+    let data = dir.join("data");
+    let (_server, url) = serve(&data, &[]);
+    let c = http();
+    let id = submit(&c, &url, 4);
+    let w = register(&c, &url, "manual");
+    let t = lease(&c, &url, &w);
+    assert_eq!(upload(&c, &url, &t, &w, tile_result(&t["task"], 7)), 200);
+    // Damage the stored record before its pass is merged: one byte in the middle of the first
+    // pixel's radiance sum (it would still decode, and the image would show it).
+    let log = data.join(format!("jobs/{id}/pass-000000/results.log"));
+    let mut bytes = std::fs::read(&log).expect("the pass's result log");
+    let sections = u32::from_le_bytes(bytes[80..84].try_into().expect("4 bytes")) as usize;
+    let own = 84 + sections * 16 + 4;
+    let first_sum = own + 68 + 4;
+    bytes[first_sum + 5] ^= 0x10;
+    std::fs::write(&log, &bytes).expect("write the log");
+    // The workers finish the pass; its merge finds the damage and the tile is rendered again.
+    let _w = worker(&url, "w", &[]);
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 4);
+    let tasks = 6.0; // 40x32 in tiles of 16
+    assert_eq!(metric(&c, &url, "omis_results_accepted_total"), tasks + 1.0);
+    assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(4));
+}
+
+#[test]
+fn a_tile_checkpoint_torn_mid_write_falls_back_to_the_previous_pass() {
+    let dir = folder("torn");
+    let data = dir.join("data");
+    let (_server, url) = serve(&data, &[]);
+    let c = http();
+    let id = submit(&c, &url, 8); // two passes of 4 spp, 6 tiles of at most 16x16
+    let w = register(&c, &url, "manual");
+    for _ in 0..6 {
+        let t = lease(&c, &url, &w);
+        assert_eq!(t["task"]["pass"], 0, "{t}");
+        assert_eq!(upload(&c, &url, &t, &w, tile_result(&t["task"], 7)), 200);
+    }
+    wait_state(&c, &url, &id, |s| s["passes_done"] == 1);
+    // Tile 0 holds pass 1 in its slot 1. What a crash in the middle of writing pass 2 into its
+    // slot 0 leaves: a checkpoint that claims 2 passes, torn (one byte of its sums differs).
+    let layout = synthetic_layout(&settings(8));
+    let len = omis::film::wire::TileCheckpoint::encoded_len(16 * 16, &layout) as usize;
+    let band = data.join(format!("jobs/{id}/tiles/band-000000.acc"));
+    let mut bytes = std::fs::read(&band).expect("the band's checkpoints");
+    let mut torn = bytes[len..2 * len].to_vec();
+    torn[28..32].copy_from_slice(&2u32.to_le_bytes()); // passes
+    torn[len / 2] ^= 0x10;
+    bytes[..len].copy_from_slice(&torn);
+    std::fs::write(&band, &bytes).expect("write the checkpoints");
+    // The merge of pass 2 passes over the torn slot and merges tile 0 from pass 1.
+    let _w = worker(&url, "w", &[]);
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 8);
+    assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(8));
+}
+
 #[test]
 fn a_task_that_fails_three_times_fails_the_job_with_the_workers_error() {
     let dir = folder("fail");

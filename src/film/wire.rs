@@ -536,14 +536,31 @@ fn read_tile_body(r: &mut Reader, t: &mut FilmTile) -> Result<(), WireError> {
 }
 
 const TILE_MAGIC: &[u8; 8] = b"OMISTACC";
-const TILE_VERSION: u32 = 1;
+const TILE_VERSION: u32 = 2;
+
+/// `bytes` without its trailing CRC-32 (IEEE, u32), when the checksum matches.
+fn checked<'a>(bytes: &'a [u8], what: &str) -> Result<&'a [u8], WireError> {
+    let Some(split) = bytes.len().checked_sub(4) else {
+        return Err(WireError(format!("{what} truncated")));
+    };
+    let (body, crc) = bytes.split_at(split);
+    let want = u32::from_le_bytes(crc.try_into().expect("4 bytes"));
+    if crc32fast::hash(body) != want {
+        return Err(WireError(format!(
+            "{what}: checksum mismatch (damaged or torn)"
+        )));
+    }
+    Ok(body)
+}
 
 /// One tile's merged accumulators with the number of passes merged into it: the checkpoint a
 /// coordinator keeps per tile, rewritten only when the tile merges a pass, so a restart loses no
-/// merged pass and no write is larger than one tile.
+/// merged pass and no write is larger than one tile. The checksum finds a checkpoint torn by a
+/// crash in the middle of its write (the coordinator then reads the previous one).
 ///
 /// ```text
-/// magic "OMISTACC", version u32, tile x0 y0 x1 y1 u32, passes u32, then the tile's accumulators
+/// magic "OMISTACC", version u32, tile x0 y0 x1 y1 u32, passes u32, then the tile's accumulators,
+/// then the CRC-32 (IEEE) of everything before it, u32
 /// ```
 pub struct TileCheckpoint {
     /// The accumulators.
@@ -568,7 +585,16 @@ impl TileCheckpoint {
             w.u32(v);
         }
         write_tile_body(&mut w, tile);
+        let crc = crc32fast::hash(&w.out);
+        w.u32(crc);
         w.out
+    }
+
+    /// The length of the checkpoint of a tile of `pixels` pixels whose films have `layout`
+    /// (fixed: a coordinator rewrites checkpoints in place).
+    pub fn encoded_len(pixels: usize, layout: &FilmLayout) -> u64 {
+        // Header (magic, version, tile, passes), the three list lengths, the checksum.
+        (8 + 4 + 16 + 4 + 12 + 4) as u64 + (pixels as u64) * layout.bytes_per_pixel() as u64
     }
 
     /// Parses the checkpoint of `tile` of a job whose films have `layout`.
@@ -577,6 +603,7 @@ impl TileCheckpoint {
         tile: Tile,
         layout: &FilmLayout,
     ) -> Result<TileCheckpoint, WireError> {
+        let bytes = checked(bytes, "tile checkpoint")?;
         let mut r = Reader { b: bytes, at: 0 };
         r.header(TILE_MAGIC, TILE_VERSION, "tile checkpoint")?;
         let got = r.tile()?;
@@ -593,16 +620,20 @@ impl TileCheckpoint {
 }
 
 const BAND_MAGIC: &[u8; 8] = b"OMISBAND";
-const BAND_VERSION: u32 = 2;
+const BAND_VERSION: u32 = 3;
 /// Bytes before a banded result's section table.
-const BAND_HEAD: usize = 8 + 4 + 16 + 8 + 32 + 8 + 4;
+const BAND_HEAD: usize = 8 + 4 + 16 + 8 + 32 + 8 + 4 + 4;
+/// Bytes of one entry of the section table.
+const BAND_ENTRY: usize = 4 + 8 + 4;
 
 /// A task result as a coordinator stores it: laid out so that a merge holding only some bands
-/// (rows of tiles) of the frame reads only what lands there.
+/// (rows of tiles) of the frame reads only what lands there, each part with its checksum, so a
+/// record damaged on disk is found when it is read (and its task rendered again).
 ///
 /// ```text
 /// magic "OMISBAND", version u32, tile x0 y0 x1 y1 u32, samples s0 s1 u32, stats 4 x u64
-/// own length u64, sections n u32, then n x (band u32, length u64), in band order
+/// own length u64, own CRC-32 u32, sections n u32, then n x (band u32, length u64, CRC-32 u32),
+/// in band order, then the CRC-32 of the header and table, u32
 /// own part: the tile result (OMISTILE) without its splats and records
 /// per section: splats, then records (the tile result's lists) that land in its band
 /// ```
@@ -616,14 +647,18 @@ pub struct BandedIndex {
     pub stats: RayStats,
     /// Byte range of the own part in the file.
     pub own: std::ops::Range<u64>,
+    /// Checksum (CRC-32) of the own part.
+    pub own_crc: u32,
     /// Band and byte range of each section, in band order.
     pub sections: Vec<(u32, std::ops::Range<u64>)>,
+    /// Checksum (CRC-32) of each section, in the order of `sections`.
+    pub section_crcs: Vec<u32>,
 }
 
 impl BandedIndex {
-    /// Reads the header and section table from `r` (positioned at the start of a file of
-    /// `file_len` bytes), checking that every part lies within the file.
-    pub fn read(r: &mut impl std::io::Read, file_len: u64) -> Result<BandedIndex, WireError> {
+    /// Reads the header and section table from `r` (positioned at the start of a record of
+    /// `len` bytes), checking its checksum and that the parts fill the record exactly.
+    pub fn read(r: &mut impl std::io::Read, len: u64) -> Result<BandedIndex, WireError> {
         let io = |e: std::io::Error| WireError(format!("banded result header: {e}"));
         let mut head = [0u8; BAND_HEAD];
         r.read_exact(&mut head).map_err(io)?;
@@ -633,17 +668,22 @@ impl BandedIndex {
         let samples = h.u32()?..h.u32()?;
         let stats = h.stats()?;
         let own_len = h.u64()?;
+        let own_crc = h.u32()?;
         let n = h.u32()? as u64;
-        if n.saturating_mul(12) > file_len {
-            return Err(WireError(format!("{n} sections exceed the file")));
+        if n.saturating_mul(BAND_ENTRY as u64) > len {
+            return Err(WireError(format!("{n} sections exceed the record")));
         }
-        let mut table = vec![0u8; n as usize * 12];
+        let mut table = vec![0u8; n as usize * BAND_ENTRY + 4];
         r.read_exact(&mut table).map_err(io)?;
+        let mut crc = crc32fast::Hasher::new();
+        crc.update(&head);
+        crc.update(&table[..table.len() - 4]);
         let mut t = Reader { b: &table, at: 0 };
         let mut at = BAND_HEAD as u64 + table.len() as u64;
         let own = at..at.saturating_add(own_len);
         at = own.end;
         let mut sections = Vec::with_capacity(n as usize);
+        let mut section_crcs = Vec::with_capacity(n as usize);
         let mut last = None;
         for _ in 0..n {
             let band = t.u32()?;
@@ -652,12 +692,18 @@ impl BandedIndex {
             }
             last = Some(band);
             let len = t.u64()?;
+            section_crcs.push(t.u32()?);
             sections.push((band, at..at.saturating_add(len)));
             at = at.saturating_add(len);
         }
-        if at != file_len {
+        if t.u32()? != crc.finalize() {
+            return Err(WireError(
+                "banded result header: checksum mismatch (damaged)".into(),
+            ));
+        }
+        if at != len {
             return Err(WireError(format!(
-                "banded result parts end at byte {at}, the file has {file_len}"
+                "banded result parts end at byte {at}, the record has {len}"
             )));
         }
         Ok(BandedIndex {
@@ -665,8 +711,33 @@ impl BandedIndex {
             samples,
             stats,
             own,
+            own_crc,
             sections,
+            section_crcs,
         })
+    }
+
+    /// The same index for the record stored at byte `base` of a file (every range moved).
+    pub fn at(mut self, base: u64) -> BandedIndex {
+        let shift = |r: &mut std::ops::Range<u64>| {
+            *r = r.start.saturating_add(base)..r.end.saturating_add(base)
+        };
+        shift(&mut self.own);
+        for (_, r) in &mut self.sections {
+            shift(r);
+        }
+        self
+    }
+
+    /// Checks the bytes of the own part against its checksum.
+    pub fn check_own(&self, bytes: &[u8]) -> Result<(), WireError> {
+        check_crc(bytes, self.own_crc, "own part")
+    }
+
+    /// Checks the bytes of section `k` (of `sections`) against its checksum.
+    pub fn check_section(&self, k: usize, bytes: &[u8]) -> Result<(), WireError> {
+        let want = self.section_crcs.get(k).copied().unwrap_or(0);
+        check_crc(bytes, want, "section")
     }
 
     /// The byte range holding the sections of `bands` (contiguous: sections are in band order),
@@ -680,6 +751,15 @@ impl BandedIndex {
         let end = inside.next_back().unwrap_or(first).1.end;
         Some(first.1.start..end)
     }
+}
+
+fn check_crc(bytes: &[u8], want: u32, what: &str) -> Result<(), WireError> {
+    if crc32fast::hash(bytes) != want {
+        return Err(WireError(format!(
+            "banded result {what}: checksum mismatch (damaged)"
+        )));
+    }
+    Ok(())
 }
 
 /// Lays a decoded, validated task result out for band-wise merging (see `BandedIndex`).
@@ -703,7 +783,8 @@ pub fn encode_banded(
         })
         .collect();
     let body: usize = own.len() + sections.iter().map(|(_, s)| s.len()).sum::<usize>();
-    let mut w = Writer::new(Vec::with_capacity(BAND_HEAD + sections.len() * 12 + body));
+    let table = sections.len() * BAND_ENTRY + 4;
+    let mut w = Writer::new(Vec::with_capacity(BAND_HEAD + table + body));
     w.bytes(BAND_MAGIC);
     w.u32(BAND_VERSION);
     let t = &film.tile;
@@ -712,11 +793,15 @@ pub fn encode_banded(
     }
     w.stats(&film.stats);
     w.u64(own.len() as u64);
+    w.u32(crc32fast::hash(&own));
     w.u32(sections.len() as u32);
     for (b, s) in &sections {
         w.u32(*b as u32);
         w.u64(s.len() as u64);
+        w.u32(crc32fast::hash(s));
     }
+    let head_crc = crc32fast::hash(&w.out);
+    w.u32(head_crc);
     w.bytes(&own);
     for (_, s) in &sections {
         w.bytes(s);

@@ -12,7 +12,7 @@ use crate::film::wire::{self, BandedIndex, TileCheckpoint};
 use crate::film::{BandGroup, FilmTile, RayStats, Routed, Tile, TileFilm, band_bytes, band_groups};
 use crate::film::{Image, exr_io, metrics, plot, png};
 use crate::job::Resolved;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -227,7 +227,7 @@ impl From<std::io::Error> for MergeError {
 struct PassResult {
     /// Its tile (its place in the merge order).
     tile: usize,
-    path: PathBuf,
+    /// Its index, with byte ranges in the pass's result log.
     index: BandedIndex,
 }
 
@@ -240,14 +240,75 @@ fn read_range(f: &mut std::fs::File, range: &std::ops::Range<u64>) -> std::io::R
     Ok(buf)
 }
 
-/// The index of a stored result.
-fn read_index(path: &Path) -> Result<BandedIndex, String> {
-    let mut f = std::fs::File::open(path).map_err(|e| e.to_string())?;
-    let len = f.metadata().map_err(|e| e.to_string())?.len();
-    BandedIndex::read(&mut std::io::BufReader::new(&mut f), len).map_err(|e| e.to_string())
+/// The index of the result stored at `stored` of an open result log (of `log_len` bytes).
+fn read_index(
+    log: &mut std::fs::File,
+    log_len: u64,
+    stored: Option<std::ops::Range<u64>>,
+) -> Result<BandedIndex, String> {
+    use std::io::{Read, Seek, SeekFrom};
+    let stored = stored.ok_or("no stored result recorded")?;
+    if stored.end > log_len || stored.start > stored.end {
+        return Err(format!(
+            "stored result at bytes {stored:?} of a log of {log_len}"
+        ));
+    }
+    log.seek(SeekFrom::Start(stored.start))
+        .map_err(|e| e.to_string())?;
+    let len = stored.end - stored.start;
+    let mut r = std::io::BufReader::new(log.take(len));
+    Ok(BandedIndex::read(&mut r, len)
+        .map_err(|e| e.to_string())?
+        .at(stored.start))
 }
 
-/// The accumulators of tile `t` of a job that has merged `passes` passes.
+/// Where the checkpoint of tile `t` holding `n` passes lies: its band's file, the byte offset
+/// and the length. Each tile has two slots of the length of a full tile's checkpoint, side by
+/// side in the band's file, written in turn (`n % 2`): a write torn by a crash leaves the
+/// previous pass in the other slot. The files are made once per job and rewritten in place.
+fn checkpoint_slot(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    t: usize,
+    n: u32,
+) -> (std::path::PathBuf, u64, u64) {
+    let grid = r.grid();
+    let layout = r.film_layout();
+    let columns = grid.columns() as usize;
+    let full = TileCheckpoint::encoded_len(grid.size as usize * grid.size as usize, &layout);
+    let len = TileCheckpoint::encoded_len(grid.tile(t).pixels(), &layout);
+    let slot = 2 * (t % columns) as u64 + (n % 2) as u64;
+    (
+        app.paths.band_checkpoints(job, (t / columns) as u32),
+        slot * full,
+        len,
+    )
+}
+
+/// Writes the checkpoint of `tile` (tile `t` of the frame) holding `n` passes into its slot.
+fn write_tile(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    t: usize,
+    tile: &FilmTile,
+    n: u32,
+) -> std::io::Result<()> {
+    let (path, at, _) = checkpoint_slot(app, job, r, t, n);
+    // Made durable all at once before the pass is recorded (`sync_tiles`) on Linux.
+    store::write_at(
+        &path,
+        at,
+        &TileCheckpoint::encode_parts(tile, n),
+        !cfg!(target_os = "linux"),
+    )
+}
+
+/// The accumulators of tile `t` of a job that has merged `passes` passes: the tile's checkpoint
+/// holding `passes + 1` passes when a merge interrupted by a restart wrote it already, else the
+/// one holding `passes`. A slot whose checksum fails (a write torn by a crash) or that was never
+/// written is passed over.
 fn load_tile(
     app: &App,
     job: &str,
@@ -255,17 +316,43 @@ fn load_tile(
     t: usize,
     passes: u32,
 ) -> Result<TileCheckpoint, String> {
+    use std::io::{Read, Seek, SeekFrom};
     let grid = r.grid();
-    let path = app.paths.tile_checkpoint(job, t as u32);
-    match std::fs::read(&path) {
-        Ok(bytes) => TileCheckpoint::decode(&bytes, grid.tile(t), &r.film_layout())
-            .map_err(|e| format!("tile checkpoint {t}: {e}")),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound && passes == 0 => Ok(TileCheckpoint {
-            tile: FilmTile::new(grid.tile(t), &r.film_layout()),
-            passes: 0,
-        }),
-        Err(e) => Err(format!("tile checkpoint {t}: {e}")),
+    let layout = r.film_layout();
+    let read = |n: u32| -> Result<Option<TileCheckpoint>, String> {
+        let (path, at, len) = checkpoint_slot(app, job, r, t, n);
+        let mut f = match std::fs::File::open(&path) {
+            Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(format!("tile checkpoint {t}: {e}")),
+        };
+        let mut bytes = vec![0u8; len as usize];
+        f.seek(SeekFrom::Start(at))
+            .map_err(|e| format!("tile checkpoint {t}: {e}"))?;
+        match f.read_exact(&mut bytes) {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(None),
+            Err(e) => return Err(format!("tile checkpoint {t}: {e}")),
+        }
+        Ok(TileCheckpoint::decode(&bytes, grid.tile(t), &layout)
+            .ok()
+            .filter(|ck| ck.passes == n))
+    };
+    if let Some(ck) = read(passes + 1)? {
+        return Ok(ck);
     }
+    if let Some(ck) = read(passes)? {
+        return Ok(ck);
+    }
+    if passes == 0 {
+        return Ok(TileCheckpoint {
+            tile: FilmTile::new(grid.tile(t), &layout),
+            passes: 0,
+        });
+    }
+    Err(format!(
+        "tile checkpoint {t}: no valid checkpoint holding {passes} passes"
+    ))
 }
 
 /// Light paths traced for the frame after `spp` samples per pixel (N_L of the optimal-MIS
@@ -281,6 +368,8 @@ struct PassMerge<'a> {
     job: &'a str,
     r: &'a Resolved,
     pass: u32,
+    /// The pass's result log and the accepted results in it.
+    log: &'a Path,
     results: &'a [PassResult],
     /// Samples per pixel once the pass is merged.
     spp: u32,
@@ -300,6 +389,7 @@ fn merge_group(
         job,
         r,
         pass,
+        log,
         results,
         spp,
         all_layers,
@@ -328,18 +418,14 @@ fn merge_group(
             if !own_needed && span.is_none() {
                 continue;
             }
-            let parts = read_parts(r, res, own_needed, span, &bands)
+            let parts = read_parts(r, log, res, own_needed, span, &bands)
                 .map_err(|e| MergeError::Result(res.tile, e))?;
             group.add_task(&grid, res.tile, parts.own.as_ref(), &parts.sections);
         }
         for (k, tile) in group.tiles.iter().enumerate() {
             if group.open[k] {
-                // Made durable all at once before the pass is recorded (`sync_tiles`).
-                store::write_replacing(
-                    &app.paths.tile_checkpoint(job, (first + k) as u32),
-                    &TileCheckpoint::encode_parts(tile, pass + 1),
-                    !cfg!(target_os = "linux"),
-                )?;
+                // Into the slot that does not hold the previous pass.
+                write_tile(app, job, r, first + k, tile, pass + 1)?;
             }
         }
     }
@@ -352,10 +438,12 @@ struct ResultParts {
     sections: Vec<(usize, Routed)>,
 }
 
-/// What a band group needs of one stored result: its own pixels (when `own_needed`) and its
-/// sections of `bands` (the byte range `span` holds them).
+/// What a band group needs of one stored result in `log`: its own pixels (when `own_needed`)
+/// and its sections of `bands` (the byte range `span` holds them), each checked against its
+/// checksum.
 fn read_parts(
     r: &Resolved,
+    log: &Path,
     res: &PassResult,
     own_needed: bool,
     span: Option<std::ops::Range<u64>>,
@@ -363,9 +451,10 @@ fn read_parts(
 ) -> Result<ResultParts, String> {
     let layout = r.film_layout();
     let grid = r.grid();
-    let mut f = std::fs::File::open(&res.path).map_err(|e| e.to_string())?;
+    let mut f = std::fs::File::open(log).map_err(|e| e.to_string())?;
     let own = if own_needed {
         let bytes = read_range(&mut f, &res.index.own).map_err(|e| e.to_string())?;
+        res.index.check_own(&bytes).map_err(|e| e.to_string())?;
         let (film, _) =
             TileFilm::decode(&bytes, r.width, r.height, &layout).map_err(|e| e.to_string())?;
         if film.tile != grid.tile(res.tile) {
@@ -378,11 +467,14 @@ fn read_parts(
     let mut sections = Vec::new();
     if let Some(span) = span {
         let bytes = read_range(&mut f, &span).map_err(|e| e.to_string())?;
-        for (b, range) in &res.index.sections {
+        for (k, (b, range)) in res.index.sections.iter().enumerate() {
             let b = *b as usize;
             if bands.contains(&b) {
                 let part =
                     &bytes[(range.start - span.start) as usize..(range.end - span.start) as usize];
+                res.index
+                    .check_section(k, part)
+                    .map_err(|e| e.to_string())?;
                 let routed =
                     wire::decode_section(part, b, &grid, &layout).map_err(|e| e.to_string())?;
                 sections.push((b, routed));
@@ -504,20 +596,29 @@ fn merge_pass(
     // tile is touched.
     let mut results = Vec::with_capacity(tasks.len());
     let mut stats = RayStats::default();
+    let log = app.paths.result_log(&job.id, pass);
+    let mut f = std::fs::File::open(&log).ok();
+    let log_len = f
+        .as_ref()
+        .and_then(|f| f.metadata().ok())
+        .map_or(0, |m| m.len());
     for t in tasks {
-        let path = app.paths.result(&job.id, pass, t.tile, t.attempt);
-        match read_index(&path) {
+        let index = match f.as_mut() {
+            Some(f) => read_index(f, log_len, t.result.clone()),
+            None => Err("the pass has no result log".to_string()),
+        };
+        match index {
             Ok(index) => {
                 stats.add(&index.stats);
                 results.push(PassResult {
                     tile: t.tile as usize,
-                    path,
                     index,
                 });
             }
             Err(e) => return requeue(app, job, pass, t, &e),
         }
     }
+    drop(f);
     let spp_done = tasks.first().map_or(0, |t| t.s1);
     // The last pass of a job with a sample count writes the final EXR at once.
     let last = r.spp.is_some() && r.pass_range(pass + 1).is_none();
@@ -526,6 +627,7 @@ fn merge_pass(
         job: &job.id,
         r,
         pass,
+        log: &log,
         results: &results,
         spp: spp_done,
         all_layers: last,

@@ -113,6 +113,8 @@ pub(crate) struct App {
     /// Uploaded results decoded and stored at once: their working memory stays bounded
     /// however many workers upload together.
     pub result_slots: tokio::sync::Semaphore,
+    /// Held while a result is appended to its pass's result log (one append at a time).
+    pub result_log: Mutex<()>,
 }
 
 impl App {
@@ -218,6 +220,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
         result_slots: tokio::sync::Semaphore::new(
             std::thread::available_parallelism().map_or(2, |n| n.get().max(2)),
         ),
+        result_log: Mutex::new(()),
     });
     if cfg.client_token.is_none() && cfg.worker_token.is_none() {
         tracing::warn!("no tokens given: serving {addr} (loopback only) without authentication");

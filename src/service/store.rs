@@ -34,18 +34,19 @@ impl Paths {
     pub fn pass_dir(&self, id: &str, pass: u32) -> PathBuf {
         self.job(id).join(format!("pass-{pass:06}"))
     }
-    /// The uploaded result of one attempt of a task.
-    pub fn result(&self, id: &str, pass: u32, tile: u32, attempt: u32) -> PathBuf {
-        self.pass_dir(id, pass)
-            .join(format!("tile-{tile:06}.a{attempt}.bin"))
+    /// The uploaded results of one pass, appended one after the other (the store records
+    /// where the accepted attempt of each task lies).
+    pub fn result_log(&self, id: &str, pass: u32) -> PathBuf {
+        self.pass_dir(id, pass).join("results.log")
     }
     /// The folder of a job's tile checkpoints.
     pub fn tiles_dir(&self, id: &str) -> PathBuf {
         self.job(id).join("tiles")
     }
-    /// The merged accumulators of one tile of a job.
-    pub fn tile_checkpoint(&self, id: &str, tile: u32) -> PathBuf {
-        self.tiles_dir(id).join(format!("tile-{tile:06}.acc"))
+    /// The merged accumulators of the tiles of one band (row of tiles) of a job: two slots per
+    /// tile, rewritten in place (`jobs::checkpoint_slot` says where).
+    pub fn band_checkpoints(&self, id: &str, band: u32) -> PathBuf {
+        self.tiles_dir(id).join(format!("band-{band:06}.acc"))
     }
     pub fn output(&self, id: &str, name: &str) -> PathBuf {
         self.job(id).join(name)
@@ -82,6 +83,65 @@ pub(crate) fn write_replacing(path: &Path, bytes: &[u8], durable: bool) -> std::
         }
     }
     std::fs::rename(&tmp, path)
+}
+
+/// Appends `bytes` to the file at `path` (created with its folder when missing) and returns
+/// where they lie in it; not fsync'd (a record damaged by a power cut fails its checksums when
+/// merged, and its task is rendered again). Appends to one file must not run at once.
+pub(crate) fn append(path: &Path, bytes: &[u8]) -> std::io::Result<std::ops::Range<u64>> {
+    use std::io::Write;
+    let open = || {
+        std::fs::OpenOptions::new()
+            .append(true)
+            .create(true)
+            .open(path)
+    };
+    let mut f = match open() {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            if let Some(dir) = path.parent() {
+                std::fs::create_dir_all(dir)?;
+            }
+            open()?
+        }
+        f => f?,
+    };
+    let at = f.metadata()?.len();
+    if let Err(e) = f.write_all(bytes) {
+        // Leave no partial record for the next append to follow.
+        let _ = f.set_len(at);
+        return Err(e);
+    }
+    Ok(at..at + bytes.len() as u64)
+}
+
+/// Overwrites bytes `at..` of the file at `path` with `bytes` in place (the file is created
+/// with its folder when missing; no new file or rename once it exists), fsync'd when `durable`.
+/// A crash in the middle leaves them torn: only for what carries a checksum and has a second
+/// copy (the tile checkpoints' two slots).
+pub(crate) fn write_at(path: &Path, at: u64, bytes: &[u8], durable: bool) -> std::io::Result<()> {
+    use std::io::{Seek, SeekFrom, Write};
+    let open = || {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(path)
+    };
+    let mut f = match open() {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            if let Some(dir) = path.parent() {
+                std::fs::create_dir_all(dir)?;
+            }
+            open()?
+        }
+        f => f?,
+    };
+    f.seek(SeekFrom::Start(at))?;
+    f.write_all(bytes)?;
+    if durable {
+        f.sync_all()?;
+    }
+    Ok(())
 }
 
 /// A job as stored.
@@ -121,6 +181,8 @@ pub(crate) struct TaskRow {
     pub state: TaskState,
     pub attempt: u32,
     pub worker_id: Option<String>,
+    /// Where the accepted result lies in its pass's result log (done tasks).
+    pub result: Option<std::ops::Range<u64>>,
 }
 
 /// A recorded job event.
@@ -177,6 +239,8 @@ CREATE TABLE IF NOT EXISTS tasks (
   lease_expires REAL,
   failures INTEGER NOT NULL DEFAULT 0,
   last_error TEXT,
+  result_at INTEGER,
+  result_len INTEGER,
   UNIQUE (job_id, pass, tile)
 );
 CREATE INDEX IF NOT EXISTS tasks_state ON tasks (state, job_id, pass, tile);
@@ -212,7 +276,8 @@ const JOB_COLS: &str = "id, name, state, error, settings, resolved, scene_id, sc
     reference, created_at, started_at, finished_at, passes_done, spp_done, samples, rays, \
     non_finite, accum_bytes, result_bytes";
 
-const TASK_COLS: &str = "id, job_id, pass, tile, s0, s1, state, attempt, worker_id";
+const TASK_COLS: &str =
+    "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, result_at, result_len";
 
 fn job_row(r: &rusqlite::Row) -> rusqlite::Result<JobRow> {
     Ok(JobRow {
@@ -249,6 +314,10 @@ fn task_row(r: &rusqlite::Row) -> rusqlite::Result<TaskRow> {
         state: r.get(6)?,
         attempt: r.get(7)?,
         worker_id: r.get(8)?,
+        result: match (r.get::<_, Option<i64>>(9)?, r.get::<_, Option<i64>>(10)?) {
+            (Some(at), Some(len)) if at >= 0 && len >= 0 => Some(at as u64..(at + len) as u64),
+            _ => None,
+        },
     })
 }
 
@@ -346,9 +415,16 @@ pub(crate) trait JobStore: Send {
     fn lease(&self, worker: &str, lease_s: f64) -> StoreResult<Option<TaskRow>>;
     /// Extends a lease; false when the task is no longer this worker's attempt.
     fn extend(&self, task_id: i64, attempt: u32, worker: &str, lease_s: f64) -> StoreResult<bool>;
-    /// Marks the task done if it is still this worker's current attempt.
-    fn complete(&self, task_id: i64, attempt: u32, worker: &str, bytes: usize)
-    -> StoreResult<bool>;
+    /// Marks the task done if it is still this worker's current attempt, its result (`bytes`
+    /// uploaded) stored at `stored` of its pass's result log.
+    fn complete(
+        &self,
+        task_id: i64,
+        attempt: u32,
+        worker: &str,
+        bytes: usize,
+        stored: std::ops::Range<u64>,
+    ) -> StoreResult<bool>;
     /// Records a failed attempt and requeues the task; returns the failures so far, or None when
     /// the attempt was not current.
     fn fail(
@@ -389,6 +465,17 @@ impl SqliteStore {
         let conn = Connection::open(path)?;
         conn.busy_timeout(std::time::Duration::from_secs(10))?;
         conn.execute_batch(SCHEMA)?;
+        // A data folder from before the result logs: its tasks gain the columns (a done task
+        // without them is rendered again).
+        if conn
+            .prepare("SELECT result_at, result_len FROM tasks LIMIT 0")
+            .is_err()
+        {
+            conn.execute_batch(
+                "ALTER TABLE tasks ADD COLUMN result_at INTEGER; \
+                 ALTER TABLE tasks ADD COLUMN result_len INTEGER;",
+            )?;
+        }
         Ok(SqliteStore { conn })
     }
 }
@@ -668,12 +755,21 @@ impl JobStore for SqliteStore {
         attempt: u32,
         worker: &str,
         bytes: usize,
+        stored: std::ops::Range<u64>,
     ) -> StoreResult<bool> {
         let tx = self.conn.unchecked_transaction()?;
         let n = tx.execute(
-            "UPDATE tasks SET state = ?4, lease_expires = NULL WHERE id = ?1 AND attempt = ?2 \
-             AND worker_id = ?3 AND state = ?5",
-            params![task_id, attempt, worker, T_DONE, T_LEASED],
+            "UPDATE tasks SET state = ?4, lease_expires = NULL, result_at = ?6, result_len = ?7 \
+             WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 AND state = ?5",
+            params![
+                task_id,
+                attempt,
+                worker,
+                T_DONE,
+                T_LEASED,
+                stored.start as i64,
+                (stored.end - stored.start) as i64
+            ],
         )?;
         if n == 1 {
             tx.execute(

@@ -251,16 +251,16 @@ pub(crate) async fn upload_result(
         .acquire()
         .await
         .map_err(ApiError::internal)?;
-    let checked = tokio::task::spawn_blocking(move || -> ApiResult<Option<String>> {
+    let checked = tokio::task::spawn_blocking(move || -> ApiResult<Result<_, String>> {
         let r = jobs::resolved_of(&job).map_err(ApiError::internal)?;
         let layout = r.film_layout();
         let tile = jobs::tile_rect(&r, t.tile);
         let (film, range) = match TileFilm::decode(&body, r.width, r.height, &layout) {
-            Err(e) => return Ok(Some(e.to_string())),
+            Err(e) => return Ok(Err(e.to_string())),
             Ok(x) => x,
         };
         if Some(film.tile) != tile || range != (t.s0..t.s1) {
-            return Ok(Some(format!(
+            return Ok(Err(format!(
                 "result is for tile {:?} samples {range:?}, the task is tile {tile:?} samples {}..{}",
                 film.tile, t.s0, t.s1
             )));
@@ -268,28 +268,29 @@ pub(crate) async fn upload_result(
         drop(body);
         // Stored laid out by band, so that the merge of a pass reads each band's part alone.
         let banded = wire::encode_banded(film, range, &r.grid());
-        let path = a.paths.result(&t.job_id, t.pass, t.tile, t.attempt);
-        store::write_replacing(&path, &banded, false).map_err(ApiError::internal)?;
-        Ok(None)
+        let path = a.paths.result_log(&t.job_id, t.pass);
+        let _log = a.result_log.lock().unwrap_or_else(|e| e.into_inner());
+        let stored = store::append(&path, &banded).map_err(ApiError::internal)?;
+        Ok(Ok(stored))
     })
     .await
     .map_err(ApiError::internal)??;
-    if let Some(problem) = checked {
-        let _ = jobs::task_failed(&app, &task, &worker, &format!("invalid result: {problem}"));
-        return Err(refused(ApiError::field(
-            StatusCode::BAD_REQUEST,
-            "body",
-            problem,
-        )));
-    }
-    let accepted = app.db().complete(task.id, task.attempt, &worker, n)?;
+    let stored = match checked {
+        Ok(stored) => stored,
+        Err(problem) => {
+            let _ = jobs::task_failed(&app, &task, &worker, &format!("invalid result: {problem}"));
+            return Err(refused(ApiError::field(
+                StatusCode::BAD_REQUEST,
+                "body",
+                problem,
+            )));
+        }
+    };
+    let accepted = app
+        .db()
+        .complete(task.id, task.attempt, &worker, n, stored)?;
     if !accepted {
-        let _ = std::fs::remove_file(app.paths.result(
-            &task.job_id,
-            task.pass,
-            task.tile,
-            task.attempt,
-        ));
+        // Its record stays in the log, which nothing points to; the log goes with its pass.
         return Err(refused(ApiError::field(
             StatusCode::CONFLICT,
             "attempt",
