@@ -67,7 +67,7 @@ enum Method {
 impl Method {
     fn name(&self) -> String {
         match self {
-            Method::Bdpt(m) => format!("{m:?}").to_lowercase(),
+            Method::Bdpt(m) => m.name().into(),
             Method::Pt => "pt".into(),
         }
     }

@@ -164,6 +164,7 @@ impl Resolved {
         while let Some(range) = self.pass_range(p) {
             let tasks: Vec<_> = tiles.iter().map(|&t| (t, range.clone())).collect();
             run_tasks(scene, &self.render, &tasks, &mut film, &mut stats, progress);
+            film.end_pass();
             spp = range.end;
             p += 1;
             if self
