@@ -37,8 +37,10 @@
 //! into it: a task's own pixels (its A, whose row sums are sum_X W, its sample count S_k and its
 //! hit counts h) and the light-tracing records other tasks route there (each its W). The first
 //! term is the pass's part of b, already accumulated. So x is applied where a pass is merged
-//! into the film (`Progressive::add_own`, `add_record`), solved again from the totals once the
-//! pass is complete (`end_pass`), and workers never see it: 0 bytes are shipped.
+//! into the film (`Progressive::add_own`, `add_record`), solved again from the totals once a
+//! pass is complete and the samples have doubled since the last solve (`end_pass`: O(log spp)
+//! solves, each as costly as the direct estimator's one), and workers never see it: 0 bytes
+//! are shipped.
 //!
 //! **Combining passes.** Pass k has weight S_k / S, fixed in advance by its sample count, so the
 //! sum stays unbiased and is one accumulator per pixel and depth: F = (sum b + q) / S, with q the
@@ -58,6 +60,8 @@ pub struct Progressive {
     pub pixels: usize,
     /// Per pixel: for each depth d, (d + 2) x 3 values of x (row-major), then d_opt x 3 of q.
     pub data: Vec<f64>,
+    /// Samples per pixel when x was last solved (0: never, x = 0).
+    pub solved_at: u32,
 }
 
 /// Offset of depth d's x within a pixel's block: 3 sum_{d' < d} (d' + 2).
@@ -74,6 +78,7 @@ impl Progressive {
             d_opt,
             pixels,
             data: vec![0.0; pixels * Progressive::values_per_pixel(d_opt)],
+            solved_at: 0,
         }
     }
 
@@ -162,10 +167,18 @@ impl Progressive {
         }
     }
 
-    /// After a whole pass is merged: the next pass's x from the totals `acc` (pixel i has
-    /// `counts[i]` samples, `light_paths` light paths for the frame), regularised with `kappa`.
+    /// After a whole pass is merged: the next passes' x from the totals `acc` (pixel i has
+    /// `counts[i]` samples, `light_paths` light paths for the frame), regularised with `kappa`,
+    /// once the samples have doubled since the last solve (so O(log spp) solves; x from any
+    /// earlier passes keeps the estimate unbiased). Every pass covers every pixel, so the rule
+    /// sees the same counts in every tile and the frame.
     pub fn end_pass(&mut self, acc: &OptimalAccum, counts: &[u32], light_paths: u64, kappa: f64) {
         use rayon::prelude::*;
+        let spp = counts.iter().copied().max().unwrap_or(0);
+        if spp == 0 || (self.solved_at > 0 && spp < self.solved_at.saturating_mul(2)) {
+            return;
+        }
+        self.solved_at = spp;
         let st = self.stride();
         let d_opt = self.d_opt.min(acc.layout.d_opt);
         let xs_len = x_offset(self.d_opt + 1);
@@ -239,6 +252,20 @@ mod tests {
         r.data[..9].copy_from_slice(&p.data[..9]);
         r.add_record(0, 1, &[0.0, 0.5, 0.5]);
         assert!((r.q(0, 1)[1] - (0.05 - (-0.1 + 0.025))).abs() < 1e-12);
+    }
+
+    #[test]
+    fn weights_are_solved_again_once_the_samples_double() {
+        let mut acc = OptimalAccum::new(Layout::new(1), 1);
+        acc.add_sample(0, 1, &[0.5, 0.5, 0.0], [1.0; 3]);
+        let mut p = Progressive::new(1, 1);
+        let mut solved = Vec::new();
+        for spp in [1, 3, 5, 6, 11, 12] {
+            p.end_pass(&acc, &[spp], 4 * spp as u64, 1.0);
+            solved.push(p.solved_at);
+        }
+        assert_eq!(solved, [1, 3, 3, 6, 6, 12]);
+        assert!(p.data[..9].iter().any(|&v| v != 0.0), "x was solved");
     }
 
     #[test]
