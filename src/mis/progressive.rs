@@ -9,7 +9,7 @@
 //!
 //!   w_i(X) = alpha_i p_i / f + (n_i p_i / P) (1 - sum_k alpha_k p_k / f),
 //!
-//! give the multi-sample estimator sum_i (1 / n_i) sum_j w_i f / p_i (Veach 1997 eq. 9.4)
+//! give the multi-sample estimator sum_i (1 / n_i) sum_j w_i f / p_i (Veach 1997, §9.2)
 //!
 //!   F_alpha = sum_i alpha_i + sum_X (f - sum_k alpha_k p_k) / P
 //!           = F_bal + sum_k alpha_k D_k,   D_k = 1 - (1 / n_k) sum_X W_k(X) = 1 - (A 1)_k / n_k,
@@ -18,13 +18,14 @@
 //! accumulates (A 1 = sum_X W since each W sums to 1). The product w_i f is defined for
 //! f(X) = 0 too, so zero-contribution samples need no special case. D is zero-mean:
 //! E[sum_X W_k] = sum_i n_i E_i[n_k p_k / P] = n_k, counting, as `optimal` does (and as the
-//! direct estimator's A needs), a sample that technique k failed to make or that has no
-//! contribution as one with W = e_k (a point only k can produce), and the N_L - h light paths
-//! that did not reach the pixel as light-tracing samples with W = e_lt. Hence **for any alpha
-//! independent of the pass's samples, F_alpha is unbiased**; the optimal alpha (A alpha = b,
-//! Cailleau et al. eq. 7) minimises its variance. Pass k uses the alpha solved from the
-//! systems of passes < k (regularised with the job's kappa, `OptimalAccum::solution`); the
-//! first pass uses alpha = 0, balance.
+//! direct estimator's A needs), a sample that technique k failed to make (and the
+//! zero-contribution samples `integrator::bdpt` reports alone) as one with W = e_k, a point only
+//! k can produce, and the N_L - h light paths that did not reach the pixel as light-tracing
+//! samples with W = e_lt. Hence **for any alpha independent of the pass's samples, F_alpha is
+//! unbiased**; the optimal alpha (A alpha = b, Cailleau et al. eq. 7) minimises its variance.
+//! Pass k uses an alpha solved from the systems of passes < k (regularised with the job's kappa,
+//! `OptimalAccum::solution`); the first pass uses alpha = 0, balance. `tests/bias.rs` measures
+//! the result unbiased to 0.05 % at 1-8 spp.
 //!
 //! **What this needs.** With x the solution of `optimal`'s system (alpha_i = m_i x_i, m = 1 for
 //! camera techniques and W H for light tracing, n_i = m_i S_k for a pass of S_k samples), the
