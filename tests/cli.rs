@@ -349,7 +349,7 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
         "--spp",
         "1,8",
         "--mis",
-        "balance,optimal",
+        "balance,optimal,optimal-progressive",
         "--seeds",
         "2",
         "--threads",
@@ -371,7 +371,8 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
             .expect("results.json is JSON");
     assert_eq!(j, file, "stdout and results.json agree");
     let points = j["equal_spp"].as_array().expect("equal_spp");
-    assert_eq!(points.len(), 4, "2 spp x 2 strategies");
+    assert_eq!(points.len(), 6, "2 spp x 3 strategies");
+    assert_eq!(j["equal_time_clock"], "wall");
     let get = |m: &str, spp: u64| {
         points
             .iter()
@@ -388,7 +389,7 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
             6
         );
     }
-    for m in ["balance", "optimal"] {
+    for m in ["balance", "optimal", "optimal-progressive"] {
         // Eight times the samples: several times lower error (an unbiased estimator's relMSE
         // falls as 1/spp; a wide margin against the noise of two seeds).
         let (lo, hi) = (get(m, 8)["relmse"].as_f64(), get(m, 1)["relmse"].as_f64());
@@ -402,8 +403,17 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
             > get("balance", 1)["bytes_per_pixel"].as_u64(),
         "optimal MIS keeps per-pixel systems"
     );
+    // The progressive estimator's first pass is balance: at 1 spp it has balance's error (to
+    // the rounding of the two ways of computing the balance weights).
+    let (p1, b1) = (
+        get("optimal-progressive", 1)["relmse"]
+            .as_f64()
+            .expect("relmse"),
+        get("balance", 1)["relmse"].as_f64().expect("relmse"),
+    );
+    assert!((p1 / b1 - 1.0).abs() < 1e-3, "{p1} vs {b1}");
     let timed = j["equal_time"].as_array().expect("equal_time");
-    assert_eq!(timed.len(), 2);
+    assert_eq!(timed.len(), 3);
     for p in timed {
         assert!(p["spp"].as_u64().expect("spp") >= 1, "{p}");
         let wall = p["seconds"].as_f64().expect("seconds");
@@ -429,6 +439,47 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
         err.contains("optimal") && err.contains("equal time"),
         "{err}"
     );
+    // --cpu-time: the budget counts the process's CPU seconds.
+    let out = omis(&[
+        "compare",
+        "scenes/cornell-box-small-light.json",
+        "--reference",
+        s(&reference),
+        "--spp",
+        "1",
+        "--mis",
+        "balance",
+        "--seeds",
+        "1",
+        "--threads",
+        "1",
+        "--equal-time",
+        "0.3",
+        "--cpu-time",
+        "--out",
+        s(&d.join("out-cpu")),
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j = last_json(&out);
+    assert_eq!(j["equal_time_clock"], "CPU");
+    let p = &j["equal_time"][0];
+    let cpu = p["cpu_seconds"].as_f64().expect("cpu_seconds");
+    let wall = p["seconds"].as_f64().expect("seconds");
+    assert!(cpu >= 0.3 && wall > 0.0, "{p}");
+    // The flag without the mode it sets is refused.
+    let out = omis(&[
+        "compare",
+        "scenes/cornell-box-small-light.json",
+        "--reference",
+        s(&reference),
+        "--cpu-time",
+    ]);
+    assert_one_line_error(&out, "--equal-time");
 }
 
 #[test]

@@ -340,10 +340,17 @@ fn camera_techniques_survive_a_light_tracing_count_1e13_times_larger() {
 /// frame merged task by task, whatever order the tiles are merged in.
 #[test]
 fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
+    for mis in [MisKind::Optimal, MisKind::OptimalProgressive] {
+        tile_by_tile_merge_case(mis);
+    }
+}
+
+fn tile_by_tile_merge_case(mis: MisKind) {
     use omis::film::wire::TileCheckpoint;
     use omis::film::{FilmTile, TileGrid};
     let scene = load("cornell-box-small-light.json", 24, 20);
-    let mut s = optimal(4, 5, 3);
+    let mut s = optimal(6, 5, 3);
+    s.mis = mis;
     s.strategies = true;
     s.depth_layers = true;
     let layout = s.film_layout();
@@ -354,7 +361,8 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
         make_tiles(24, 20, 8),
         "the grid is the schedule's tiling"
     );
-    let passes = [0..2, 2..4];
+    // Three passes: the progressive estimator weights the last two with solved weights.
+    let passes = [0..2, 2..4, 4..6];
     let results: Vec<Vec<TileFilm>> = passes
         .iter()
         .map(|r| {
@@ -370,10 +378,11 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
         for r in pass {
             film.merge_task(r);
         }
+        film.end_pass();
     }
     // Tile by tile, tiles in a scrambled order.
     let mut acc: Vec<FilmTile> = tiles.iter().map(|t| FilmTile::new(*t, &layout)).collect();
-    for pass in &results {
+    for (p, pass) in results.iter().enumerate() {
         let routed: Vec<_> = pass.iter().map(|r| r.route(&grid)).collect();
         for k in 0..tiles.len() {
             let dest = (k * 7 + 3) % tiles.len();
@@ -385,6 +394,7 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
                     acc[dest].merge_routed(part, 24);
                 }
             }
+            acc[dest].end_pass(24 * 20 * passes[p].end as u64, layout.kappa);
         }
     }
     // Through the per-tile checkpoint encoding, which must be exact and validated.
@@ -393,13 +403,14 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
         .map(|t| {
             let bytes = TileCheckpoint {
                 tile: t.clone(),
-                passes: 2,
+                passes: 3,
             }
             .encode();
             let len = TileCheckpoint::encoded_len(t.tile.pixels(), &layout);
             assert_eq!(bytes.len() as u64, len, "checkpoints have a fixed length");
             let back = TileCheckpoint::decode(&bytes, t.tile, &layout).expect("decodes");
-            assert_eq!(back.passes, 2);
+            assert_eq!(back.passes, 3);
+            assert_eq!(back.tile.progressive, t.progressive);
             assert!(TileCheckpoint::decode(&bytes[..bytes.len() - 1], t.tile, &layout).is_err());
             // A torn or damaged checkpoint fails its checksum.
             let mut torn = bytes.clone();
@@ -408,8 +419,17 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
             assert!(
                 TileCheckpoint::decode(&bytes, tiles[0], &layout).is_err() || t.tile == tiles[0]
             );
-            let shallower = optimal(4, 5, 2).film_layout();
-            assert!(TileCheckpoint::decode(&bytes, t.tile, &shallower).is_err());
+            let mut shallower = optimal(4, 5, 2);
+            shallower.mis = mis;
+            assert!(TileCheckpoint::decode(&bytes, t.tile, &shallower.film_layout()).is_err());
+            // A checkpoint of the other optimal estimator is refused, not misread.
+            let mut other = s.clone();
+            other.mis = if mis == MisKind::Optimal {
+                MisKind::OptimalProgressive
+            } else {
+                MisKind::Optimal
+            };
+            assert!(TileCheckpoint::decode(&bytes, t.tile, &other.film_layout()).is_err());
             back.tile
         })
         .collect();
@@ -424,9 +444,19 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
         depth2.blit(&t.depth_image(2, light_paths, layout.kappa), x, y);
         layer5.blit(&t.strategy_image(5), x, y);
     }
-    assert!(film.image() == beauty, "beauty");
-    assert!(film.depth_images()[2] == depth2, "depth 2");
-    assert!(film.strategy_images()[5].1 == layer5, "strategy layer 5");
+    let q_set = film
+        .acc
+        .progressive
+        .as_ref()
+        .map(|p| p.data.iter().any(|&v| v != 0.0));
+    let expect = (mis == MisKind::OptimalProgressive).then_some(true);
+    assert_eq!(q_set, expect, "{mis:?}: progressive state kept and used");
+    assert!(film.image() == beauty, "{mis:?}: beauty");
+    assert!(film.depth_images()[2] == depth2, "{mis:?}: depth 2");
+    assert!(
+        film.strategy_images()[5].1 == layer5,
+        "{mis:?}: strategy layer 5"
+    );
     // Routing keeps everything and sends each record to the tile that holds its pixel.
     for r in &results[1] {
         let routed = r.route(&grid);
@@ -446,17 +476,23 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
 /// results are refused.
 #[test]
 fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
+    band_group_merge_case(MisKind::OptimalProgressive);
+    band_group_merge_case(MisKind::Optimal);
+}
+
+fn band_group_merge_case(mis: MisKind) {
     use omis::film::wire::{self, BandedIndex};
     use omis::film::{BandGroup, FilmTile, TileGrid, band_groups};
     let (w, h) = (24, 20);
     let scene = load("cornell-box-small-light.json", w, h);
-    let mut s = optimal(4, 5, 3);
+    let mut s = optimal(6, 5, 3);
+    s.mis = mis;
     s.strategies = true;
     s.depth_layers = true;
     let layout = s.film_layout();
     let grid = TileGrid::new(w, h, 8);
     let tiles = grid.tiles();
-    let passes = [0..2u32, 2..4];
+    let passes = [0..2u32, 2..4, 4..6];
     let mut film = Film::new(w, h, &layout);
     let mut stored: Vec<Vec<Vec<u8>>> = Vec::new();
     for range in &passes {
@@ -469,6 +505,7 @@ fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
                 TileFilm::decode(&r.encode(range.clone()), w, h, &layout).expect("decodes");
             pass.push(wire::encode_banded(back, got, &grid));
         }
+        film.end_pass();
         stored.push(pass);
     }
     // Groups of one band, and a budget that puts two bands in a group.
@@ -512,6 +549,7 @@ fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
                             .collect();
                         group.add_task(&grid, u, own.as_ref(), &sections);
                     }
+                    group.end_pass(w as u64 * h as u64 * passes[p].end as u64, layout.kappa);
                     for (k, t) in range.clone().enumerate() {
                         if group.open[k] {
                             done[t] += 1;
@@ -522,7 +560,7 @@ fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
             }
         }
         assert!(
-            done.iter().all(|&d| d == 2),
+            done.iter().all(|&d| d == 3),
             "each tile merged each pass once"
         );
         let light_paths = film.light_paths();
@@ -533,9 +571,23 @@ fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
             beauty.blit(&t.image(light_paths, layout.kappa), x, y);
             depth2.blit(&t.depth_image(2, light_paths, layout.kappa), x, y);
         }
-        assert!(film.image() == beauty, "beauty, budget {budget}");
-        assert!(film.depth_images()[2] == depth2, "depth 2, budget {budget}");
+        assert!(film.image() == beauty, "{mis:?}: beauty, budget {budget}");
+        assert!(
+            film.depth_images()[2] == depth2,
+            "{mis:?}: depth 2, budget {budget}"
+        );
     }
+    if mis == MisKind::Optimal {
+        damaged_results_are_refused(&stored, &grid, &layout);
+    }
+}
+
+fn damaged_results_are_refused(
+    stored: &[Vec<Vec<u8>>],
+    grid: &omis::film::TileGrid,
+    layout: &omis::film::FilmLayout,
+) {
+    use omis::film::wire::{self, BandedIndex};
     // Damage is refused: truncation, a wrong length, a section read as another band's.
     let bytes = &stored[0][3];
     let len = bytes.len() as u64;
@@ -553,8 +605,8 @@ fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
         .clone();
     let part = &bytes[r.start as usize..r.end as usize];
     let other = (b as usize + 1) % grid.rows() as usize;
-    assert!(wire::decode_section(part, other, &grid, &layout).is_err());
-    assert!(wire::decode_section(&part[..part.len() - 1], b as usize, &grid, &layout).is_err());
+    assert!(wire::decode_section(part, other, grid, layout).is_err());
+    assert!(wire::decode_section(&part[..part.len() - 1], b as usize, grid, layout).is_err());
     // Every part has its checksum; the header and table have theirs.
     assert!(index.check_section(0, part).is_ok());
     let mut flipped = part.to_vec();

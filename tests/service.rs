@@ -134,10 +134,14 @@ fn settings(spp: u32) -> Value {
 }
 
 fn submit(c: &Client, url: &str, spp: u32) -> String {
+    submit_settings(c, url, settings(spp))
+}
+
+fn submit_settings(c: &Client, url: &str, settings: Value) -> String {
     let (s, v) = post(
         c,
         &format!("{url}/v1/jobs"),
-        &json!({ "scene": { "library": "cornell-box" }, "settings": settings(spp) }),
+        &json!({ "scene": { "library": "cornell-box" }, "settings": settings }),
     );
     assert_eq!(s, 201, "{v}");
     v["id"].as_str().expect("id").to_string()
@@ -172,8 +176,12 @@ fn download_exr(c: &Client, url: &str, id: &str, dir: &Path) -> Image {
 
 /// The same job rendered in this process.
 fn in_process(spp: u32) -> Image {
-    let mut s: JobSettings = serde_json::from_value(settings(spp)).expect("settings");
-    s.spp = Some(spp);
+    in_process_settings(settings(spp))
+}
+
+/// A job of `settings` rendered in this process.
+fn in_process_settings(settings: Value) -> Image {
+    let s: JobSettings = serde_json::from_value(settings).expect("settings");
     let mut scene = Scene::load(&repo().join("scenes/cornell-box.json")).expect("scene");
     let r = s.resolve(&mut scene, &Limits::default()).expect("resolve");
     r.render_in_process(&scene, &|_| {}).image()
@@ -341,6 +349,39 @@ fn killing_the_coordinator_mid_job_resumes_without_losing_a_pass() {
     let st = wait_state(&c, &url2, &id, |s| s["state"] == "done");
     assert_eq!(st["spp_done"], 64);
     assert_equal(&download_exr(&c, &url2, &id, &dir), &in_process(64));
+}
+
+/// The progressive optimal estimator's weights are solved where the coordinator merges a pass
+/// and kept in its tile checkpoints: across a coordinator restart, the image has the bits of the
+/// in-process render (whose weights are solved the same way), and it differs from the direct
+/// estimator's.
+#[test]
+fn progressive_optimal_survives_a_coordinator_restart_with_the_in_process_bits() {
+    let dir = folder("progressive");
+    let data = dir.join("data");
+    let mut job = settings(32);
+    job["mis"] = json!("optimal-progressive");
+    let (mut server, url) = serve(&data, &["--workers", "2", "--lease-seconds", "1"]);
+    let c = http();
+    let id = submit_settings(&c, &url, job.clone());
+    let before = wait_state(&c, &url, &id, |s| {
+        s["passes_done"].as_u64().unwrap_or(0) >= 2
+    });
+    server.kill9();
+    assert!(
+        before["passes_done"].as_u64().expect("passes") < 8,
+        "the job ended before the kill"
+    );
+    std::thread::sleep(Duration::from_millis(1500));
+    let (_server2, url2) = serve(&data, &["--workers", "2", "--lease-seconds", "1"]);
+    let st = wait_state(&c, &url2, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 32);
+    let img = download_exr(&c, &url2, &id, &dir);
+    assert_equal(&img, &in_process_settings(job));
+    assert!(
+        img != in_process(32),
+        "the progressive image is the direct one"
+    );
 }
 
 /// A tile result as a worker would upload it, rendered with `seed`.

@@ -49,8 +49,12 @@ mirror! {
         /// Power heuristic, beta = 2 (Veach 1997 eq. 9.13).
         Power,
         /// Optimal weights per pixel and depth for depths 1 ..= --optimal-max-depth
-        /// (Kondapaneni et al., ACM TOG 2019), balance for depth 0 and above.
+        /// (Kondapaneni et al., ACM TOG 2019), balance for depth 0 and above: the direct
+        /// estimator (biased at low spp).
         Optimal,
+        /// The same optimal weights applied progressively: each pass uses the weights solved
+        /// from the passes before it (the first pass is balance); unbiased at any spp.
+        OptimalProgressive,
     }
 }
 

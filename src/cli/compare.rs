@@ -20,7 +20,7 @@ pub struct CompareArgs {
     /// Sample counts, comma separated.
     #[arg(long, default_value = "1,2,4,8,16,64,256", value_delimiter = ',')]
     pub spp: Vec<u32>,
-    /// MIS strategies, comma separated (balance, power, optimal).
+    /// MIS strategies, comma separated (balance, power, optimal, optimal-progressive).
     #[arg(long, default_value = "balance,power,optimal", value_delimiter = ',')]
     pub mis: Vec<MisArg>,
     /// Converged reference EXR (its resolution is the render's). Layers named depth0, depth1,
@@ -30,6 +30,10 @@ pub struct CompareArgs {
     /// Also run each strategy for this many seconds (per seed) and compare relMSE at equal time.
     #[arg(long)]
     pub equal_time: Option<f64>,
+    /// With --equal-time: count the budget in CPU seconds of this process (every thread of the
+    /// pool) instead of wall seconds, for a loaded machine where wall time measures the load.
+    #[arg(long)]
+    pub cpu_time: bool,
     /// Output folder for plots and results.json.
     #[arg(long, default_value = "compare-out")]
     pub out: PathBuf,
@@ -67,7 +71,7 @@ enum Method {
 impl Method {
     fn name(&self) -> String {
         match self {
-            Method::Bdpt(m) => format!("{m:?}").to_lowercase(),
+            Method::Bdpt(m) => m.name().into(),
             Method::Pt => "pt".into(),
         }
     }
@@ -75,8 +79,11 @@ impl Method {
 
 /// Tiles of the comparison renders.
 const TILE_SIZE: u32 = 16;
-/// Samples per task at equal spp (equal-time renders run passes of one sample).
-const PASS_SIZE: u32 = 64;
+/// Passes start at one sample and double up to this many at equal spp (the progressive
+/// estimator weights each pass with what the passes before it solved).
+const MAX_PASS_SIZE: u32 = 64;
+/// The same at equal time, where a pass past the budget is wasted.
+const MAX_TIMED_PASS_SIZE: u32 = 4;
 
 const BALANCE: Method = Method::Bdpt(MisKind::Balance);
 const OPTIMAL: Method = Method::Bdpt(MisKind::Optimal);
@@ -143,6 +150,12 @@ pub fn run(a: CompareArgs) -> Result<()> {
     }
     if a.spp.contains(&0) {
         bail!("--spp values must be >= 1");
+    }
+    if a.cpu_time && a.equal_time.is_none() {
+        bail!("--cpu-time sets the clock of --equal-time, which is missing");
+    }
+    if a.cpu_time && super::procstat::cpu_seconds(None).is_nan() {
+        bail!("--cpu-time: this system does not report the process's CPU time");
     }
     // The header first: a small file can claim a frame too large to decode.
     exr_header::check_cli(&a.reference).map_err(anyhow::Error::msg)?;
@@ -244,8 +257,11 @@ pub fn run(a: CompareArgs) -> Result<()> {
             let outs = (0..a.seeds)
                 .map(|seed| {
                     let s = settings(mis, spp, seed);
-                    let job = Resolved::fixed(&scene, &s, TILE_SIZE, PASS_SIZE);
-                    timed_render(&pool, &job, &scene)
+                    let job = Resolved {
+                        max_pass_size: Some(MAX_PASS_SIZE),
+                        ..Resolved::fixed(&scene, &s, TILE_SIZE, 1)
+                    };
+                    timed_render(&pool, &job, &scene, false)
                 })
                 .collect();
             let p = eval(mis, spp, outs)?;
@@ -269,15 +285,19 @@ pub fn run(a: CompareArgs) -> Result<()> {
             let outs: Vec<_> = (0..a.seeds)
                 .map(|seed| {
                     let s = settings(mis, 1, seed);
-                    let job = Resolved::timed(&scene, &s, TILE_SIZE, 1, t);
-                    timed_render(&pool, &job, &scene)
+                    let job = Resolved {
+                        max_pass_size: Some(MAX_TIMED_PASS_SIZE),
+                        ..Resolved::timed(&scene, &s, TILE_SIZE, 1, t)
+                    };
+                    timed_render(&pool, &job, &scene, a.cpu_time)
                 })
                 .collect();
             let spp = outs.iter().map(|o| o.0.spp).min().unwrap_or(0);
             let p = eval(mis, spp, outs)?;
             eprintln!(
-                "{:>8} equal time {t} s: {} spp, relMSE {:.4e}",
+                "{:>8} equal {} time {t} s: {} spp, relMSE {:.4e}",
                 p.method.name(),
+                clock_name(a.cpu_time),
                 p.spp,
                 p.relmse
             );
@@ -292,7 +312,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
         "reference": a.reference.display().to_string(),
         "width": reference.width, "height": reference.height,
         "max_depth": a.max_depth, "optimal_max_depth": a.optimal_max_depth, "kappa": a.kappa,
-        "seeds": a.seeds, "eps": a.eps,
+        "seeds": a.seeds, "eps": a.eps, "equal_time_clock": clock_name(a.cpu_time),
         "equal_spp": points, "equal_time": timed,
     });
     std::fs::write(
@@ -306,10 +326,28 @@ pub fn run(a: CompareArgs) -> Result<()> {
     Ok(())
 }
 
-/// Renders `job` on `pool`; returns the output and the CPU seconds it took.
-fn timed_render(pool: &rayon::ThreadPool, job: &Resolved, scene: &Scene) -> (RenderOutput, f64) {
+/// What the equal-time budget counts.
+fn clock_name(cpu_time: bool) -> &'static str {
+    if cpu_time { "CPU" } else { "wall" }
+}
+
+/// Renders `job` on `pool` (a time budget counted in CPU seconds with `cpu_time`); returns the
+/// output and the CPU seconds it took.
+fn timed_render(
+    pool: &rayon::ThreadPool,
+    job: &Resolved,
+    scene: &Scene,
+    cpu_time: bool,
+) -> (RenderOutput, f64) {
     let cpu0 = super::procstat::cpu_seconds(None);
-    let out = pool.install(|| job.render_in_process(scene, &|_| {}));
+    let out = pool.install(|| {
+        if cpu_time {
+            let clock = || super::procstat::cpu_seconds(None) - cpu0;
+            job.render_in_process_clocked(scene, &|_| {}, &clock)
+        } else {
+            job.render_in_process(scene, &|_| {})
+        }
+    });
     (out, super::procstat::cpu_seconds(None) - cpu0)
 }
 
@@ -360,8 +398,9 @@ fn print_table(points: &[Point], timed: &[Point], a: &CompareArgs) {
     if !timed.is_empty() {
         let _ = writeln!(
             out,
-            "equal time ({} s per render):",
-            a.equal_time.unwrap_or(0.0)
+            "equal time ({} {} s per render):",
+            a.equal_time.unwrap_or(0.0),
+            clock_name(a.cpu_time)
         );
         let bal = timed.iter().find(|q| q.method == BALANCE);
         for p in timed {

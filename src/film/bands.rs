@@ -64,6 +64,16 @@ impl BandGroup {
         (self.first..self.first + self.tiles.len()).contains(&t)
     }
 
+    /// Closes the pass in the tiles that took it, once every task is added (`FilmTile::end_pass`,
+    /// `light_paths` light paths traced for the frame so far).
+    pub fn end_pass(&mut self, light_paths: u64, kappa: f64) {
+        for (tile, open) in self.tiles.iter_mut().zip(&self.open) {
+            if *open {
+                tile.end_pass(light_paths, kappa);
+            }
+        }
+    }
+
     /// Adds task `task`'s parts in merge order: its own pixels (`own`, when its tile is in the
     /// group), then what it routed to each band of the group (`sections`, in band order).
     pub fn add_task(

@@ -11,7 +11,7 @@
 use super::layers::{FilmLayout, STRATEGY_LAYERS, strategy_layer_name};
 use super::{Image, LtRecords, PixelSums, Splat, Tile, TileFilm};
 use crate::geometry::Rgb;
-use crate::mis::{OptimalAccum, SolveScratch};
+use crate::mis::{OptimalAccum, Progressive, SolveScratch};
 
 /// The tiles of a frame: `size` x `size` pixels, row-major (the order tasks are merged in).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -207,6 +207,8 @@ pub struct FilmTile {
     pub depths: Vec<[f64; 3]>,
     /// Optimal-MIS systems of the tile's pixels.
     pub optimal: Option<OptimalAccum>,
+    /// The progressive estimator's state (with `optimal`, when the layout asks for it).
+    pub progressive: Option<Progressive>,
 }
 
 impl FilmTile {
@@ -224,6 +226,9 @@ impl FilmTile {
             },
             depths: vec![[0.0; 3]; n * layout.depth_layers],
             optimal: layout.optimal.clone().map(|l| OptimalAccum::new(l, n)),
+            progressive: layout
+                .progressive_layout()
+                .map(|d_opt| Progressive::new(d_opt, n)),
         }
     }
 
@@ -259,6 +264,9 @@ impl FilmTile {
                 self.sums.count[dst] += t.sums.count[src];
                 if let (Some(o), Some(to)) = (self.optimal.as_mut(), t.optimal.as_ref()) {
                     o.add_pixel(dst, to, src);
+                    if let Some(p) = self.progressive.as_mut() {
+                        p.add_own(dst, to, src, t.sums.count[src]);
+                    }
                 }
                 if nd > 0 && t.depths.len() == t.tile.pixels() * nd {
                     for k in 0..nd {
@@ -305,8 +313,24 @@ impl FilmTile {
     /// Adds the optimal-MIS light-tracing records that land in this tile, in their order.
     pub fn merge_records(&mut self, r: &LtRecords, frame_width: u32) {
         let tile = self.tile;
-        if let Some(o) = self.optimal.as_mut() {
-            r.apply(o, |p| tile.index_of(p % frame_width, p / frame_width));
+        let local = |p: u32| tile.index_of(p % frame_width, p / frame_width);
+        match (self.optimal.as_mut(), self.progressive.as_mut()) {
+            (Some(o), Some(prog)) => r.for_each(local, |i, d, w, c| {
+                o.add_sample(i, d, w, c);
+                o.add_hit(i, d);
+                prog.add_record(i, d, w);
+            }),
+            (Some(o), None) => r.apply(o, local),
+            _ => {}
+        }
+    }
+
+    /// Closes a pass once every task of it is merged: the progressive estimator solves the
+    /// weights of the next pass from the totals, with `light_paths` light paths traced for the
+    /// whole frame so far and regularisation `kappa` (nothing to do for other layouts).
+    pub fn end_pass(&mut self, light_paths: u64, kappa: f64) {
+        if let (Some(o), Some(p)) = (self.optimal.as_ref(), self.progressive.as_mut()) {
+            p.end_pass(o, &self.sums.count, light_paths, kappa);
         }
     }
 
@@ -358,7 +382,10 @@ impl FilmTile {
                         Some(d) => (d.max(1) as u32, (d as u32).min(o.layout.d_opt)),
                     };
                     for d in lo..hi + 1 {
-                        let f = o.solve(i, d, spp, light_paths, kappa, scratch);
+                        let f = match &self.progressive {
+                            Some(prog) => prog.estimate(o, i, d, spp),
+                            None => o.solve(i, d, spp, light_paths, kappa, scratch),
+                        };
                         for c in 0..3 {
                             v[c] += f[c];
                         }

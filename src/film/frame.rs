@@ -68,6 +68,13 @@ impl Film {
         self.apply_records(&t.records);
     }
 
+    /// Closes a pass once all its tasks are merged (see `FilmTile::end_pass`): the progressive
+    /// estimator's next weights.
+    pub fn end_pass(&mut self) {
+        let light_paths = self.light_paths();
+        self.acc.end_pass(light_paths, self.layout.kappa);
+    }
+
     /// Adds out-of-tile light-tracing records (frame pixel indices).
     pub fn apply_records(&mut self, r: &LtRecords) {
         self.acc.merge_records(r, self.width);

@@ -1,7 +1,7 @@
 //! What a film accumulates besides the beauty image: strategy layers, depth layers, optimal-MIS
 //! systems. One `FilmLayout` describes it for tiles, frames, the wire format and checkpoints.
 
-use crate::mis::Layout;
+use crate::mis::{Layout, Progressive};
 
 /// (s, t) techniques kept as strategy layers: every technique of depth 0 ..= STRATEGY_DEPTH.
 pub const STRATEGY_DEPTH: u32 = 3;
@@ -36,6 +36,10 @@ pub struct FilmLayout {
     pub depth_layers: usize,
     /// Optimal-MIS systems of depths 1 ..= d_opt.
     pub optimal: Option<Layout>,
+    /// With `optimal`: merged films keep the progressive estimator's state (`mis::Progressive`),
+    /// and their images are its unbiased estimate instead of the direct estimator's. Task
+    /// results (`TileFilm`) are the same either way.
+    pub progressive: bool,
     /// Optimal MIS: regularisation strength used when solving.
     pub kappa: f64,
     /// Write the per-pixel variance of the mean as a layer (meaningful when every sample of a
@@ -47,6 +51,11 @@ impl FilmLayout {
     /// The optimal depth of the layout, if any.
     pub fn d_opt(&self) -> Option<u32> {
         self.optimal.as_ref().map(|l| l.d_opt)
+    }
+
+    /// The optimal depth of the progressive state merged films keep, if any.
+    pub fn progressive_layout(&self) -> Option<u32> {
+        self.d_opt().filter(|_| self.progressive)
     }
 
     /// The names of the EXR layers besides the beauty: the per-pixel variance of the mean
@@ -69,6 +78,9 @@ impl FilmLayout {
         // Camera sums and sums of squares (2 x 3 f64), count (u32), splat (3 f64).
         let base = 2 * 24 + 4 + 24;
         base + self.optimal.as_ref().map_or(0, |o| o.bytes_per_pixel())
+            + self
+                .progressive_layout()
+                .map_or(0, Progressive::bytes_per_pixel)
             + if self.strategy_layers {
                 STRATEGY_LAYERS * 24
             } else {

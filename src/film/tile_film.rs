@@ -198,6 +198,19 @@ impl LtRecords {
 
     /// Adds every record into `acc`, whose pixel i is frame pixel `map(i)`.
     pub fn apply(&self, acc: &mut OptimalAccum, map: impl Fn(u32) -> Option<usize>) {
+        self.for_each(map, |i, d, w, c| {
+            acc.add_sample(i, d, w, c);
+            acc.add_hit(i, d);
+        });
+    }
+
+    /// Calls `f(i, depth, weights, C W_s)` for every record, in order, whose frame pixel maps to
+    /// some i by `map` (values widened to f64).
+    pub fn for_each(
+        &self,
+        map: impl Fn(u32) -> Option<usize>,
+        mut f: impl FnMut(usize, u32, &[f64], [f64; 3]),
+    ) {
         let mut w = [0.0f64; 64];
         let mut off = 0;
         for (k, &p) in self.pixels.iter().enumerate() {
@@ -210,8 +223,7 @@ impl LtRecords {
                     *dst = *src as f64;
                 }
                 let c = [vals[n] as f64, vals[n + 1] as f64, vals[n + 2] as f64];
-                acc.add_sample(i, d, &w[..n], c);
-                acc.add_hit(i, d);
+                f(i, d, &w[..n], c);
             }
         }
     }

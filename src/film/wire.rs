@@ -469,6 +469,8 @@ impl TileFilm {
 /// per pixel: count u32, sum 3 x f64, sum_sq 3 x f64, splat 3 x f64
 /// layers: n u32, n x 3 x f64; depths: n u32, n x 3 x f64
 /// optimal: d_opt u32 (0 = none), then pixels x stride f64, pixels x d_opt u32
+/// progressive (only when the job's layout keeps it): solved_at u32, pixels x values f64
+/// (`mis::Progressive`)
 /// ```
 fn write_tile_body(w: &mut Writer, t: &FilmTile) {
     for i in 0..t.tile.pixels() {
@@ -484,6 +486,12 @@ fn write_tile_body(w: &mut Writer, t: &FilmTile) {
     w.rgb_list(&t.layers);
     w.rgb_list(&t.depths);
     w.optimal(t.optimal.as_ref());
+    if let Some(p) = &t.progressive {
+        w.u32(p.solved_at);
+        for v in &p.data {
+            w.f64(*v);
+        }
+    }
 }
 
 /// Reads the accumulators of `t` (empty, with the job's layout) from `r`, checking the layout.
@@ -527,6 +535,15 @@ fn read_tile_body(r: &mut Reader, t: &mut FilmTile) -> Result<(), WireError> {
             return Err(WireError(format!(
                 "optimal depth {d} does not match the job's settings"
             )));
+        }
+    }
+    if let Some(p) = t.progressive.as_mut() {
+        p.solved_at = r.u32()?;
+        if p.data.len().saturating_mul(8) > r.b.len() - r.at {
+            return Err(WireError("progressive estimator state truncated".into()));
+        }
+        for v in p.data.iter_mut() {
+            *v = r.f64()?;
         }
     }
     if r.at != r.b.len() {

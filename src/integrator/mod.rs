@@ -111,7 +111,7 @@ impl RenderSettings {
     /// The optimal-MIS layout when this render accumulates optimal systems.
     pub fn optimal_layout(&self) -> Option<crate::mis::Layout> {
         (self.integrator == IntegratorKind::Bdpt
-            && self.mis == MisKind::Optimal
+            && self.mis.is_optimal()
             && self.techniques == Techniques::All
             && self.optimal_max_depth >= 1)
             .then(|| crate::mis::Layout::new(self.optimal_max_depth.min(self.max_depth)))
@@ -123,6 +123,7 @@ impl RenderSettings {
             strategy_layers: self.strategies && self.integrator == IntegratorKind::Bdpt,
             depth_layers: self.depth_count(),
             optimal: self.optimal_layout(),
+            progressive: self.mis == MisKind::OptimalProgressive && self.optimal_layout().is_some(),
             kappa: self.optimal_kappa,
             variance_layer: self.integrator == IntegratorKind::Pt,
         }

@@ -200,7 +200,7 @@ impl Resolved {
                 "omis.integrator",
                 format!("{:?}", r.integrator).to_lowercase(),
             ),
-            ("omis.mis", format!("{:?}", r.mis).to_lowercase()),
+            ("omis.mis", r.mis.name().to_string()),
             ("omis.spp", spp_done.to_string()),
             ("omis.max_depth", r.max_depth.to_string()),
             ("omis.seed", r.seed.to_string()),
@@ -210,6 +210,10 @@ impl Resolved {
                 "omis.techniques",
                 format!("{:?}", r.techniques).to_lowercase(),
             ));
+        }
+        if let Some(d_opt) = r.film_layout().d_opt() {
+            attributes.push(("omis.optimal_max_depth", d_opt.to_string()));
+            attributes.push(("omis.kappa", r.optimal_kappa.to_string()));
         }
         attributes
     }
@@ -253,7 +257,7 @@ impl JobSettings {
                 ),
             ));
         }
-        if self.mis == MisKind::Optimal && self.integrator != IntegratorKind::Bdpt {
+        if self.mis.is_optimal() && self.integrator != IntegratorKind::Bdpt {
             return Err(FieldError::new(
                 "mis",
                 "optimal MIS needs the bdpt integrator",
@@ -265,7 +269,7 @@ impl JobSettings {
                 "selecting techniques needs the bdpt integrator",
             ));
         }
-        if self.techniques != Techniques::All && self.mis == MisKind::Optimal {
+        if self.techniques != Techniques::All && self.mis.is_optimal() {
             return Err(FieldError::new(
                 "techniques",
                 "light tracing or NEE alone has one technique per depth: nothing for optimal MIS to weight",

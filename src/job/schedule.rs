@@ -156,6 +156,18 @@ impl Resolved {
         progress: &(dyn Fn(usize) + Sync),
     ) -> RenderOutput {
         let start = Instant::now();
+        self.render_in_process_clocked(scene, progress, &|| start.elapsed().as_secs_f64())
+    }
+
+    /// `render_in_process` with the time budget counted by `clock` (seconds since the render
+    /// began, e.g. CPU seconds; `render_in_process` counts wall seconds).
+    pub fn render_in_process_clocked(
+        &self,
+        scene: &Scene,
+        progress: &(dyn Fn(usize) + Sync),
+        clock: &dyn Fn() -> f64,
+    ) -> RenderOutput {
+        let start = Instant::now();
         let tiles = self.tiles();
         let mut film = Film::new(self.width, self.height, &self.render.film_layout());
         let mut stats = RayStats::default();
@@ -164,12 +176,10 @@ impl Resolved {
         while let Some(range) = self.pass_range(p) {
             let tasks: Vec<_> = tiles.iter().map(|&t| (t, range.clone())).collect();
             run_tasks(scene, &self.render, &tasks, &mut film, &mut stats, progress);
+            film.end_pass();
             spp = range.end;
             p += 1;
-            if self
-                .time_budget_s
-                .is_some_and(|b| start.elapsed().as_secs_f64() >= b)
-            {
+            if self.time_budget_s.is_some_and(|b| clock() >= b) {
                 break;
             }
         }

@@ -14,11 +14,32 @@ pub enum MisKind {
     /// Power heuristic, beta = 2 (Veach 1997 eq. 9.13).
     Power,
     /// Optimal weights per pixel and depth for depths 1 ..= D_opt (Kondapaneni et al. 2019, in
-    /// the BDPT formulation of Cailleau et al.), balance for depth 0 and above D_opt.
+    /// the BDPT formulation of Cailleau et al.), balance for depth 0 and above D_opt: the direct
+    /// estimator (the solved systems' sum of alpha; biased, O(1/n)).
     Optimal,
+    /// The same systems, used progressively: pass k's samples are weighted with the optimal
+    /// weights of the alpha solved from passes before k, an unbiased estimate at any spp
+    /// (`mis::progressive`).
+    #[serde(rename = "optimal-progressive")]
+    OptimalProgressive,
 }
 
 impl MisKind {
+    /// Whether the render accumulates optimal-MIS systems (either estimator).
+    pub fn is_optimal(self) -> bool {
+        matches!(self, MisKind::Optimal | MisKind::OptimalProgressive)
+    }
+
+    /// The name the API, the command line and the EXR attributes use.
+    pub fn name(self) -> &'static str {
+        match self {
+            MisKind::Balance => "balance",
+            MisKind::Power => "power",
+            MisKind::Optimal => "optimal",
+            MisKind::OptimalProgressive => "optimal-progressive",
+        }
+    }
+
     /// The heuristic's exponent beta (Veach 1997 eq. 9.13): 2 for power, 1 for balance (and for
     /// optimal MIS outside its systems).
     pub fn beta(self) -> i32 {
@@ -40,7 +61,7 @@ pub fn ratio_term(x: f64, beta: i32) -> f64 {
 #[inline]
 pub fn weight(mis: MisKind, balance: &[f64], s: u32) -> f64 {
     match mis {
-        MisKind::Balance | MisKind::Optimal => balance[s as usize],
+        MisKind::Balance | MisKind::Optimal | MisKind::OptimalProgressive => balance[s as usize],
         MisKind::Power => {
             let b = balance[s as usize];
             let sq: f64 = balance.iter().map(|x| x * x).sum();
@@ -81,11 +102,30 @@ mod tests {
     #[test]
     fn weights_of_one_path_sum_to_one() {
         let b = [0.5, 0.3, 0.2, 0.0];
-        for mis in [MisKind::Balance, MisKind::Power, MisKind::Optimal] {
+        for mis in [
+            MisKind::Balance,
+            MisKind::Power,
+            MisKind::Optimal,
+            MisKind::OptimalProgressive,
+        ] {
             let sum: f64 = (0..4).map(|s| weight(mis, &b, s)).sum();
             assert!((sum - 1.0).abs() < 1e-12, "{mis:?}: {sum}");
         }
         assert_eq!(weight(MisKind::Power, &b, 3), 0.0);
         assert!((weight(MisKind::Power, &b, 0) - 0.25 / 0.38).abs() < 1e-12);
+    }
+
+    #[test]
+    fn names_are_the_serde_names() {
+        for mis in [
+            MisKind::Balance,
+            MisKind::Power,
+            MisKind::Optimal,
+            MisKind::OptimalProgressive,
+        ] {
+            let json = serde_json::to_string(&mis).expect("serialises");
+            assert_eq!(json, format!("\"{}\"", mis.name()));
+            assert_eq!(serde_json::from_str::<MisKind>(&json).ok(), Some(mis));
+        }
     }
 }

@@ -4,7 +4,9 @@
 
 pub mod heuristic;
 pub mod optimal;
+pub mod progressive;
 pub mod solve;
 
 pub use heuristic::{MisKind, power_heuristic, ratio_term, weight};
 pub use optimal::{DEFAULT_KAPPA, Layout, OptimalAccum, SolveScratch};
+pub use progressive::Progressive;

@@ -91,8 +91,9 @@ impl Layout {
         self.stride * 8 + self.d_opt as usize * 4
     }
 
+    /// Start of depth d's block within a pixel's values.
     #[inline]
-    fn offset(&self, d: u32) -> usize {
+    pub(crate) fn offset(&self, d: u32) -> usize {
         self.offsets[d as usize - 1]
     }
 }
@@ -194,15 +195,41 @@ impl OptimalAccum {
         scratch: &mut SolveScratch,
     ) -> [f64; 3] {
         let n = d as usize + 2;
+        let m = technique_counts(n, spp, light_paths);
+        if let Some(x) = self.solution(pixel, d, spp, light_paths, kappa, scratch) {
+            let mut f = [0.0f64; 3];
+            for i in 0..n {
+                for ch in 0..3 {
+                    f[ch] += m(i) * x[i * 3 + ch];
+                }
+            }
+            if f.iter().all(|v| v.is_finite()) {
+                return f;
+            }
+        }
+        // Cannot happen for a PSD system; fall back to the balance estimate all the same.
+        self.balance(pixel, d, spp)
+    }
+
+    /// The solution x (N x 3, row-major) of depth d's regularised system at `pixel` (arguments
+    /// as for `solve`, whose estimate is sum_i m_i x_i), or None when it is not finite.
+    pub fn solution<'s>(
+        &self,
+        pixel: usize,
+        d: u32,
+        spp: u32,
+        light_paths: u64,
+        kappa: f64,
+        scratch: &'s mut SolveScratch,
+    ) -> Option<&'s [f64]> {
+        let n = d as usize + 2;
         let start = pixel * self.layout.stride + self.layout.offset(d);
         let blk = &self.data[start..start + block_len(d)];
         let (ap, bp) = blk.split_at(n * (n + 1) / 2);
         let s = spp.max(1) as f64;
         let lt = n - 1;
-        // Technique counts relative to S: 1 for camera techniques, N_L / S (= W H) for light
-        // tracing.
         let n_l = light_paths as f64;
-        let m = |i: usize| if i == lt { n_l / s } else { 1.0 };
+        let m = technique_counts(n, spp, light_paths);
         scratch.a.clear();
         scratch.a.resize(n * n, 0.0);
         let a = &mut scratch.a;
@@ -230,24 +257,7 @@ impl OptimalAccum {
             }
         }
         solve_psd(a, n, b, 3, 1e-12, &mut scratch.factor);
-        let mut f = [0.0f64; 3];
-        for i in 0..n {
-            for ch in 0..3 {
-                f[ch] += m(i) * b[i * 3 + ch];
-            }
-        }
-        if f.iter().all(|v| v.is_finite()) {
-            f
-        } else {
-            // Cannot happen for a PSD system; fall back to the balance estimate all the same.
-            let mut g = [0.0; 3];
-            for i in 0..n {
-                for ch in 0..3 {
-                    g[ch] += bp[i * 3 + ch] / s;
-                }
-            }
-            g
-        }
+        b.iter().all(|v| v.is_finite()).then_some(&b[..])
     }
 
     /// The balance-heuristic estimate of depth d at `pixel` from the same accumulators:
@@ -264,6 +274,14 @@ impl OptimalAccum {
         }
         g
     }
+}
+
+/// Technique counts relative to S, m_i = n_i / S: 1 for camera techniques, N_L / S (= W H) for
+/// light tracing (the last of the n).
+fn technique_counts(n: usize, spp: u32, light_paths: u64) -> impl Fn(usize) -> f64 {
+    let s = spp.max(1) as f64;
+    let n_l = light_paths as f64;
+    move |i: usize| if i == n - 1 { n_l / s } else { 1.0 }
 }
 
 /// Reusable buffers for `solve`.

@@ -422,6 +422,7 @@ fn merge_group(
                 .map_err(|e| MergeError::Result(res.tile, e))?;
             group.add_task(&grid, res.tile, parts.own.as_ref(), &parts.sections);
         }
+        group.end_pass(light_paths(r, spp), r.render.optimal_kappa);
         for (k, tile) in group.tiles.iter().enumerate() {
             if group.open[k] {
                 // Into the slot that does not hold the previous pass.

@@ -725,7 +725,7 @@ async function submitView(signal) {
         field('Time budget (s)', num('time_budget_s', { min: 0.1, step: 'any', placeholder: 'none' }))),
       h('div', { class: 'row spaced' },
         field('Integrator', h('select', { name: 'integrator', id: 'f-integrator' }, opt('pt', 'path tracer (pt)'), opt('bdpt', 'bidirectional (bdpt)'))),
-        field('MIS (bdpt)', h('select', { name: 'mis', id: 'f-mis' }, opt('balance'), opt('power'), opt('optimal'))),
+        field('MIS (bdpt)', h('select', { name: 'mis', id: 'f-mis' }, opt('balance'), opt('power'), opt('optimal'), opt('optimal-progressive'))),
         field('Max depth', num('max_depth', { min: 0, placeholder: 'scene / 5' })),
         field('Seed', num('seed', { min: 0, value: 0 })),
         field('Pass size (spp)', num('pass_size', { min: 1, value: 16 })),
