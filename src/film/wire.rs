@@ -610,8 +610,15 @@ impl TileCheckpoint {
     /// The length of the checkpoint of a tile of `pixels` pixels whose films have `layout`
     /// (fixed: a coordinator rewrites checkpoints in place).
     pub fn encoded_len(pixels: usize, layout: &FilmLayout) -> u64 {
-        // Header (magic, version, tile, passes), the three list lengths, the checksum.
-        (8 + 4 + 16 + 4 + 12 + 4) as u64 + (pixels as u64) * layout.bytes_per_pixel() as u64
+        // Header (magic, version, tile, passes), the three list lengths, the checksum, and the
+        // progressive estimator's `solved_at` when the job keeps it.
+        let progressive = if layout.progressive_layout().is_some() {
+            4
+        } else {
+            0
+        };
+        (8 + 4 + 16 + 4 + 12 + 4 + progressive) as u64
+            + (pixels as u64) * layout.bytes_per_pixel() as u64
     }
 
     /// Parses the checkpoint of `tile` of a job whose films have `layout`.

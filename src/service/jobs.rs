@@ -295,14 +295,17 @@ fn write_tile(
     tile: &FilmTile,
     n: u32,
 ) -> std::io::Result<()> {
-    let (path, at, _) = checkpoint_slot(app, job, r, t, n);
+    let (path, at, len) = checkpoint_slot(app, job, r, t, n);
+    let bytes = TileCheckpoint::encode_parts(tile, n);
+    if bytes.len() as u64 != len {
+        // A checkpoint longer than its slot would overwrite the neighbouring tile's.
+        return Err(std::io::Error::other(format!(
+            "tile checkpoint {t}: {} bytes for a slot of {len}",
+            bytes.len()
+        )));
+    }
     // Made durable all at once before the pass is recorded (`sync_tiles`) on Linux.
-    store::write_at(
-        &path,
-        at,
-        &TileCheckpoint::encode_parts(tile, n),
-        !cfg!(target_os = "linux"),
-    )
+    store::write_at(&path, at, &bytes, !cfg!(target_os = "linux"))
 }
 
 /// The accumulators of tile `t` of a job that has merged `passes` passes: the tile's checkpoint
