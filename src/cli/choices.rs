@@ -38,6 +38,9 @@ mirror! {
         Pt,
         /// Bidirectional path tracing with every strategy.
         Bdpt,
+        /// Vertex connection and merging: BDPT plus photon merging within --radius, one MIS
+        /// (Georgiev et al. 2012).
+        Vcm,
     }
 }
 
