@@ -207,3 +207,33 @@ fn vcm_finds_the_caustic_seen_in_the_mirror_that_bdpt_cannot() {
         "standard error {s16} at 16 spp vs {s4} at 4 spp"
     );
 }
+
+#[test]
+fn bpm_agrees_with_bdpt_on_the_cornell_box() {
+    use omis::integrator::bpm::BpmWeights;
+    let scene = load("cornell-box.json", 24, 24);
+    let reference = renders(
+        &scene,
+        &settings(IntegratorKind::Bdpt, MisKind::Balance, 8, 5),
+        16,
+    );
+    for (bdd, weights) in [
+        (1, BpmWeights::Fixed),
+        (2, BpmWeights::Fixed),
+        (1, BpmWeights::Optimal),
+    ] {
+        let s = RenderSettings {
+            radius: 0.05,
+            bdd,
+            bpm_weights: weights,
+            ..settings(IntegratorKind::Bpm, MisKind::Balance, 16, 5)
+        };
+        let v = renders(&scene, &s, 16);
+        assert_agree(
+            &format!("bpm bdd {bdd} {weights:?} vs bdpt"),
+            &v,
+            &reference,
+            3,
+        );
+    }
+}

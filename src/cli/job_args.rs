@@ -1,6 +1,6 @@
 //! The render settings flags shared by `omis render` and `omis submit`.
 
-use super::choices::{DirectArg, IntegratorArg, MisArg, SamplerArg, TechniquesArg};
+use super::choices::{BpmWeightsArg, DirectArg, IntegratorArg, MisArg, SamplerArg, TechniquesArg};
 use crate::job::{self, FieldError, JobSettings};
 use clap::Args;
 
@@ -70,6 +70,12 @@ pub struct JobArgs {
     /// r (i + 1)^((alpha - 1) / 2) (1: constant radius).
     #[arg(long, default_value_t = crate::integrator::vcm::DEFAULT_ALPHA as f64)]
     pub radius_alpha: f64,
+    /// BPM: backward diffuse depth, the camera's non-specular vertex where photons merge.
+    #[arg(long, default_value_t = 1)]
+    pub bdd: u32,
+    /// BPM: fixed --bdd, or --bdd and --bdd + 1 mixed by optimal weights.
+    #[arg(long, value_enum, default_value_t = BpmWeightsArg::Optimal)]
+    pub bpm_weights: BpmWeightsArg,
 }
 
 impl JobArgs {
@@ -103,6 +109,8 @@ impl JobArgs {
             eps: self.eps,
             radius: self.radius,
             radius_alpha: self.radius_alpha,
+            bdd: self.bdd,
+            bpm_weights: self.bpm_weights.into(),
         };
         s.validate(&job::Limits::default()).map_err(flag_error)?;
         Ok(s)

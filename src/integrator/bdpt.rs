@@ -130,6 +130,21 @@ impl Vertex {
         self.bsdf.is_black()
     }
 
+    /// Geometric normal.
+    pub(crate) fn normal(&self) -> Vec3 {
+        self.ng
+    }
+
+    /// Shading normal.
+    pub(crate) fn shading_normal(&self) -> Vec3 {
+        self.ns
+    }
+
+    /// The light this vertex lies on, or NO_LIGHT.
+    pub(crate) fn light_index(&self) -> u32 {
+        self.light
+    }
+
     /// A point light (a delta in position).
     pub(crate) fn is_point(&self) -> bool {
         self.delta_pos

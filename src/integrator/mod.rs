@@ -5,6 +5,7 @@
 //! or the machine that renders it; how tasks are scheduled and merged is `job::schedule`'s.
 
 pub mod bdpt;
+pub mod bpm;
 pub mod path;
 mod tile;
 pub mod vcm;
@@ -27,6 +28,9 @@ pub enum IntegratorKind {
     Bdpt,
     /// Vertex connection and merging: BDPT's connections plus photon merging, one MIS.
     Vcm,
+    /// Bidirectional photon mapping: merging only, at a fixed backward diffuse depth or mixing
+    /// two with Ershov et al.'s optimal weights.
+    Bpm,
 }
 
 /// Which BDPT techniques contribute. Not a weighting rule: the validation modes keep one
@@ -98,6 +102,16 @@ pub struct RenderSettings {
     /// VCM only: radius reduction exponent alpha, r_i = r_0 (i + 1)^((alpha - 1) / 2).
     #[serde(default = "default_alpha")]
     pub radius_alpha: f32,
+    /// BPM only: the backward diffuse depth M (the camera's M-th non-specular vertex merges).
+    #[serde(default = "default_bdd")]
+    pub bdd: u32,
+    /// BPM only: fixed BDD, or BDD and BDD + 1 mixed by the optimal weights.
+    #[serde(default)]
+    pub bpm_weights: bpm::BpmWeights,
+}
+
+fn default_bdd() -> u32 {
+    1
 }
 
 fn default_alpha() -> f32 {
@@ -160,6 +174,8 @@ impl Default for RenderSettings {
             depth_layers: false,
             radius: 0.0,
             radius_alpha: vcm::DEFAULT_ALPHA,
+            bdd: 1,
+            bpm_weights: bpm::BpmWeights::Optimal,
         }
     }
 }

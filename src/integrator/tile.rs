@@ -1,6 +1,7 @@
 //! The tile loop: every pixel sample of a task, through the path tracer, BDPT or VCM, into the
 //! task's `TileFilm` (BDPT samples weighted by the MIS rule, or into optimal-MIS systems).
 
+use super::bpm::{self, BpmWeights};
 use super::vcm::{self, PhotonCache};
 use super::{IntegratorKind, RenderSettings, Techniques, bdpt, path};
 use crate::film::{LtRecords, STRATEGY_LAYERS, Splat, Tile, TileFilm, strategy_layer};
@@ -173,7 +174,10 @@ pub fn render_tile_cached(
     samples: Range<u32>,
     cache: &PhotonCache,
 ) -> TileFilm {
-    if settings.integrator == IntegratorKind::Vcm {
+    if matches!(
+        settings.integrator,
+        IntegratorKind::Vcm | IntegratorKind::Bpm
+    ) {
         return render_tile_vcm(scene, settings, tile, samples, cache);
     }
     let mut film = TileFilm::new(tile, &settings.film_layout());
@@ -220,7 +224,7 @@ pub fn render_tile_cached(
                         }
                         l
                     }
-                    IntegratorKind::Vcm => unreachable!("render_tile_vcm"),
+                    IntegratorKind::Vcm | IntegratorKind::Bpm => unreachable!("render_tile_vcm"),
                     IntegratorKind::Bdpt => {
                         let mut light_sampler = Sampler::new(
                             settings.sampler,
@@ -290,7 +294,8 @@ pub fn render_tile_cached(
     film
 }
 
-/// VCM's tile loop: iteration by iteration (one photon map at a time), every pixel of the tile.
+/// VCM's and BPM's tile loop: iteration by iteration (one photon map at a time), every pixel of
+/// the tile.
 fn render_tile_vcm(
     scene: &Scene,
     settings: &RenderSettings,
@@ -304,6 +309,9 @@ fn render_tile_vcm(
     let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
     let nd = settings.depth_count();
     let cam = &scene.camera;
+    let bpm = settings.integrator == IntegratorKind::Bpm;
+    let frozen =
+        (bpm && settings.bpm_weights == BpmWeights::Optimal).then(|| cache.get(scene, settings, 0));
     for i in samples {
         let map = cache.get(scene, settings, i);
         for y in tile.y0..tile.y1 {
@@ -321,6 +329,26 @@ fn render_tile_vcm(
                     )
                 };
                 let (mut sampler, mut light_sampler) = (new(Stream::Camera), new(Stream::Light));
+                if bpm {
+                    let mut l = bpm::pixel_sample(
+                        scene,
+                        (x, y),
+                        &mut sampler,
+                        max_depth,
+                        settings.bdd,
+                        &map,
+                        frozen.as_deref(),
+                        &mut ws,
+                        &mut film.stats,
+                    );
+                    if !l.is_finite() {
+                        film.stats.non_finite += 1;
+                        l = Rgb::ZERO;
+                    }
+                    film.stats.samples += 1;
+                    film.sums.add(idx, l);
+                    continue;
+                }
                 let depths = (nd > 0).then(|| &mut film.depths[idx * nd..(idx + 1) * nd]);
                 let mut sink = FilmSink {
                     mis: settings.mis,

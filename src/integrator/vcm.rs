@@ -61,6 +61,10 @@ pub struct Photon {
     pub beta: Rgb,
     /// i: the vertex's index in its light subpath (edges from the light).
     pub index: u32,
+    /// y_{i-1}, where the light came from.
+    pub prev: Vec3,
+    /// Whether y_1 .. y_{i-1} are all specular: a direct or caustic photon.
+    pub caustic: bool,
     /// pL_i: area density of y_i from y_{i-1}.
     pl: f32,
     /// Converts a solid-angle density at y_i toward y_{i-1} into area density at y_{i-1}
@@ -87,6 +91,9 @@ pub struct PhotonMap {
     pub eta: f64,
     /// Light subpaths traced (N_L).
     pub light_paths: u64,
+    /// Mean over the light subpaths of the throughput reaching the first surface (luminance):
+    /// an estimate of the flux the lights put into the scene.
+    pub flux: f64,
     /// Rays traced to build the map.
     pub stats: RayStats,
 }
@@ -107,6 +114,7 @@ impl PhotonMap {
         ws.set_merging(eta);
         let mut stats = RayStats::default();
         let mut photons = Vec::new();
+        let mut flux = 0.0f64;
         for y in 0..h {
             for x in 0..w {
                 let mut sampler = Sampler::new(
@@ -122,6 +130,9 @@ impl PhotonMap {
                 ws.clear_camera();
                 ws.prepare(scene, heuristic);
                 ws.photons(eta_b, b, &mut photons);
+                if let Some(y1) = ws.light_vertices().get(1) {
+                    flux += luminance(y1.throughput());
+                }
             }
         }
         let mut map = PhotonMap {
@@ -132,6 +143,7 @@ impl PhotonMap {
             radius,
             eta,
             light_paths,
+            flux: flux / light_paths.max(1) as f64,
             stats,
         };
         map.index(photons);
@@ -197,7 +209,7 @@ impl PhotonMap {
     }
 
     /// Calls `f` for every photon within the radius of `p`, in a fixed order.
-    fn query(&self, p: Vec3, mut f: impl FnMut(&Photon)) {
+    pub(crate) fn query(&self, p: Vec3, mut f: impl FnMut(&Photon)) {
         if self.photons.is_empty() {
             return;
         }
@@ -231,6 +243,11 @@ impl PhotonMap {
     }
 }
 
+/// Mean of the three channels.
+pub(crate) fn luminance(c: Rgb) -> f64 {
+    (c.x as f64 + c.y as f64 + c.z as f64) / 3.0
+}
+
 /// The heuristic of the weights (optimal MIS is not defined for merging: balance).
 fn heuristic(settings: &RenderSettings) -> MisKind {
     if settings.mis == MisKind::Power {
@@ -244,7 +261,11 @@ impl Workspace {
     /// Appends the photons of the prepared light subpath (`prepare` with merging on).
     fn photons(&self, eta_b: f64, b: i32, out: &mut Vec<Photon>) {
         let light = self.light_vertices();
+        let mut caustic = true;
         for i in 1..light.len() {
+            if i >= 2 {
+                caustic &= light[i - 1].is_delta();
+            }
             let (y, yp) = (&light[i], &light[i - 1]);
             if y.is_delta() || y.is_black() {
                 continue;
@@ -270,6 +291,8 @@ impl Workspace {
                 wi,
                 beta: y.throughput(),
                 index: i as u32,
+                prev: yp.position(),
+                caustic,
                 pl: y.pdf_fwd(),
                 g,
                 alpha,
@@ -366,6 +389,8 @@ type MapCell = Arc<OnceLock<Arc<PhotonMap>>>;
 /// the same bits). A cache serves one scene and one `RenderSettings`.
 pub struct PhotonCache {
     capacity: usize,
+    /// Iteration 0's map, kept apart (BPM's frozen map of Ershov et al.'s weights).
+    first: OnceLock<Arc<PhotonMap>>,
     entries: Mutex<Vec<(u32, MapCell)>>,
 }
 
@@ -374,6 +399,7 @@ impl PhotonCache {
     pub fn new(capacity: usize) -> PhotonCache {
         PhotonCache {
             capacity: capacity.max(1),
+            first: OnceLock::new(),
             entries: Mutex::new(Vec::new()),
         }
     }
@@ -381,6 +407,12 @@ impl PhotonCache {
     /// The map of iteration `iteration`, built here if no one has built it yet (other callers
     /// of the same iteration wait for it).
     pub fn get(&self, scene: &Scene, settings: &RenderSettings, iteration: u32) -> Arc<PhotonMap> {
+        if iteration == 0 {
+            return self
+                .first
+                .get_or_init(|| Arc::new(PhotonMap::build(scene, settings, 0)))
+                .clone();
+        }
         let cell = {
             let mut e = self.entries.lock().unwrap_or_else(|p| p.into_inner());
             match e.iter().find(|(i, _)| *i == iteration) {

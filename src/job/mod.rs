@@ -82,6 +82,10 @@ pub struct JobSettings {
     pub radius: Option<f64>,
     /// VCM: radius reduction exponent alpha in (0, 1]: r_i = r_0 (i + 1)^((alpha - 1) / 2).
     pub radius_alpha: f64,
+    /// BPM: backward diffuse depth M, 1 ..= 64.
+    pub bdd: u32,
+    /// BPM: fixed BDD or BDD / BDD + 1 mixed by the optimal weights.
+    pub bpm_weights: integrator::bpm::BpmWeights,
 }
 
 /// Default samples of the first pass: the first preview after 16 spp.
@@ -115,6 +119,8 @@ impl Default for JobSettings {
             eps: 0.01,
             radius: None,
             radius_alpha: integrator::vcm::DEFAULT_ALPHA as f64,
+            bdd: 1,
+            bpm_weights: integrator::bpm::BpmWeights::Optimal,
         }
     }
 }
@@ -310,6 +316,16 @@ impl JobSettings {
                 format!("{r} is outside (0, 1e9] scene units"),
             ));
         }
+        if self.bdd == 0 || self.bdd > integrator::bdpt::MAX_DEPTH {
+            return Err(FieldError::new(
+                "bdd",
+                format!(
+                    "{} is outside 1 ..= {}",
+                    self.bdd,
+                    integrator::bdpt::MAX_DEPTH
+                ),
+            ));
+        }
         if !(self.radius_alpha > 0.0 && self.radius_alpha <= 1.0) {
             return Err(FieldError::new(
                 "radius_alpha",
@@ -414,6 +430,8 @@ impl JobSettings {
             depth_layers: self.depth_layers,
             radius: self.radius.unwrap_or(0.0) as f32,
             radius_alpha: self.radius_alpha as f32,
+            bdd: self.bdd,
+            bpm_weights: self.bpm_weights,
         };
         Ok(Resolved {
             width,

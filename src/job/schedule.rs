@@ -164,7 +164,10 @@ impl Resolved {
         let mut p = 0;
         // VCM: the photon maps of a pass's iterations, built once (in parallel) and shared by
         // its tasks.
-        let vcm = self.render.integrator == IntegratorKind::Vcm;
+        let vcm = matches!(
+            self.render.integrator,
+            IntegratorKind::Vcm | IntegratorKind::Bpm
+        );
         let cache = PhotonCache::new(if vcm {
             self.pass_len(u32::MAX) as usize
         } else {
