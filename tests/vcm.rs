@@ -237,3 +237,24 @@ fn bpm_agrees_with_bdpt_on_the_cornell_box() {
         );
     }
 }
+
+/// Measurement for BENCHMARKS.md #15, not a check: the photons one pass (iteration) of SmallVCM's
+/// scene 2 at 512 x 512 holds, and what shipping them would cost.
+#[test]
+#[ignore]
+fn photon_map_size_of_a_pass() {
+    use omis::integrator::vcm::PhotonMap;
+    let scene = load("smallvcm-spheres-point.json", 512, 512);
+    let s = settings(IntegratorKind::Vcm, MisKind::Balance, 1, 9);
+    let t = std::time::Instant::now();
+    let map = PhotonMap::build(&scene, &s, 0);
+    eprintln!(
+        "{} light paths, {} photons, {} bytes ({:.1} bytes per light path), {} rays, built in {:.2} s",
+        map.light_paths,
+        map.len(),
+        map.bytes(),
+        map.bytes() as f64 / map.light_paths as f64,
+        map.stats.closest + map.stats.shadow,
+        t.elapsed().as_secs_f64()
+    );
+}

@@ -431,3 +431,48 @@ impl PhotonCache {
             .clone()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    /// The hash grid finds exactly the photons a brute-force search finds, each once, and a map
+    /// built twice is the same.
+    #[test]
+    fn hash_grid_queries_equal_brute_force() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes");
+        let mut scene = Scene::load(&dir.join("cornell-box.json")).expect("scene");
+        scene.camera = scene.camera.with_resolution(32, 32).expect("resolution");
+        let settings = RenderSettings {
+            radius: 0.1,
+            ..Default::default()
+        };
+        let map = PhotonMap::build(&scene, &settings, 3);
+        assert!(map.len() > 1000, "{} photons", map.len());
+        let again = PhotonMap::build(&scene, &settings, 3);
+        let key = |p: &Photon| (p.p.to_array(), p.index, p.beta.to_array());
+        assert!(
+            map.photons
+                .iter()
+                .map(key)
+                .eq(again.photons.iter().map(key))
+        );
+        let r2 = map.radius * map.radius;
+        for q in map.photons.iter().step_by(7) {
+            for c in [q.p, q.p + Vec3::new(0.03, -0.05, 0.02)] {
+                let mut found = Vec::new();
+                map.query(c, |p| found.push(key(p)));
+                let mut brute: Vec<_> = map
+                    .photons
+                    .iter()
+                    .filter(|p| p.p.distance_squared(c) <= r2)
+                    .map(key)
+                    .collect();
+                found.sort_by(|a, b| a.partial_cmp(b).expect("finite"));
+                brute.sort_by(|a, b| a.partial_cmp(b).expect("finite"));
+                assert_eq!(found, brute);
+            }
+        }
+    }
+}
