@@ -308,6 +308,42 @@ fn http_job_with_two_workers_follows_sse_and_equals_the_in_process_render() {
 }
 
 #[test]
+fn a_vcm_job_on_two_workers_equals_the_in_process_render() {
+    // Each worker traces the light paths of the iterations it renders: the tiles of a pass merge
+    // with every photon of the pass whichever worker renders them.
+    let dir = folder("vcm");
+    let (_server, url) = serve(&dir.join("data"), &[]);
+    let _w1 = worker(&url, "w1", &[]);
+    let _w2 = worker(&url, "w2", &[]);
+    let c = http();
+    let settings = json!({
+        "resolution": [40, 32],
+        "spp": 8,
+        "pass_size": 2,
+        "max_pass_size": 2,
+        "tile_size": 16,
+        "integrator": "vcm",
+        "radius": 0.03,
+        "max_depth": 4,
+        "seed": 7,
+    });
+    let (st, v) = post(
+        &c,
+        &format!("{url}/v1/jobs"),
+        &json!({ "scene": { "library": "cornell-box" }, "settings": settings }),
+    );
+    assert_eq!(st, 201, "{v}");
+    let id = v["id"].as_str().expect("id").to_string();
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 8);
+    let s: JobSettings = serde_json::from_value(settings).expect("settings");
+    let mut scene = Scene::load(&repo().join("scenes/cornell-box.json")).expect("scene");
+    let r = s.resolve(&mut scene, &Limits::default()).expect("resolve");
+    let local = r.render_in_process(&scene, &|_| {}).image();
+    assert_equal(&download_exr(&c, &url, &id, &dir), &local);
+}
+
+#[test]
 fn killing_a_worker_mid_job_loses_nothing() {
     let dir = folder("killworker");
     let (_server, url) = serve(&dir.join("data"), &["--lease-seconds", "1"]);

@@ -1,6 +1,7 @@
 //! The command line's names for the renderer's choices. The renderer's enums know nothing of
 //! clap; each gets a mirror here with its help text, converted at the edge.
 
+use crate::integrator::bpm::BpmWeights;
 use crate::integrator::path::DirectStrategy;
 use crate::integrator::{IntegratorKind, Techniques};
 use crate::mis::MisKind;
@@ -38,6 +39,22 @@ mirror! {
         Pt,
         /// Bidirectional path tracing with every strategy.
         Bdpt,
+        /// Vertex connection and merging: BDPT plus photon merging within --radius, one MIS
+        /// (Georgiev et al. 2012).
+        Vcm,
+        /// Bidirectional photon mapping: merging only, at --bdd (--bpm-weights).
+        Bpm,
+    }
+}
+
+mirror! {
+    /// `--bpm-weights`.
+    BpmWeightsArg => BpmWeights {
+        /// Merge at the camera's --bdd-th non-specular vertex only.
+        Fixed,
+        /// Mix --bdd and --bdd + 1 with the optimal weights of Ershov et al. (CPT 2020, CEUR-WS vol. 2763)
+        /// from a photon map frozen at the first iteration.
+        Optimal,
     }
 }
 

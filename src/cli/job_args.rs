@@ -1,6 +1,6 @@
 //! The render settings flags shared by `omis render` and `omis submit`.
 
-use super::choices::{DirectArg, IntegratorArg, MisArg, SamplerArg, TechniquesArg};
+use super::choices::{BpmWeightsArg, DirectArg, IntegratorArg, MisArg, SamplerArg, TechniquesArg};
 use crate::job::{self, FieldError, JobSettings};
 use clap::Args;
 
@@ -62,6 +62,20 @@ pub struct JobArgs {
     /// eps of relMSE = mean (I - R)^2 / (R^2 + eps).
     #[arg(long, default_value_t = 0.01)]
     pub eps: f64,
+    /// VCM: initial merge radius in scene units (default: 0.003 times the scene's
+    /// bounding-sphere radius).
+    #[arg(long)]
+    pub radius: Option<f64>,
+    /// VCM: radius reduction exponent alpha in (0, 1]; the radius of sample index i is
+    /// r (i + 1)^((alpha - 1) / 2) (1: constant radius).
+    #[arg(long, default_value_t = crate::integrator::vcm::DEFAULT_ALPHA as f64)]
+    pub radius_alpha: f64,
+    /// BPM: backward diffuse depth, the camera's non-specular vertex where photons merge.
+    #[arg(long, default_value_t = 1)]
+    pub bdd: u32,
+    /// BPM: fixed --bdd, or --bdd and --bdd + 1 mixed by optimal weights.
+    #[arg(long, value_enum, default_value_t = BpmWeightsArg::Optimal)]
+    pub bpm_weights: BpmWeightsArg,
 }
 
 impl JobArgs {
@@ -93,6 +107,10 @@ impl JobArgs {
             pass_size: self.pass_size,
             max_pass_size: self.max_pass_size,
             eps: self.eps,
+            radius: self.radius,
+            radius_alpha: self.radius_alpha,
+            bdd: self.bdd,
+            bpm_weights: self.bpm_weights.into(),
         };
         s.validate(&job::Limits::default()).map_err(flag_error)?;
         Ok(s)

@@ -100,6 +100,66 @@ impl Vertex {
         }
     }
 
+    /// Position.
+    pub(crate) fn position(&self) -> Vec3 {
+        self.p
+    }
+
+    /// Throughput up to and including this vertex's generation.
+    pub(crate) fn throughput(&self) -> Rgb {
+        self.beta
+    }
+
+    /// The vertex's BSDF.
+    pub(crate) fn bsdf(&self) -> &Bsdf {
+        &self.bsdf
+    }
+
+    /// Area density of this vertex from its predecessor in its subpath.
+    pub(crate) fn pdf_fwd(&self) -> f32 {
+        self.pdf_fwd
+    }
+
+    /// Specular BSDF.
+    pub(crate) fn is_delta(&self) -> bool {
+        self.delta
+    }
+
+    /// Black BSDF (nothing scatters here).
+    pub(crate) fn is_black(&self) -> bool {
+        self.bsdf.is_black()
+    }
+
+    /// Geometric normal.
+    pub(crate) fn normal(&self) -> Vec3 {
+        self.ng
+    }
+
+    /// Shading normal.
+    pub(crate) fn shading_normal(&self) -> Vec3 {
+        self.ns
+    }
+
+    /// The light this vertex lies on, or NO_LIGHT.
+    pub(crate) fn light_index(&self) -> u32 {
+        self.light
+    }
+
+    /// A point light (a delta in position).
+    pub(crate) fn is_point(&self) -> bool {
+        self.delta_pos
+    }
+
+    /// |cos| between `w` and the geometric normal (1 for points).
+    pub(crate) fn abs_cos(&self, w: Vec3) -> f32 {
+        self.abs_cos_ng(w)
+    }
+
+    /// `area_density` for other modules.
+    pub(crate) fn area_density_to(self, pdf_dir: f32, next: &Vertex) -> f32 {
+        self.area_density(pdf_dir, next)
+    }
+
     /// Converts a solid-angle density at `self` toward `next` into an area density at `next`.
     #[inline]
     fn area_density(self, pdf_dir: f32, next: &Vertex) -> f32 {
@@ -170,6 +230,8 @@ pub struct Workspace {
     q1: f32,
     /// Exponent of the heuristic the partial sums are for: 1 balance, 2 power.
     exponent: i32,
+    /// Vertex merging's eta = N_L pi r^2 (0: no merging, plain BDPT): see `set_merging`.
+    eta: f64,
     /// The light vertex of the latest next-event sample (for tests of the weights).
     last_nee: Option<Vertex>,
 }
@@ -187,6 +249,7 @@ impl Default for Workspace {
             cam_sums: Vec::with_capacity(n),
             q1: 0.0,
             exponent: 1,
+            eta: 0.0,
             last_nee: None,
         }
     }
@@ -349,7 +412,7 @@ pub fn light_subpath(
 
 /// Unit direction and squared distance from `a` to `b`.
 #[inline]
-fn dir_to(a: Vec3, b: Vec3) -> (Vec3, f32) {
+pub(crate) fn dir_to(a: Vec3, b: Vec3) -> (Vec3, f32) {
     let d = b - a;
     let d2 = d.length_squared();
     (d / d2.sqrt(), d2)
@@ -466,6 +529,48 @@ fn weights_alone(ws: &mut Workspace, s: usize, k: usize) {
 }
 
 impl Workspace {
+    /// Turns vertex merging on for the next `prepare` and weights: `eta` = N_L pi r^2, the
+    /// number of light subpaths a camera vertex merges with times the merge disc's area
+    /// (Georgiev et al. 2012, eq. 11). 0, the default, is plain BDPT.
+    pub fn set_merging(&mut self, eta: f64) {
+        self.eta = eta;
+    }
+
+    /// Forgets the camera subpath (a light subpath prepared alone).
+    pub(crate) fn clear_camera(&mut self) {
+        self.cam.clear();
+    }
+
+    /// The light subpath y_0 ...
+    pub(crate) fn light_vertices(&self) -> &[Vertex] {
+        &self.light
+    }
+
+    /// The camera subpath z_0 (the pinhole) ...
+    pub(crate) fn camera_vertices(&self) -> &[Vertex] {
+        &self.cam
+    }
+
+    /// The prepared partial sum S_j of light vertex j.
+    pub(crate) fn light_sum(&self, j: usize) -> f64 {
+        self.light_sums[j]
+    }
+
+    /// The prepared partial sum T_j of camera vertex j.
+    pub(crate) fn camera_sum(&self, j: usize) -> f64 {
+        self.cam_sums[j]
+    }
+
+    /// Next-event density of y_0 from y_1 (0 without y_1), once prepared.
+    pub(crate) fn q1(&self) -> f32 {
+        self.q1
+    }
+
+    /// Exponent of the prepared heuristic (1 balance, 2 power).
+    pub(crate) fn exponent(&self) -> i32 {
+        self.exponent
+    }
+
     /// Partial sums of the recursive weights, once both subpaths are traced, for `heuristic`
     /// (balance: exponent b = 1; power: b = 2). Notation of `balance_weights`: p_{s'} is the
     /// density of technique s' for a full path v_0 .. v_{k-1}, pL_i / pE_i the densities of v_i
@@ -487,9 +592,18 @@ impl Workspace {
     /// completes S_{s-1} from S_{s-2} and T_{t-1} from T_{t-2} in O(1): `heuristic_weight`.
     /// S_j needs pE_{j-1}, known once y_j has sampled its successor; the last vertex's sum is
     /// never used.
+    ///
+    /// With vertex merging (`set_merging`, eta = N_L pi r^2) the sums also hold the merging
+    /// techniques: merging at x_i (1 <= i <= k - 2, x_i not specular) has density
+    /// p_VM(i) = eta pE_i p_{i+1} = eta pL_i p_i (Georgiev et al. 2012, eq. 11 and §4.3), which adds
+    /// m(eta pE_{j-1}) to S_j for j >= 2 and m(eta pL(z_{j-1})) to T_j for j >= 2 (the
+    /// technique merging at the sum's previous vertex, relative to p_j); older merges ride the
+    /// ratio recurrence like the connections. This is the dVM part of Georgiev's dVCM / dVC / dVM
+    /// (tech. report, 2012) in ratio form.
     pub fn prepare(&mut self, scene: &Scene, heuristic: MisKind) {
         let b = heuristic.beta();
         self.exponent = b;
+        let eta_b = mis::ratio_term(self.eta, b);
         let light = &self.light;
         self.q1 = if light.len() >= 2 {
             nee_density(scene, &light[0], &light[1])
@@ -514,6 +628,7 @@ impl Workspace {
                     let v = !(yp.delta || y.delta) as u8 as f64;
                     v + mis::ratio_term(yp.pdf_rev as f64 / yp.pdf_fwd as f64, b)
                         * self.light_sums[j - 1]
+                        + merge_term(eta_b, yp, yp.pdf_rev as f64, b)
                 }
             };
             self.light_sums.push(sum);
@@ -531,12 +646,24 @@ impl Workspace {
                     } else {
                         mis::ratio_term(zp.pdf_rev as f64 / zp.pdf_fwd as f64, b)
                             * self.cam_sums[j - 1]
+                            + merge_term(eta_b, zp, zp.pdf_rev as f64, b)
                     };
                     v + prev
                 }
             };
             self.cam_sums.push(sum);
         }
+    }
+}
+
+/// The merging term m(eta p) of a vertex (0 at a specular vertex or without merging); `eta_b`
+/// is m(eta).
+#[inline]
+fn merge_term(eta_b: f64, v: &Vertex, p: f64, b: i32) -> f64 {
+    if eta_b == 0.0 || v.delta {
+        0.0
+    } else {
+        eta_b * mis::ratio_term(p, b)
     }
 }
 
@@ -555,6 +682,7 @@ fn heuristic_weight(
 ) -> f64 {
     let b = ws.exponent;
     let m = |x: f64| mis::ratio_term(x, b);
+    let eta_b = m(ws.eta);
     let (pe_y1, pe_y2) = (c.pe_y1 as f64, c.pe_y2 as f64);
     let (pl_z1, pl_z2, q1) = (c.pl_z1 as f64, c.pl_z2 as f64, c.q1 as f64);
     // Techniques s' < s, relative to p_s.
@@ -580,8 +708,10 @@ fn heuristic_weight(
             } else {
                 let v = !yp.delta as u8 as f64;
                 v + m(pe_y2 / yp.pdf_fwd as f64) * ws.light_sums[s - 2]
+                    + merge_term(eta_b, yp, pe_y2, b)
             };
-            m(pe_y1 / y.pdf_fwd as f64) * inner
+            // Merging at y_{s-1} (s - 1 >= 1), then the older techniques.
+            m(pe_y1 / y.pdf_fwd as f64) * inner + merge_term(eta_b, y, pe_y1, b)
         }
     };
     // Techniques s' > s (t' < t), relative to p_s.
@@ -594,20 +724,28 @@ fn heuristic_weight(
         let pe_z1 = z.pdf_fwd as f64;
         // sum_{t' < t - 1} relative to p_{s+1}; T_0 = 0.
         let rest = if t >= 3 {
-            m(pl_z2 / zp.pdf_fwd as f64) * ws.cam_sums[t - 2]
+            m(pl_z2 / zp.pdf_fwd as f64) * ws.cam_sums[t - 2] + merge_term(eta_b, zp, pl_z2, b)
         } else {
             0.0
         };
+        // Merging at z_{t-1}: not for s = 0, where z_{t-1} is the light vertex x_0.
+        let merge_z = merge_term(eta_b, z, pl_z1, b);
         match s {
             // p_1 picks v_0 = z_{t-1} by next-event estimation, p_{s' >= 2} by emission (k >= 3).
             0 if t >= 3 => v * m(q1 / pe_z1) + m(pl_z1 / pe_z1) * rest,
-            // p_1 itself picked v_0 by next-event estimation: every p_{s' >= 2} has the emission
-            // density pL_0 where p_1 has q1.
+            0 => m(pl_z1 / pe_z1) * (v + rest),
+            // p_1 itself picked v_0 by next-event estimation: every p_{s' >= 2} (and every merge)
+            // has the emission density pL_0 where p_1 has q1.
             1 => {
                 let pl0 = nee.map_or(0.0, |v| v.pdf_fwd as f64);
-                m(pl0 / q1) * m(pl_z1 / pe_z1) * (v + rest)
+                let vc = m(pl0 / q1) * m(pl_z1 / pe_z1) * (v + rest);
+                if merge_z == 0.0 {
+                    vc
+                } else {
+                    vc + m(pl0 / q1) * merge_z
+                }
             }
-            _ => m(pl_z1 / pe_z1) * (v + rest),
+            _ => m(pl_z1 / pe_z1) * (v + rest) + merge_z,
         }
     };
     let total = 1.0 + light_side + cam_side;

@@ -5,10 +5,12 @@
 //! or the machine that renders it; how tasks are scheduled and merged is `job::schedule`'s.
 
 pub mod bdpt;
+pub mod bpm;
 pub mod path;
 mod tile;
+pub mod vcm;
 
-pub use tile::render_tile;
+pub use tile::{render_tile, render_tile_cached};
 
 use crate::film::FilmLayout;
 use crate::mis::MisKind;
@@ -24,6 +26,11 @@ pub enum IntegratorKind {
     Pt,
     /// Bidirectional path tracing with every strategy.
     Bdpt,
+    /// Vertex connection and merging: BDPT's connections plus photon merging, one MIS.
+    Vcm,
+    /// Bidirectional photon mapping: merging only, at a fixed backward diffuse depth or mixing
+    /// two with Ershov et al.'s optimal weights.
+    Bpm,
 }
 
 /// Which BDPT techniques contribute. Not a weighting rule: the validation modes keep one
@@ -88,6 +95,27 @@ pub struct RenderSettings {
     /// Keep the image of every path depth 0 ..= max_depth as extra layers.
     #[serde(default)]
     pub depth_layers: bool,
+    /// VCM only: initial merge radius in scene units (0: `vcm::DEFAULT_RADIUS_FACTOR` times the
+    /// scene's bounding-sphere radius).
+    #[serde(default)]
+    pub radius: f32,
+    /// VCM only: radius reduction exponent alpha, r_i = r_0 (i + 1)^((alpha - 1) / 2).
+    #[serde(default = "default_alpha")]
+    pub radius_alpha: f32,
+    /// BPM only: the backward diffuse depth M (the camera's M-th non-specular vertex merges).
+    #[serde(default = "default_bdd")]
+    pub bdd: u32,
+    /// BPM only: fixed BDD, or BDD and BDD + 1 mixed by the optimal weights.
+    #[serde(default)]
+    pub bpm_weights: bpm::BpmWeights,
+}
+
+fn default_bdd() -> u32 {
+    1
+}
+
+fn default_alpha() -> f32 {
+    vcm::DEFAULT_ALPHA
 }
 
 fn default_optimal_max_depth() -> u32 {
@@ -145,6 +173,10 @@ impl Default for RenderSettings {
             optimal_max_depth: default_optimal_max_depth(),
             optimal_kappa: crate::mis::DEFAULT_KAPPA,
             depth_layers: false,
+            radius: 0.0,
+            radius_alpha: vcm::DEFAULT_ALPHA,
+            bdd: 1,
+            bpm_weights: bpm::BpmWeights::Optimal,
         }
     }
 }

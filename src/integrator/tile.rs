@@ -1,6 +1,8 @@
-//! The tile loop: every pixel sample of a task, through the path tracer or BDPT, into the task's
-//! `TileFilm` (BDPT samples weighted by the MIS rule, or into optimal-MIS systems).
+//! The tile loop: every pixel sample of a task, through the path tracer, BDPT or VCM, into the
+//! task's `TileFilm` (BDPT samples weighted by the MIS rule, or into optimal-MIS systems).
 
+use super::bpm::{self, BpmWeights};
+use super::vcm::{self, PhotonCache};
 use super::{IntegratorKind, RenderSettings, Techniques, bdpt, path};
 use crate::film::{LtRecords, STRATEGY_LAYERS, Splat, Tile, TileFilm, strategy_layer};
 use crate::geometry::{Rgb, Vec2};
@@ -152,13 +154,32 @@ impl bdpt::SampleSink for FilmSink<'_> {
     }
 }
 
-/// Renders samples `samples` of every pixel of `tile`.
+/// Renders samples `samples` of every pixel of `tile`. VCM builds the photon maps it needs
+/// here; `render_tile_cached` shares them between tasks.
 pub fn render_tile(
     scene: &Scene,
     settings: &RenderSettings,
     tile: Tile,
     samples: Range<u32>,
 ) -> TileFilm {
+    render_tile_cached(scene, settings, tile, samples, &PhotonCache::new(1))
+}
+
+/// `render_tile` with VCM's photon maps taken from (and built into) `cache`, which must serve
+/// this scene and these settings only. The same bits as `render_tile`.
+pub fn render_tile_cached(
+    scene: &Scene,
+    settings: &RenderSettings,
+    tile: Tile,
+    samples: Range<u32>,
+    cache: &PhotonCache,
+) -> TileFilm {
+    if matches!(
+        settings.integrator,
+        IntegratorKind::Vcm | IntegratorKind::Bpm
+    ) {
+        return render_tile_vcm(scene, settings, tile, samples, cache);
+    }
     let mut film = TileFilm::new(tile, &settings.film_layout());
     let mut ws = bdpt::Workspace::default();
     let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
@@ -203,6 +224,7 @@ pub fn render_tile(
                         }
                         l
                     }
+                    IntegratorKind::Vcm | IntegratorKind::Bpm => unreachable!("render_tile_vcm"),
                     IntegratorKind::Bdpt => {
                         let mut light_sampler = Sampler::new(
                             settings.sampler,
@@ -269,6 +291,112 @@ pub fn render_tile(
         ok
     });
     film.compact(&settings.film_layout());
+    film
+}
+
+/// VCM's and BPM's tile loop: iteration by iteration (one photon map at a time), every pixel of
+/// the tile.
+fn render_tile_vcm(
+    scene: &Scene,
+    settings: &RenderSettings,
+    tile: Tile,
+    samples: Range<u32>,
+    cache: &PhotonCache,
+) -> TileFilm {
+    let layout = settings.film_layout();
+    let mut film = TileFilm::new(tile, &layout);
+    let mut ws = bdpt::Workspace::default();
+    let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
+    let nd = settings.depth_count();
+    let cam = &scene.camera;
+    let bpm = settings.integrator == IntegratorKind::Bpm;
+    let frozen =
+        (bpm && settings.bpm_weights == BpmWeights::Optimal).then(|| cache.get(scene, settings, 0));
+    for i in samples {
+        let map = cache.get(scene, settings, i);
+        for y in tile.y0..tile.y1 {
+            for x in tile.x0..tile.x1 {
+                let idx = (y - tile.y0) as usize * tile.width() + (x - tile.x0) as usize;
+                let new = |stream| {
+                    Sampler::new(
+                        settings.sampler,
+                        settings.seed,
+                        x,
+                        y,
+                        i,
+                        settings.spp,
+                        stream,
+                    )
+                };
+                let (mut sampler, mut light_sampler) = (new(Stream::Camera), new(Stream::Light));
+                if bpm {
+                    let mut l = bpm::pixel_sample(
+                        scene,
+                        (x, y),
+                        &mut sampler,
+                        max_depth,
+                        settings.bdd,
+                        &map,
+                        frozen.as_deref(),
+                        &mut ws,
+                        &mut film.stats,
+                    );
+                    if !l.is_finite() {
+                        film.stats.non_finite += 1;
+                        l = Rgb::ZERO;
+                    }
+                    film.stats.samples += 1;
+                    film.sums.add(idx, l);
+                    continue;
+                }
+                let depths = (nd > 0).then(|| &mut film.depths[idx * nd..(idx + 1) * nd]);
+                let mut sink = FilmSink {
+                    mis: settings.mis,
+                    techniques: Techniques::All,
+                    frame_width: cam.width,
+                    tile,
+                    value: Rgb::ZERO,
+                    splats: &mut film.splats,
+                    layers: None,
+                    depths,
+                    optimal: None,
+                    records: &mut film.records,
+                    pixel: idx,
+                    non_finite: 0,
+                };
+                vcm::pixel_sample(
+                    scene,
+                    bdpt::PixelSample {
+                        pixel: (x, y),
+                        max_depth,
+                        cam_sampler: &mut sampler,
+                        light_sampler: &mut light_sampler,
+                    },
+                    &map,
+                    &mut ws,
+                    &mut sink,
+                    &mut film.stats,
+                );
+                film.stats.non_finite += sink.non_finite;
+                let mut l = sink.value;
+                if !l.is_finite() {
+                    film.stats.non_finite += 1;
+                    l = Rgb::ZERO;
+                }
+                film.stats.samples += 1;
+                film.sums.add(idx, l);
+            }
+        }
+    }
+    let stats = &mut film.stats;
+    film.splats.retain(|s| {
+        let ok = s.value.iter().all(|v| v.is_finite());
+        if !ok {
+            stats.non_finite += 1;
+        }
+        ok
+    });
+    film.compact(&layout);
     film
 }
 

@@ -77,6 +77,15 @@ pub struct JobSettings {
     pub max_pass_size: u32,
     /// eps of relMSE = mean (I - R)^2 / (R^2 + eps).
     pub eps: f64,
+    /// VCM: initial merge radius in scene units; default: 0.003 times the scene's
+    /// bounding-sphere radius.
+    pub radius: Option<f64>,
+    /// VCM: radius reduction exponent alpha in (0, 1]: r_i = r_0 (i + 1)^((alpha - 1) / 2).
+    pub radius_alpha: f64,
+    /// BPM: backward diffuse depth M, 1 ..= 64.
+    pub bdd: u32,
+    /// BPM: fixed BDD or BDD / BDD + 1 mixed by the optimal weights.
+    pub bpm_weights: integrator::bpm::BpmWeights,
 }
 
 /// Default samples of the first pass: the first preview after 16 spp.
@@ -108,6 +117,10 @@ impl Default for JobSettings {
             pass_size: DEFAULT_PASS_SIZE,
             max_pass_size: DEFAULT_MAX_PASS_SIZE,
             eps: 0.01,
+            radius: None,
+            radius_alpha: integrator::vcm::DEFAULT_ALPHA as f64,
+            bdd: 1,
+            bpm_weights: integrator::bpm::BpmWeights::Optimal,
         }
     }
 }
@@ -299,6 +312,30 @@ impl JobSettings {
                 format!("{d} exceeds the limit of {}", integrator::bdpt::MAX_DEPTH),
             ));
         }
+        if let Some(r) = self.radius
+            && !(r > 0.0 && r <= 1e9)
+        {
+            return Err(FieldError::new(
+                "radius",
+                format!("{r} is outside (0, 1e9] scene units"),
+            ));
+        }
+        if self.bdd == 0 || self.bdd > integrator::bdpt::MAX_DEPTH {
+            return Err(FieldError::new(
+                "bdd",
+                format!(
+                    "{} is outside 1 ..= {}",
+                    self.bdd,
+                    integrator::bdpt::MAX_DEPTH
+                ),
+            ));
+        }
+        if !(self.radius_alpha > 0.0 && self.radius_alpha <= 1.0) {
+            return Err(FieldError::new(
+                "radius_alpha",
+                format!("{} is outside (0, 1]", self.radius_alpha),
+            ));
+        }
         if self.tile_size == 0 || self.tile_size > 4096 {
             return Err(FieldError::new("tile_size", "must be within 1 ..= 4096"));
         }
@@ -395,6 +432,10 @@ impl JobSettings {
             optimal_max_depth: self.optimal_max_depth,
             optimal_kappa: self.kappa,
             depth_layers: self.depth_layers,
+            radius: self.radius.unwrap_or(0.0) as f32,
+            radius_alpha: self.radius_alpha as f32,
+            bdd: self.bdd,
+            bpm_weights: self.bpm_weights,
         };
         Ok(Resolved {
             width,

@@ -8,7 +8,8 @@
 
 use super::Resolved;
 use crate::film::{Film, Image, PixelSums, RayStats, Tile, TileFilm, TileGrid};
-use crate::integrator::{self, RenderSettings};
+use crate::integrator::vcm::PhotonCache;
+use crate::integrator::{self, IntegratorKind, RenderSettings};
 use crate::scene::Scene;
 use rayon::prelude::*;
 use std::ops::Range;
@@ -173,9 +174,33 @@ impl Resolved {
         let mut stats = RayStats::default();
         let mut spp = 0;
         let mut p = 0;
+        // VCM: the photon maps of a pass's iterations, built once (in parallel) and shared by
+        // its tasks.
+        let vcm = matches!(
+            self.render.integrator,
+            IntegratorKind::Vcm | IntegratorKind::Bpm
+        );
+        let cache = PhotonCache::new(if vcm {
+            self.pass_len(u32::MAX) as usize
+        } else {
+            1
+        });
         while let Some(range) = self.pass_range(p) {
+            if vcm {
+                range.clone().into_par_iter().for_each(|i| {
+                    cache.get(scene, &self.render, i);
+                });
+            }
             let tasks: Vec<_> = tiles.iter().map(|&t| (t, range.clone())).collect();
-            run_tasks(scene, &self.render, &tasks, &mut film, &mut stats, progress);
+            run_tasks(
+                scene,
+                &self.render,
+                &tasks,
+                &cache,
+                &mut film,
+                &mut stats,
+                progress,
+            );
             film.end_pass();
             spp = range.end;
             p += 1;
@@ -197,6 +222,7 @@ fn run_tasks(
     scene: &Scene,
     settings: &RenderSettings,
     tasks: &[(Tile, Range<u32>)],
+    cache: &PhotonCache,
     film: &mut Film,
     stats: &mut RayStats,
     progress: &(dyn Fn(usize) + Sync),
@@ -206,7 +232,8 @@ fn run_tasks(
         let results: Vec<TileFilm> = chunk
             .par_iter()
             .map(|(tile, range)| {
-                let f = integrator::render_tile(scene, settings, *tile, range.clone());
+                let f =
+                    integrator::render_tile_cached(scene, settings, *tile, range.clone(), cache);
                 progress(1);
                 f
             })

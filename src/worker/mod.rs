@@ -8,6 +8,7 @@
 //! [`TileFilm`](crate::film::TileFilm), and ships it in the [`crate::film::wire`] format.
 
 use crate::integrator;
+use crate::integrator::vcm::PhotonCache;
 use crate::scene::Scene;
 use crate::service::bundle;
 use crate::service::protocol::{
@@ -52,6 +53,9 @@ struct Worker {
     /// Tasks the coordinator says are no longer ours.
     lost: Mutex<HashSet<i64>>,
     scenes: Mutex<HashMap<(String, u32, u32), SceneCell>>,
+    /// VCM: the photon maps of the latest jobs' iterations, per job id (each worker traces
+    /// the light paths of the iterations it renders itself; see `integrator::vcm`).
+    photons: Mutex<HashMap<String, Arc<PhotonCache>>>,
     drain: watch::Sender<bool>,
     /// Results uploaded since the drain began.
     drained_uploads: AtomicUsize,
@@ -271,6 +275,18 @@ impl Worker {
         }
     }
 
+    /// The photon-map cache of job `job` (kept for the two latest jobs; a pass's maps at most).
+    fn photon_cache(&self, job: &str, pass_len: u32) -> Arc<PhotonCache> {
+        let mut caches = lock(&self.photons);
+        if !caches.contains_key(job) && caches.len() >= 2 {
+            caches.clear();
+        }
+        caches
+            .entry(job.to_string())
+            .or_insert_with(|| Arc::new(PhotonCache::new(pass_len as usize)))
+            .clone()
+    }
+
     async fn run_task(&self, lease: Lease) {
         let t = &lease.task;
         lock(&self.held).insert(t.id, t.attempt);
@@ -282,8 +298,10 @@ impl Worker {
             Ok(scene) => {
                 let settings = lease.job.resolved.render.clone();
                 let (rect, range) = (t.rect, t.samples[0]..t.samples[1]);
+                let cache = self.photon_cache(&t.job_id, lease.job.resolved.pass_len(u32::MAX));
                 let rendered = tokio::task::spawn_blocking(move || {
-                    integrator::render_tile(&scene, &settings, rect, range.clone()).encode(range)
+                    integrator::render_tile_cached(&scene, &settings, rect, range.clone(), &cache)
+                        .encode(range)
                 })
                 .await;
                 match rendered {
@@ -373,6 +391,7 @@ pub(crate) async fn run(cfg: WorkerConfig) -> Result<()> {
         held: Mutex::new(HashMap::new()),
         lost: Mutex::new(HashSet::new()),
         scenes: Mutex::new(HashMap::new()),
+        photons: Mutex::new(HashMap::new()),
         drain,
         drained_uploads: AtomicUsize::new(0),
     });

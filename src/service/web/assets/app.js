@@ -724,7 +724,7 @@ async function submitView(signal) {
         field('Samples per pixel', num('spp', { min: 1, placeholder: 'scene / 16' })),
         field('Time budget (s)', num('time_budget_s', { min: 0.1, step: 'any', placeholder: 'none' }))),
       h('div', { class: 'row spaced' },
-        field('Integrator', h('select', { name: 'integrator', id: 'f-integrator' }, opt('pt', 'path tracer (pt)'), opt('bdpt', 'bidirectional (bdpt)'))),
+        field('Integrator', h('select', { name: 'integrator', id: 'f-integrator' }, opt('pt', 'path tracer (pt)'), opt('bdpt', 'bidirectional (bdpt)'), opt('vcm', 'connection + merging (vcm)'), opt('bpm', 'photon mapping (bpm)'))),
         field('MIS (bdpt)', h('select', { name: 'mis', id: 'f-mis' }, opt('balance'), opt('power'), opt('optimal'), opt('optimal-progressive'))),
         field('Max depth', num('max_depth', { min: 0, placeholder: 'scene / 5' })),
         field('Seed', num('seed', { min: 0, value: 0 })),

@@ -1,0 +1,478 @@
+//! Vertex connection and merging (Georgiev, Křivánek, Davidovič and Slusallek, "Light Transport
+//! Simulation with Vertex Connection and Merging", SIGGRAPH Asia 2012; Hachisuka, Pantaleoni and
+//! Jensen, "A Path Space Extension for Robust Light Transport Simulation", SIGGRAPH Asia 2012).
+//!
+//! An iteration is one sample index i: its N_L = width x height light subpaths are those BDPT
+//! traces for the pixel samples (x, y, i), so they are deterministic functions of (seed, i,
+//! pixel). Their vertices after the first bounce that are not specular are the iteration's
+//! photons ([`PhotonMap`], a hash grid). A pixel sample of iteration i is BDPT's (every
+//! connection, with its own light subpath) plus merging: every camera vertex z_j (j >= 1, not
+//! specular) gathers the photons within r_i, each a path of depth i_photon + j - 1. One MIS covers
+//! connections and merges, the recursive weights of [`bdpt::Workspace::prepare`] with eta =
+//! N_L pi r_i^2.
+//!
+//! The radius shrinks as r_i = r_0 (i + 1)^((alpha - 1) / 2) (Knaus and Zwicker, "Progressive
+//! Photon Mapping: A Probabilistic Approach", ACM TOG 2011, eq. 13 with one photon pass per
+//! iteration), so the estimate is consistent.
+//!
+//! A tile task must merge with every light vertex of its iterations, not only its own pixels'.
+//! Each task takes the maps from a [`PhotonCache`] that builds them on first use: the same map
+//! whichever process or thread builds it, so the image does not depend on the tiling, the
+//! threads, the workers or retries.
+
+use super::RenderSettings;
+use super::bdpt::{self, SampleSink, Workspace};
+use crate::film::RayStats;
+use crate::geometry::{Rgb, Vec3};
+use crate::material::Mode;
+use crate::mis::{self, MisKind};
+use crate::sampler::{Sampler, Stream};
+use crate::scene::Scene;
+use std::sync::{Arc, Mutex, OnceLock};
+
+/// Default initial radius, as a fraction of the scene's bounding-sphere radius (SmallVCM's
+/// default, Davidovič and Georgiev).
+pub const DEFAULT_RADIUS_FACTOR: f32 = 0.003;
+/// Default radius reduction exponent alpha (Knaus and Zwicker 2011 §4.3 recommend 2/3 .. 0.75).
+pub const DEFAULT_ALPHA: f32 = 0.75;
+
+/// The merge radius of iteration `iteration`: r_0 (i + 1)^((alpha - 1) / 2), r_0 the setting or
+/// by default `DEFAULT_RADIUS_FACTOR` times the scene's bounding-sphere radius.
+pub fn radius(scene: &Scene, settings: &RenderSettings, iteration: u32) -> f32 {
+    let r0 = if settings.radius > 0.0 {
+        settings.radius
+    } else {
+        let (lo, hi) = scene.bounds();
+        let r = 0.5 * (hi - lo).length();
+        DEFAULT_RADIUS_FACTOR * if r.is_finite() && r > 0.0 { r } else { 1.0 }
+    };
+    let alpha = settings.radius_alpha as f64;
+    (r0 as f64 * (iteration as f64 + 1.0).powf(0.5 * (alpha - 1.0))) as f32
+}
+
+/// One stored light vertex y_i (i >= 1, not specular) and what its merges need of its subpath.
+#[derive(Clone, Copy, Debug)]
+pub struct Photon {
+    /// Position.
+    pub p: Vec3,
+    /// Unit direction toward y_{i-1} (the direction the light arrived from).
+    pub wi: Vec3,
+    /// Throughput of the light subpath up to y_i (f / p).
+    pub beta: Rgb,
+    /// i: the vertex's index in its light subpath (edges from the light).
+    pub index: u32,
+    /// y_{i-1}, where the light came from.
+    pub prev: Vec3,
+    /// Whether y_1 .. y_{i-1} are all specular: a direct or caustic photon.
+    pub caustic: bool,
+    /// pL_i: area density of y_i from y_{i-1}.
+    pl: f32,
+    /// Converts a solid-angle density at y_i toward y_{i-1} into area density at y_{i-1}
+    /// (|cos| at y_{i-1} / distance^2; 0 when y_{i-1} is a point light).
+    g: f32,
+    /// The light subpath's partial sum S_i (see `Workspace::prepare`) is
+    /// `alpha + beta * m(pE_{i-1})`, pE_{i-1} known only at the merge (it depends on the
+    /// camera's direction).
+    alpha: f64,
+    beta_m: f64,
+}
+
+/// The photons of one iteration in a hash grid (cells of 2 r, so that a query visits at most 8).
+pub struct PhotonMap {
+    /// Photons, sorted by bucket (stable: in light-path order within a bucket).
+    photons: Vec<Photon>,
+    /// Bucket b holds photons[start[b] .. start[b + 1]].
+    start: Vec<u32>,
+    lo: Vec3,
+    inv_cell: f32,
+    /// Merge radius of the iteration.
+    pub radius: f32,
+    /// eta = N_L pi r^2.
+    pub eta: f64,
+    /// Light subpaths traced (N_L).
+    pub light_paths: u64,
+    /// Mean over the light subpaths of the throughput reaching the first surface (luminance):
+    /// an estimate of the flux the lights put into the scene.
+    pub flux: f64,
+    /// Rays traced to build the map.
+    pub stats: RayStats,
+}
+
+impl PhotonMap {
+    /// Traces the N_L light subpaths of iteration `iteration` (one per pixel, in row-major order)
+    /// and stores their photons.
+    pub fn build(scene: &Scene, settings: &RenderSettings, iteration: u32) -> PhotonMap {
+        let (w, h) = (scene.camera.width, scene.camera.height);
+        let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
+        let radius = radius(scene, settings, iteration);
+        let light_paths = w as u64 * h as u64;
+        let eta = light_paths as f64 * std::f64::consts::PI * (radius as f64).powi(2);
+        let heuristic = heuristic(settings);
+        let b = heuristic.beta();
+        let eta_b = mis::ratio_term(eta, b);
+        let mut ws = Workspace::default();
+        ws.set_merging(eta);
+        let mut stats = RayStats::default();
+        let mut photons = Vec::new();
+        let mut flux = 0.0f64;
+        for y in 0..h {
+            for x in 0..w {
+                let mut sampler = Sampler::new(
+                    settings.sampler,
+                    settings.seed,
+                    x,
+                    y,
+                    iteration,
+                    settings.spp,
+                    Stream::Light,
+                );
+                bdpt::light_subpath(scene, &mut sampler, max_depth, &mut ws, &mut stats);
+                ws.clear_camera();
+                ws.prepare(scene, heuristic);
+                ws.photons(eta_b, b, &mut photons);
+                if let Some(y1) = ws.light_vertices().get(1) {
+                    flux += luminance(y1.throughput());
+                }
+            }
+        }
+        let mut map = PhotonMap {
+            photons: Vec::new(),
+            start: Vec::new(),
+            lo: Vec3::ZERO,
+            inv_cell: 1.0 / (2.0 * radius.max(f32::MIN_POSITIVE)),
+            radius,
+            eta,
+            light_paths,
+            flux: flux / light_paths.max(1) as f64,
+            stats,
+        };
+        map.index(photons);
+        map
+    }
+
+    /// Sorts `photons` into the hash grid (a counting sort, stable).
+    fn index(&mut self, photons: Vec<Photon>) {
+        let n = photons.len();
+        let buckets = n.next_power_of_two().max(1);
+        let lo = photons
+            .iter()
+            .fold(Vec3::splat(f32::INFINITY), |a, p| a.min(p.p));
+        self.lo = if lo.is_finite() { lo } else { Vec3::ZERO };
+        let keys: Vec<usize> = photons
+            .iter()
+            .map(|p| self.bucket(self.cell(p.p), buckets))
+            .collect();
+        let mut start = vec![0u32; buckets + 1];
+        for &k in &keys {
+            start[k + 1] += 1;
+        }
+        for b in 0..buckets {
+            start[b + 1] += start[b];
+        }
+        let mut next = start.clone();
+        let mut sorted = photons.clone();
+        for (p, &k) in photons.iter().zip(&keys) {
+            sorted[next[k] as usize] = *p;
+            next[k] += 1;
+        }
+        self.photons = sorted;
+        self.start = start;
+    }
+
+    fn cell(&self, p: Vec3) -> [i64; 3] {
+        let c = ((p - self.lo) * self.inv_cell).floor();
+        [c.x as i64, c.y as i64, c.z as i64]
+    }
+
+    fn bucket(&self, c: [i64; 3], buckets: usize) -> usize {
+        // Teschner et al., "Optimized Spatial Hashing for Collision Detection of Deformable
+        // Objects", VMV 2003: the primes of their hash.
+        let h = (c[0].wrapping_mul(73_856_093))
+            ^ (c[1].wrapping_mul(19_349_663))
+            ^ (c[2].wrapping_mul(83_492_791));
+        (h as u64 as usize) & (buckets - 1)
+    }
+
+    /// Number of photons.
+    pub fn len(&self) -> usize {
+        self.photons.len()
+    }
+
+    /// Whether the map holds no photon.
+    pub fn is_empty(&self) -> bool {
+        self.photons.is_empty()
+    }
+
+    /// Bytes the photons occupy (what shipping the map would cost, before compression).
+    pub fn bytes(&self) -> usize {
+        self.photons.len() * std::mem::size_of::<Photon>() + self.start.len() * 4
+    }
+
+    /// Calls `f` for every photon within the radius of `p`, in a fixed order.
+    pub(crate) fn query(&self, p: Vec3, mut f: impl FnMut(&Photon)) {
+        if self.photons.is_empty() {
+            return;
+        }
+        let buckets = self.start.len() - 1;
+        let c = (p - self.lo) * self.inv_cell;
+        let base = c.floor();
+        let frac = c - base;
+        let mut cells = [0usize; 8];
+        for (k, cell) in cells.iter_mut().enumerate() {
+            let mut q = [base.x as i64, base.y as i64, base.z as i64];
+            for (axis, qa) in q.iter_mut().enumerate() {
+                if k >> axis & 1 == 1 {
+                    *qa += if frac[axis] < 0.5 { -1 } else { 1 };
+                }
+            }
+            *cell = self.bucket(q, buckets);
+        }
+        // Two cells may share a bucket: visit each bucket once.
+        cells.sort_unstable();
+        let r2 = self.radius * self.radius;
+        for (k, &b) in cells.iter().enumerate() {
+            if k > 0 && cells[k - 1] == b {
+                continue;
+            }
+            for ph in &self.photons[self.start[b] as usize..self.start[b + 1] as usize] {
+                if ph.p.distance_squared(p) <= r2 {
+                    f(ph);
+                }
+            }
+        }
+    }
+}
+
+/// Mean of the three channels.
+pub(crate) fn luminance(c: Rgb) -> f64 {
+    (c.x as f64 + c.y as f64 + c.z as f64) / 3.0
+}
+
+/// The heuristic of the weights (optimal MIS is not defined for merging: balance).
+fn heuristic(settings: &RenderSettings) -> MisKind {
+    if settings.mis == MisKind::Power {
+        MisKind::Power
+    } else {
+        MisKind::Balance
+    }
+}
+
+impl Workspace {
+    /// Appends the photons of the prepared light subpath (`prepare` with merging on).
+    fn photons(&self, eta_b: f64, b: i32, out: &mut Vec<Photon>) {
+        let light = self.light_vertices();
+        let mut caustic = true;
+        for i in 1..light.len() {
+            if i >= 2 {
+                caustic &= light[i - 1].is_delta();
+            }
+            let (y, yp) = (&light[i], &light[i - 1]);
+            if y.is_delta() || y.is_black() {
+                continue;
+            }
+            let (wi, d2) = bdpt::dir_to(y.position(), yp.position());
+            let g = if yp.is_point() || !(d2 > 0.0) {
+                0.0
+            } else {
+                yp.abs_cos(wi) / d2
+            };
+            let m = |x: f64| mis::ratio_term(x, b);
+            let pl_prev = m(yp.pdf_fwd() as f64);
+            let (alpha, beta_m) = if i == 1 {
+                let v0 = !yp.is_point() as u8 as f64;
+                (m(self.q1() as f64) / pl_prev, v0 / pl_prev)
+            } else {
+                let v = !yp.is_delta() as u8 as f64;
+                let merge_prev = if yp.is_delta() { 0.0 } else { eta_b };
+                (v, self.light_sum(i - 1) / pl_prev + merge_prev)
+            };
+            out.push(Photon {
+                p: y.position(),
+                wi,
+                beta: y.throughput(),
+                index: i as u32,
+                prev: yp.position(),
+                caustic,
+                pl: y.pdf_fwd(),
+                g,
+                alpha,
+                beta_m,
+            });
+        }
+    }
+}
+
+/// Merges every camera vertex of the prepared workspace (`bdpt::pixel_sample` with merging on)
+/// with the photons of `map`, and reports each merge to `sink` as a camera-side sample.
+fn merge(
+    ws: &Workspace,
+    map: &PhotonMap,
+    max_depth: u32,
+    pixel: (u32, u32),
+    sink: &mut dyn SampleSink,
+) {
+    let b = ws.exponent();
+    let m = |x: f64| mis::ratio_term(x, b);
+    let eta = map.eta;
+    let eta_b = m(eta);
+    let norm = (1.0 / (eta)) as f32;
+    let cam = ws.camera_vertices();
+    for j in 1..cam.len() {
+        let t = j + 1;
+        let (z, zp) = (&cam[j], &cam[j - 1]);
+        if z.is_delta() || z.is_black() {
+            continue;
+        }
+        let (wo, _) = bdpt::dir_to(z.position(), zp.position());
+        let pe_z = z.pdf_fwd() as f64;
+        map.query(z.position(), |ph| {
+            let depth = ph.index + t as u32 - 2;
+            if depth > max_depth {
+                return;
+            }
+            let f = z.bsdf().eval(wo, ph.wi, Mode::Radiance);
+            if f == Rgb::ZERO {
+                return;
+            }
+            let contribution = z.throughput() * f * ph.beta * norm;
+            // Light side: m(1 / (eta pL_i)) S_i, S_i completed with pE_{i-1} from the camera's
+            // direction.
+            let pe_prev = z.bsdf().pdf(wo, ph.wi) as f64 * ph.g as f64;
+            let light = (ph.alpha + ph.beta_m * m(pe_prev)) / (eta_b * m(ph.pl as f64));
+            // Camera side: m(1 / (eta pE(z))) T_{t-1}, T_{t-1} completed with pL(z_{t-2}) from
+            // the photon's direction.
+            let sum = if t == 2 {
+                1.0
+            } else {
+                let pl_zp = z.area_density_to(z.bsdf().pdf(ph.wi, wo), zp) as f64;
+                let v = !zp.is_delta() as u8 as f64;
+                let merge_zp = if zp.is_delta() { 0.0 } else { eta_b * m(pl_zp) };
+                v + m(pl_zp / zp.pdf_fwd() as f64) * ws.camera_sum(j - 1) + merge_zp
+            };
+            let camera = sum / (eta_b * m(pe_z));
+            let total = 1.0 + light + camera;
+            let weight = if total.is_finite() { 1.0 / total } else { 0.0 };
+            sink.sample(&bdpt::PathSample {
+                depth,
+                s: ph.index + 1,
+                t: t as u32,
+                pixel,
+                contribution,
+                weight,
+                balance: &[],
+            });
+        });
+    }
+}
+
+/// Renders one pixel sample of VCM: BDPT's techniques weighted with merging, then the merges
+/// against `map` (the photons of this sample's iteration).
+pub fn pixel_sample(
+    scene: &Scene,
+    ps: bdpt::PixelSample,
+    map: &PhotonMap,
+    ws: &mut Workspace,
+    sink: &mut dyn SampleSink,
+    stats: &mut RayStats,
+) {
+    let (pixel, max_depth) = (ps.pixel, ps.max_depth);
+    ws.set_merging(map.eta);
+    bdpt::pixel_sample(scene, ps, ws, sink, stats);
+    merge(ws, map, max_depth, pixel, sink);
+}
+
+/// A map built once by whichever task asks first.
+type MapCell = Arc<OnceLock<Arc<PhotonMap>>>;
+
+/// The photon maps of one render's iterations, built on first use and shared by its tasks; at
+/// most `capacity` are kept (the oldest is dropped; a dropped map asked for again is rebuilt,
+/// the same bits). A cache serves one scene and one `RenderSettings`.
+pub struct PhotonCache {
+    capacity: usize,
+    /// Iteration 0's map, kept apart (BPM's frozen map of Ershov et al.'s weights).
+    first: OnceLock<Arc<PhotonMap>>,
+    entries: Mutex<Vec<(u32, MapCell)>>,
+}
+
+impl PhotonCache {
+    /// A cache of at most `capacity` maps (at least 1).
+    pub fn new(capacity: usize) -> PhotonCache {
+        PhotonCache {
+            capacity: capacity.max(1),
+            first: OnceLock::new(),
+            entries: Mutex::new(Vec::new()),
+        }
+    }
+
+    /// The map of iteration `iteration`, built here if no one has built it yet (other callers
+    /// of the same iteration wait for it).
+    pub fn get(&self, scene: &Scene, settings: &RenderSettings, iteration: u32) -> Arc<PhotonMap> {
+        if iteration == 0 {
+            return self
+                .first
+                .get_or_init(|| Arc::new(PhotonMap::build(scene, settings, 0)))
+                .clone();
+        }
+        let cell = {
+            let mut e = self.entries.lock().unwrap_or_else(|p| p.into_inner());
+            match e.iter().find(|(i, _)| *i == iteration) {
+                Some((_, c)) => c.clone(),
+                None => {
+                    if e.len() >= self.capacity {
+                        e.remove(0);
+                    }
+                    let c = Arc::new(OnceLock::new());
+                    e.push((iteration, c.clone()));
+                    c
+                }
+            }
+        };
+        cell.get_or_init(|| Arc::new(PhotonMap::build(scene, settings, iteration)))
+            .clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    /// The hash grid finds exactly the photons a brute-force search finds, each once, and a map
+    /// built twice is the same.
+    #[test]
+    fn hash_grid_queries_equal_brute_force() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes");
+        let mut scene = Scene::load(&dir.join("cornell-box.json")).expect("scene");
+        scene.camera = scene.camera.with_resolution(32, 32).expect("resolution");
+        let settings = RenderSettings {
+            radius: 0.1,
+            ..Default::default()
+        };
+        let map = PhotonMap::build(&scene, &settings, 3);
+        assert!(map.len() > 1000, "{} photons", map.len());
+        let again = PhotonMap::build(&scene, &settings, 3);
+        let key = |p: &Photon| (p.p.to_array(), p.index, p.beta.to_array());
+        assert!(
+            map.photons
+                .iter()
+                .map(key)
+                .eq(again.photons.iter().map(key))
+        );
+        let r2 = map.radius * map.radius;
+        for q in map.photons.iter().step_by(7) {
+            for c in [q.p, q.p + Vec3::new(0.03, -0.05, 0.02)] {
+                let mut found = Vec::new();
+                map.query(c, |p| found.push(key(p)));
+                let mut brute: Vec<_> = map
+                    .photons
+                    .iter()
+                    .filter(|p| p.p.distance_squared(c) <= r2)
+                    .map(key)
+                    .collect();
+                found.sort_by(|a, b| a.partial_cmp(b).expect("finite"));
+                brute.sort_by(|a, b| a.partial_cmp(b).expect("finite"));
+                assert_eq!(found, brute);
+            }
+        }
+    }
+}
