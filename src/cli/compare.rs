@@ -42,7 +42,7 @@ pub struct CompareArgs {
     pub seeds: u64,
     #[arg(long, default_value_t = 5)]
     pub max_depth: u32,
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = crate::mis::DEFAULT_OPTIMAL_MAX_DEPTH)]
     pub optimal_max_depth: u32,
     #[arg(long, default_value_t = crate::mis::DEFAULT_KAPPA)]
     pub kappa: f64,

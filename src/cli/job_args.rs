@@ -32,7 +32,7 @@ pub struct JobArgs {
     #[arg(long)]
     pub depth_layers: bool,
     /// Optimal MIS: weight depths 1..=D optimally, balance above.
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = crate::mis::DEFAULT_OPTIMAL_MAX_DEPTH)]
     pub optimal_max_depth: u32,
     /// Optimal MIS: regularisation toward the balance solution, in pseudo-samples (0 = the
     /// plain direct estimator).

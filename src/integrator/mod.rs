@@ -119,7 +119,7 @@ fn default_alpha() -> f32 {
 }
 
 fn default_optimal_max_depth() -> u32 {
-    5
+    crate::mis::DEFAULT_OPTIMAL_MAX_DEPTH
 }
 
 fn default_kappa() -> f64 {

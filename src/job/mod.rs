@@ -105,7 +105,7 @@ impl Default for JobSettings {
             integrator: IntegratorKind::Pt,
             mis: MisKind::Balance,
             techniques: Techniques::All,
-            optimal_max_depth: 5,
+            optimal_max_depth: crate::mis::DEFAULT_OPTIMAL_MAX_DEPTH,
             kappa: crate::mis::DEFAULT_KAPPA,
             max_depth: None,
             seed: 0,

@@ -8,5 +8,5 @@ pub mod progressive;
 pub mod solve;
 
 pub use heuristic::{MisKind, power_heuristic, ratio_term, weight};
-pub use optimal::{DEFAULT_KAPPA, Layout, OptimalAccum, SolveScratch};
+pub use optimal::{DEFAULT_KAPPA, DEFAULT_OPTIMAL_MAX_DEPTH, Layout, OptimalAccum, SolveScratch};
 pub use progressive::Progressive;

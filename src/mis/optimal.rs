@@ -37,6 +37,11 @@ use super::solve::solve_psd;
 /// Default regularisation strength kappa (pseudo-samples pulling toward the balance solution).
 pub const DEFAULT_KAPPA: f64 = 1.0;
 
+/// Default largest depth weighted optimally. Measured on four scenes (BENCHMARKS.md #14): the
+/// equal-spp gain is at depth 1, and depths 2-5 stay within 2 % of balance at equal spp while
+/// their systems cost 10-30 % of the samples at equal time.
+pub const DEFAULT_OPTIMAL_MAX_DEPTH: u32 = 1;
+
 /// Largest depth the optimal estimator supports (N = d + 2 <= 64 techniques).
 pub const MAX_OPTIMAL_DEPTH: u32 = 62;
 

@@ -735,7 +735,7 @@ async function submitView(signal) {
           field('Sampler', h('select', { name: 'sampler', id: 'f-sampler' }, opt('sobol'), opt('stratified'), opt('independent'))),
           field('Direct light (pt)', h('select', { name: 'direct', id: 'f-direct' }, opt('mis'), opt('light'), opt('bsdf'))),
           field('Techniques (bdpt)', h('select', { name: 'techniques', id: 'f-techniques' }, opt('all'), opt('lt'), opt('nee'))),
-          field('Optimal max depth', num('optimal_max_depth', { min: 1, placeholder: '5' })),
+          field('Optimal max depth', num('optimal_max_depth', { min: 1, placeholder: '1' })),
           field('kappa', num('kappa', { min: 0, step: 'any', placeholder: 'default' })),
           field('relMSE eps', num('eps', { min: 0, step: 'any', placeholder: '0.01' })),
           h('label', { class: 'inline' }, h('input', { type: 'checkbox', name: 'depth_layers', id: 'f-depth_layers' }), 'depth layers'),
