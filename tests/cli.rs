@@ -241,6 +241,8 @@ fn render_through_the_service_equals_the_in_process_render() {
         "bdpt",
         "--mis",
         "optimal",
+        "--optimal-max-depth",
+        "5",
         "--depth-layers",
         "--json",
     ];
