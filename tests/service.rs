@@ -584,6 +584,43 @@ fn a_tile_checkpoint_torn_mid_write_falls_back_to_the_previous_pass() {
 }
 
 #[test]
+fn a_merge_that_cannot_read_its_checkpoints_fails_the_job_and_the_coordinator_keeps_serving() {
+    let dir = folder("unreadable");
+    let data = dir.join("data");
+    let (_server, url) = serve(&data, &[]);
+    let c = http();
+    let id = submit(&c, &url, 8); // two passes of 4 spp, 6 tiles of at most 16x16
+    let w = register(&c, &url, "manual");
+    for _ in 0..6 {
+        let t = lease(&c, &url, &w);
+        assert_eq!(upload(&c, &url, &t, &w, tile_result(&t["task"], 7)), 200);
+    }
+    wait_state(&c, &url, &id, |s| s["passes_done"] == 1);
+    // Both slots of tile 0 damaged (as a data folder of another version would read): the merge
+    // of pass 2 cannot continue the tile.
+    let layout = synthetic_layout(&settings(8));
+    let len = omis::film::wire::TileCheckpoint::encoded_len(16 * 16, &layout) as usize;
+    let band = data.join(format!("jobs/{id}/tiles/band-000000.acc"));
+    let mut bytes = std::fs::read(&band).expect("the band's checkpoints");
+    bytes[len / 2] ^= 0x10;
+    bytes[len + len / 2] ^= 0x10;
+    std::fs::write(&band, &bytes).expect("write the checkpoints");
+    let _w = worker(&url, "w", &[]);
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "failed");
+    assert!(
+        st["error"]
+            .as_str()
+            .unwrap_or("")
+            .contains("tile checkpoint 0"),
+        "{st}"
+    );
+    // The failure released the store: the coordinator answers and finishes the next job.
+    let next = submit(&c, &url, 4);
+    let st = wait_state(&c, &url, &next, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 4);
+}
+
+#[test]
 fn a_task_that_fails_three_times_fails_the_job_with_the_workers_error() {
     let dir = folder("fail");
     let (_server, url) = serve(&dir.join("data"), &[]);

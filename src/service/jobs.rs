@@ -133,7 +133,9 @@ pub(crate) fn advance(app: &App, id: &str) {
     loop {
         if let Err(e) = advance_inner(app, id) {
             tracing::error!("job {id}: {e}");
-            if let Ok(true) = app.db().set_job_state(id, JobState::Failed, Some(&e)) {
+            // The store's guard must be gone before `event` locks it again.
+            let failed = app.db().set_job_state(id, JobState::Failed, Some(&e));
+            if let Ok(true) = failed {
                 app.event(id, JobEvent::Failed(FailedEvent { error: e }));
             }
             drop_runtime(app, id);
