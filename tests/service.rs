@@ -551,26 +551,34 @@ fn a_recorded_result_damaged_on_disk_is_rendered_again() {
     assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(4));
 }
 
+/// A job of two passes of 4 spp (6 tiles of at most 16x16 on `data`) whose first pass is
+/// merged, with the path of its first band's tile checkpoints and their bytes, and the length of
+/// one slot.
+fn first_pass_merged(c: &Client, url: &str, data: &Path) -> (String, PathBuf, Vec<u8>, usize) {
+    let id = submit(c, url, 8);
+    let w = register(c, url, "manual");
+    for _ in 0..6 {
+        let t = lease(c, url, &w);
+        assert_eq!(t["task"]["pass"], 0, "{t}");
+        assert_eq!(upload(c, url, &t, &w, tile_result(&t["task"], 7)), 200);
+    }
+    wait_state(c, url, &id, |s| s["passes_done"] == 1);
+    let layout = synthetic_layout(&settings(8));
+    let len = omis::film::wire::TileCheckpoint::encoded_len(16 * 16, &layout) as usize;
+    let band = data.join(format!("jobs/{id}/tiles/band-000000.acc"));
+    let bytes = std::fs::read(&band).expect("the band's checkpoints");
+    (id, band, bytes, len)
+}
+
 #[test]
 fn a_tile_checkpoint_torn_mid_write_falls_back_to_the_previous_pass() {
     let dir = folder("torn");
     let data = dir.join("data");
     let (_server, url) = serve(&data, &[]);
     let c = http();
-    let id = submit(&c, &url, 8); // two passes of 4 spp, 6 tiles of at most 16x16
-    let w = register(&c, &url, "manual");
-    for _ in 0..6 {
-        let t = lease(&c, &url, &w);
-        assert_eq!(t["task"]["pass"], 0, "{t}");
-        assert_eq!(upload(&c, &url, &t, &w, tile_result(&t["task"], 7)), 200);
-    }
-    wait_state(&c, &url, &id, |s| s["passes_done"] == 1);
+    let (id, band, mut bytes, len) = first_pass_merged(&c, &url, &data);
     // Tile 0 holds pass 1 in its slot 1. What a crash in the middle of writing pass 2 into its
     // slot 0 leaves: a checkpoint that claims 2 passes, torn (one byte of its sums differs).
-    let layout = synthetic_layout(&settings(8));
-    let len = omis::film::wire::TileCheckpoint::encoded_len(16 * 16, &layout) as usize;
-    let band = data.join(format!("jobs/{id}/tiles/band-000000.acc"));
-    let mut bytes = std::fs::read(&band).expect("the band's checkpoints");
     let mut torn = bytes[len..2 * len].to_vec();
     torn[28..32].copy_from_slice(&2u32.to_le_bytes()); // passes
     torn[len / 2] ^= 0x10;
@@ -589,19 +597,9 @@ fn a_merge_that_cannot_read_its_checkpoints_fails_the_job_and_the_coordinator_ke
     let data = dir.join("data");
     let (_server, url) = serve(&data, &[]);
     let c = http();
-    let id = submit(&c, &url, 8); // two passes of 4 spp, 6 tiles of at most 16x16
-    let w = register(&c, &url, "manual");
-    for _ in 0..6 {
-        let t = lease(&c, &url, &w);
-        assert_eq!(upload(&c, &url, &t, &w, tile_result(&t["task"], 7)), 200);
-    }
-    wait_state(&c, &url, &id, |s| s["passes_done"] == 1);
+    let (id, band, mut bytes, len) = first_pass_merged(&c, &url, &data);
     // Both slots of tile 0 damaged (as a data folder of another version would read): the merge
     // of pass 2 cannot continue the tile.
-    let layout = synthetic_layout(&settings(8));
-    let len = omis::film::wire::TileCheckpoint::encoded_len(16 * 16, &layout) as usize;
-    let band = data.join(format!("jobs/{id}/tiles/band-000000.acc"));
-    let mut bytes = std::fs::read(&band).expect("the band's checkpoints");
     bytes[len / 2] ^= 0x10;
     bytes[len + len / 2] ^= 0x10;
     std::fs::write(&band, &bytes).expect("write the checkpoints");

@@ -298,8 +298,19 @@ pub struct SolveScratch {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
+
+    /// One pixel's depth-1 systems of the hand-built case below (also used by `progressive`).
+    pub(crate) fn hand_built_depth1() -> OptimalAccum {
+        let mut acc = OptimalAccum::new(Layout::new(1), 1);
+        acc.add_sample(0, 1, &[0.5, 0.5, 0.0], [1.0; 3]);
+        acc.add_unsampled(0, 1, 1);
+        acc.add_sample(0, 1, &[0.0, 1.0, 0.0], [0.0; 3]);
+        acc.add_sample(0, 1, &[0.0, 0.5, 0.5], [4.0; 3]);
+        acc.add_hit(0, 1);
+        acc
+    }
 
     #[test]
     fn layout_matches_the_design_memory_formula() {
@@ -341,12 +352,7 @@ mod tests {
         //  sample 2: technique 1 unsampled (subpath too short): A_11 += 1
         //  sample 3: technique 0 zero contribution with W = (0, 1, 0)... (a path only 1 makes)
         //  light tracing: 1 hit in this pixel with W = (0, 0.5, 0.5), C W_s = 4.
-        let mut acc = OptimalAccum::new(Layout::new(1), 1);
-        acc.add_sample(0, 1, &[0.5, 0.5, 0.0], [1.0; 3]);
-        acc.add_unsampled(0, 1, 1);
-        acc.add_sample(0, 1, &[0.0, 1.0, 0.0], [0.0; 3]);
-        acc.add_sample(0, 1, &[0.0, 0.5, 0.5], [4.0; 3]);
-        acc.add_hit(0, 1);
+        let acc = hand_built_depth1();
         // A = [[.25, .25, 0], [.25, .25+1+1+.25, .25], [0, .25, .25 + (8 - 1)]]
         //   = [[.25, .25, 0], [.25, 2.5, .25], [0, .25, 7.25]]
         // b = 1 * (.5, .5, 0) + 4 * (0, .5, .5) = (.5, 2.5, 2)

@@ -225,12 +225,7 @@ mod tests {
     fn zero_x_is_balance_and_q_is_the_control_variate() {
         // Depth 1, one pixel of a 4-pixel frame, S = 2 (N_L = 8): the systems of the hand-built
         // case in `optimal`'s tests.
-        let mut acc = OptimalAccum::new(Layout::new(1), 1);
-        acc.add_sample(0, 1, &[0.5, 0.5, 0.0], [1.0; 3]);
-        acc.add_unsampled(0, 1, 1);
-        acc.add_sample(0, 1, &[0.0, 1.0, 0.0], [0.0; 3]);
-        acc.add_sample(0, 1, &[0.0, 0.5, 0.5], [4.0; 3]);
-        acc.add_hit(0, 1);
+        let acc = crate::mis::optimal::tests::hand_built_depth1();
         let mut p = Progressive::new(1, 1);
         p.add_own(0, &acc, 0, 2);
         assert_eq!(p.q(0, 1), [0.0; 3]);

@@ -90,21 +90,7 @@ pub(crate) fn write_replacing(path: &Path, bytes: &[u8], durable: bool) -> std::
 /// merged, and its task is rendered again). Appends to one file must not run at once.
 pub(crate) fn append(path: &Path, bytes: &[u8]) -> std::io::Result<std::ops::Range<u64>> {
     use std::io::Write;
-    let open = || {
-        std::fs::OpenOptions::new()
-            .append(true)
-            .create(true)
-            .open(path)
-    };
-    let mut f = match open() {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            if let Some(dir) = path.parent() {
-                std::fs::create_dir_all(dir)?;
-            }
-            open()?
-        }
-        f => f?,
-    };
+    let mut f = open_creating(path, std::fs::OpenOptions::new().append(true).create(true))?;
     let at = f.metadata()?.len();
     if let Err(e) = f.write_all(bytes) {
         // Leave no partial record for the next append to follow.
@@ -114,28 +100,32 @@ pub(crate) fn append(path: &Path, bytes: &[u8]) -> std::io::Result<std::ops::Ran
     Ok(at..at + bytes.len() as u64)
 }
 
+/// Opens `path` with `options`, making its folder first when it is missing.
+fn open_creating(path: &Path, options: &std::fs::OpenOptions) -> std::io::Result<std::fs::File> {
+    match options.open(path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            if let Some(dir) = path.parent() {
+                std::fs::create_dir_all(dir)?;
+            }
+            options.open(path)
+        }
+        f => f,
+    }
+}
+
 /// Overwrites bytes `at..` of the file at `path` with `bytes` in place (the file is created
 /// with its folder when missing; no new file or rename once it exists), fsync'd when `durable`.
 /// A crash in the middle leaves them torn: only for what carries a checksum and has a second
 /// copy (the tile checkpoints' two slots).
 pub(crate) fn write_at(path: &Path, at: u64, bytes: &[u8], durable: bool) -> std::io::Result<()> {
     use std::io::{Seek, SeekFrom, Write};
-    let open = || {
+    let mut f = open_creating(
+        path,
         std::fs::OpenOptions::new()
             .write(true)
             .create(true)
-            .truncate(false)
-            .open(path)
-    };
-    let mut f = match open() {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            if let Some(dir) = path.parent() {
-                std::fs::create_dir_all(dir)?;
-            }
-            open()?
-        }
-        f => f?,
-    };
+            .truncate(false),
+    )?;
     f.seek(SeekFrom::Start(at))?;
     f.write_all(bytes)?;
     if durable {

@@ -2,7 +2,7 @@
 //! pool of a given size, and the rule for tests that need `../shared/scenes`.
 #![allow(dead_code)] // Each test crate uses a subset.
 
-use omis::film::Film;
+use omis::film::{Film, Image};
 use omis::integrator::RenderSettings;
 use omis::job::{RenderOutput, Resolved};
 use omis::scene::Scene;
@@ -90,4 +90,52 @@ pub fn mean_se(v: &[f64]) -> (f64, f64) {
     let m = v.iter().sum::<f64>() / n;
     let var = v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / (n - 1.0).max(1.0);
     (m, (var / n).sqrt())
+}
+
+/// Mean over the seeds of a region's mean, and its standard error (from the seed spread).
+pub fn region(images: &[Image], r: (usize, usize, usize, usize), c: usize) -> (f64, f64) {
+    let (x0, y0, x1, y1) = r;
+    let means: Vec<f64> = images
+        .iter()
+        .map(|img| {
+            let mut s = 0.0;
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    s += img.get(x, y)[c] as f64;
+                }
+            }
+            s / ((x1 - x0) * (y1 - y0)) as f64
+        })
+        .collect();
+    let n = means.len() as f64;
+    let m = means.iter().sum::<f64>() / n;
+    let var = means.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / (n - 1.0);
+    (m, (var / n).sqrt())
+}
+
+/// Every region of a `g` x `g` grid and every channel agree within 4 combined standard errors.
+/// Returns the largest deviation in standard errors.
+pub fn assert_agree(what: &str, a: &[Image], b: &[Image], g: usize) -> f64 {
+    let (w, h) = (a[0].width, a[0].height);
+    let mut worst: f64 = 0.0;
+    for ry in 0..g {
+        for rx in 0..g {
+            let r = (rx * w / g, ry * h / g, (rx + 1) * w / g, (ry + 1) * h / g);
+            for c in 0..3 {
+                let (ma, sa) = region(a, r, c);
+                let (mb, sb) = region(b, r, c);
+                let se = (sa * sa + sb * sb).sqrt();
+                let tol = 4.0 * se + 1e-6 * ma.abs().max(mb.abs());
+                assert!(
+                    (ma - mb).abs() <= tol,
+                    "{what}: region {r:?} channel {c}: {ma} vs {mb} (se {se})"
+                );
+                if se > 0.0 {
+                    worst = worst.max((ma - mb).abs() / se);
+                }
+            }
+        }
+    }
+    eprintln!("{what}: worst deviation {worst:.2} standard errors");
+    worst
 }
