@@ -4,7 +4,10 @@
 use super::bpm::{self, BpmWeights};
 use super::vcm::{self, PhotonCache};
 use super::{IntegratorKind, RenderSettings, Techniques, bdpt, path};
-use crate::film::{LtRecords, STRATEGY_LAYERS, Splat, Tile, TileFilm, strategy_layer};
+use crate::film::{
+    FilmLayout, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile, TileFilm,
+    strategy_layer,
+};
 use crate::geometry::{Rgb, Vec2};
 use crate::mis::{MisKind, OptimalAccum};
 use crate::sampler::{Sampler, Stream};
@@ -200,7 +203,7 @@ pub fn render_tile_cached(
                     settings.spp,
                     Stream::Camera,
                 );
-                let mut l = match settings.integrator {
+                let l = match settings.integrator {
                     IntegratorKind::Pt => {
                         let f = sampler.next_2d();
                         let ray = cam.ray(Vec2::new(x as f32 + f.x, y as f32 + f.y));
@@ -274,15 +277,29 @@ pub fn render_tile_cached(
                         sink.value
                     }
                 };
-                if !l.is_finite() {
-                    stats.non_finite += 1;
-                    l = Rgb::ZERO;
-                }
-                stats.samples += 1;
-                film.sums.add(idx, l);
+                add_sample(stats, &mut film.sums, idx, l);
             }
         }
     }
+    finish(film, &settings.film_layout())
+}
+
+/// Adds one pixel sample's estimate `l` to pixel `idx` (a non-finite one is counted and added
+/// as zero).
+fn add_sample(stats: &mut RayStats, sums: &mut PixelSums, idx: usize, l: Rgb) {
+    let l = if l.is_finite() {
+        l
+    } else {
+        stats.non_finite += 1;
+        Rgb::ZERO
+    };
+    stats.samples += 1;
+    sums.add(idx, l);
+}
+
+/// The end of every tile loop: non-finite splats are dropped (and counted), the film compacted.
+fn finish(mut film: TileFilm, layout: &FilmLayout) -> TileFilm {
+    let stats = &mut film.stats;
     film.splats.retain(|s| {
         let ok = s.value.iter().all(|v| v.is_finite());
         if !ok {
@@ -290,7 +307,7 @@ pub fn render_tile_cached(
         }
         ok
     });
-    film.compact(&settings.film_layout());
+    film.compact(layout);
     film
 }
 
@@ -330,7 +347,7 @@ fn render_tile_vcm(
                 };
                 let (mut sampler, mut light_sampler) = (new(Stream::Camera), new(Stream::Light));
                 if bpm {
-                    let mut l = bpm::pixel_sample(
+                    let l = bpm::pixel_sample(
                         scene,
                         (x, y),
                         &mut sampler,
@@ -341,12 +358,7 @@ fn render_tile_vcm(
                         &mut ws,
                         &mut film.stats,
                     );
-                    if !l.is_finite() {
-                        film.stats.non_finite += 1;
-                        l = Rgb::ZERO;
-                    }
-                    film.stats.samples += 1;
-                    film.sums.add(idx, l);
+                    add_sample(&mut film.stats, &mut film.sums, idx, l);
                     continue;
                 }
                 let depths = (nd > 0).then(|| &mut film.depths[idx * nd..(idx + 1) * nd]);
@@ -378,26 +390,11 @@ fn render_tile_vcm(
                     &mut film.stats,
                 );
                 film.stats.non_finite += sink.non_finite;
-                let mut l = sink.value;
-                if !l.is_finite() {
-                    film.stats.non_finite += 1;
-                    l = Rgb::ZERO;
-                }
-                film.stats.samples += 1;
-                film.sums.add(idx, l);
+                add_sample(&mut film.stats, &mut film.sums, idx, sink.value);
             }
         }
     }
-    let stats = &mut film.stats;
-    film.splats.retain(|s| {
-        let ok = s.value.iter().all(|v| v.is_finite());
-        if !ok {
-            stats.non_finite += 1;
-        }
-        ok
-    });
-    film.compact(&layout);
-    film
+    finish(film, &layout)
 }
 
 #[cfg(test)]
