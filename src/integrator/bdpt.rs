@@ -92,7 +92,7 @@ impl Vertex {
 
     /// |cos| between `w` and the geometric normal, 1 for points (camera, point lights).
     #[inline]
-    fn abs_cos_ng(&self, w: Vec3) -> f32 {
+    pub(crate) fn abs_cos_ng(&self, w: Vec3) -> f32 {
         if self.ng == Vec3::ZERO {
             1.0
         } else {
@@ -150,19 +150,9 @@ impl Vertex {
         self.delta_pos
     }
 
-    /// |cos| between `w` and the geometric normal (1 for points).
-    pub(crate) fn abs_cos(&self, w: Vec3) -> f32 {
-        self.abs_cos_ng(w)
-    }
-
-    /// `area_density` for other modules.
-    pub(crate) fn area_density_to(self, pdf_dir: f32, next: &Vertex) -> f32 {
-        self.area_density(pdf_dir, next)
-    }
-
     /// Converts a solid-angle density at `self` toward `next` into an area density at `next`.
     #[inline]
-    fn area_density(self, pdf_dir: f32, next: &Vertex) -> f32 {
+    pub(crate) fn area_density(self, pdf_dir: f32, next: &Vertex) -> f32 {
         let d = next.p - self.p;
         let dist2 = d.length_squared();
         if !(dist2 > 0.0) {

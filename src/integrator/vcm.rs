@@ -274,7 +274,7 @@ impl Workspace {
             let g = if yp.is_point() || !(d2 > 0.0) {
                 0.0
             } else {
-                yp.abs_cos(wi) / d2
+                yp.abs_cos_ng(wi) / d2
             };
             let m = |x: f64| mis::ratio_term(x, b);
             let pl_prev = m(yp.pdf_fwd() as f64);
@@ -344,7 +344,7 @@ fn merge(
             let sum = if t == 2 {
                 1.0
             } else {
-                let pl_zp = z.area_density_to(z.bsdf().pdf(ph.wi, wo), zp) as f64;
+                let pl_zp = z.area_density(z.bsdf().pdf(ph.wi, wo), zp) as f64;
                 let v = !zp.is_delta() as u8 as f64;
                 let merge_zp = if zp.is_delta() { 0.0 } else { eta_b * m(pl_zp) };
                 v + m(pl_zp / zp.pdf_fwd() as f64) * ws.camera_sum(j - 1) + merge_zp
