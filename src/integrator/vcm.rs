@@ -169,13 +169,14 @@ impl PhotonMap {
         for b in 0..buckets {
             start[b + 1] += start[b];
         }
+        // Where each photon goes, then the photons moved once (no second full copy to overwrite).
         let mut next = start.clone();
-        let mut sorted = photons.clone();
-        for (p, &k) in photons.iter().zip(&keys) {
-            sorted[next[k] as usize] = *p;
+        let mut order = vec![0u32; n];
+        for (i, &k) in keys.iter().enumerate() {
+            order[next[k] as usize] = i as u32;
             next[k] += 1;
         }
-        self.photons = sorted;
+        self.photons = order.iter().map(|&i| photons[i as usize]).collect();
         self.start = start;
     }
 
