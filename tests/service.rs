@@ -468,6 +468,26 @@ fn upload(c: &Client, url: &str, task: &Value, worker: &str, body: Vec<u8>) -> u
     .as_u16()
 }
 
+/// Runs the merge task of `lease` as a worker does: its input streamed from the coordinator
+/// into `film::merge::run` in this process, its output uploaded; the upload's status.
+fn merge_task(c: &Client, url: &str, lease: &Value, worker: &str) -> u16 {
+    let t = &lease["task"];
+    assert_eq!(t["kind"], "merge", "{lease}");
+    let r: omis::job::Resolved =
+        serde_json::from_value(lease["job"]["resolved"].clone()).expect("resolved");
+    let input = c
+        .get(format!("{url}/v1/worker/tasks/{}/input", t["id"]))
+        .query(&[
+            ("worker_id", worker.to_string()),
+            ("attempt", t["attempt"].to_string()),
+        ])
+        .send()
+        .expect("GET input");
+    assert_eq!(input.status().as_u16(), 200);
+    let out = omis::film::merge::run(input, &r.grid(), &r.film_layout()).expect("merge");
+    upload(c, url, lease, worker, out)
+}
+
 #[test]
 fn a_late_result_of_an_expired_lease_is_refused_and_changes_nothing() {
     let dir = folder("late");
@@ -562,7 +582,17 @@ fn first_pass_merged(c: &Client, url: &str, data: &Path) -> (String, PathBuf, Ve
         assert_eq!(t["task"]["pass"], 0, "{t}");
         assert_eq!(upload(c, url, &t, &w, tile_result(&t["task"], 7)), 200);
     }
-    wait_state(c, url, &id, |s| s["passes_done"] == 1);
+    // The pass's merge tasks (leased before the next pass's render tasks once they exist).
+    let start = Instant::now();
+    while get_json(c, &format!("{url}/v1/jobs/{id}"))["passes_done"] != 1 {
+        assert!(start.elapsed() < WAIT, "the first pass was not merged");
+        let t = lease(c, url, &w);
+        if t["task"]["kind"] == "merge" {
+            assert_eq!(merge_task(c, url, &t, &w), 200);
+        } else {
+            assert_eq!(upload(c, url, &t, &w, tile_result(&t["task"], 7)), 200);
+        }
+    }
     let layout = synthetic_layout(&settings(8));
     let len = omis::film::wire::TileCheckpoint::encoded_len(16 * 16, &layout) as usize;
     let band = data.join(format!("jobs/{id}/tiles/band-000000.acc"));
@@ -895,7 +925,7 @@ fn openapi_enum(name: &str) -> Vec<String> {
 
 #[test]
 fn the_protocol_enums_are_the_openapi_enums() {
-    use omis::service::protocol::{EventKind, JobState, TaskState, WorkerState};
+    use omis::service::protocol::{EventKind, JobState, TaskKind, TaskState, WorkerState};
     fn names<T: serde::Serialize>(all: &[T], as_str: impl Fn(&T) -> &'static str) -> Vec<String> {
         all.iter()
             .map(|v| {
@@ -912,6 +942,10 @@ fn the_protocol_enums_are_the_openapi_enums() {
     assert_eq!(
         openapi_enum("TaskState"),
         names(TaskState::ALL, |s| s.as_str())
+    );
+    assert_eq!(
+        openapi_enum("TaskKind"),
+        names(TaskKind::ALL, |s| s.as_str())
     );
     assert_eq!(
         openapi_enum("WorkerState"),
@@ -1701,19 +1735,20 @@ fn synthetic_settings(w: u32, h: u32, spp: u32, pass: u32, tile: u32, d_opt: u32
     })
 }
 
-/// Feeds synthetic results to the coordinator at `url` as one worker until the job is done or
-/// `stop(uploaded)` says to stop; returns the number uploaded.
+/// Feeds synthetic results to the coordinator at `url` as one worker (and runs the merge tasks
+/// it leases) until the job is done or `stop(results, merges)` says to stop; returns the number
+/// of results uploaded.
 fn feed(
     c: &Client,
     url: &str,
     id: &str,
     layout: &omis::film::FilmLayout,
-    stop: &dyn Fn(usize) -> bool,
+    stop: &dyn Fn(usize, usize) -> bool,
 ) -> usize {
     let worker = register(c, url, "synthetic");
-    let mut uploaded = 0;
+    let (mut uploaded, mut merged) = (0, 0);
     let start = Instant::now();
-    while !stop(uploaded) {
+    while !stop(uploaded, merged) {
         assert!(start.elapsed() < WAIT * 4, "the synthetic stream timed out");
         let r = c
             .post(format!("{url}/v1/worker/lease"))
@@ -1729,6 +1764,11 @@ fn feed(
         }
         let lease: Value = r.json().expect("lease JSON");
         let t = &lease["task"];
+        if t["kind"] == "merge" {
+            assert_eq!(merge_task(c, url, &lease, &worker), 200);
+            merged += 1;
+            continue;
+        }
         let (w, h) = (
             lease["job"]["resolved"]["width"].as_u64().expect("w") as u32,
             lease["job"]["resolved"]["height"].as_u64().expect("h") as u32,
@@ -1784,19 +1824,25 @@ fn a_coordinator_killed_mid_stream_resumes_and_its_image_has_the_in_process_bits
     let id = submit_synthetic(&c, &url, settings);
     // Half of the first pass, then a kill.
     assert_eq!(
-        feed(&c, &url, &id, &layout, &|n| n >= per_pass / 2),
+        feed(&c, &url, &id, &layout, &|n, _| n >= per_pass / 2),
         per_pass / 2
     );
     server.kill9();
     let (mut server, url) = serve(&data, &["--lease-seconds", "1"]);
     std::thread::sleep(Duration::from_millis(1100)); // the dead coordinator's leases expire
-    // The rest of the first pass, then a kill while it merges.
+    // The rest of the first pass, then a kill with its merge tasks queued.
     let rest = per_pass - per_pass / 2;
-    assert_eq!(feed(&c, &url, &id, &layout, &|n| n >= rest), rest);
+    assert_eq!(feed(&c, &url, &id, &layout, &|n, _| n >= rest), rest);
+    server.kill9();
+    let (mut server, url) = serve(&data, &["--lease-seconds", "1"]);
+    std::thread::sleep(Duration::from_millis(1100));
+    // Two of the pass's four merge tasks (one band each), then a kill: the next coordinator
+    // reads their groups back from the checkpoints.
+    feed(&c, &url, &id, &layout, &|_, m| m >= 2);
     server.kill9();
     let (_server, url) = serve(&data, &["--lease-seconds", "1"]);
     std::thread::sleep(Duration::from_millis(1100));
-    feed(&c, &url, &id, &layout, &|_| false);
+    feed(&c, &url, &id, &layout, &|_, _| false);
     let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
     assert_eq!(st["spp_done"], spp);
     assert_eq!(st["samples"], (w * h * spp) as u64, "{st}");
@@ -1846,7 +1892,7 @@ fn coordinator_memory_is_bounded(w: u32, h: u32, d_opt: u32, merge_mb: u64, boun
     );
     let c = http();
     let id = submit_synthetic(&c, &url, settings);
-    let n = feed(&c, &url, &id, &layout, &|_| false);
+    let n = feed(&c, &url, &id, &layout, &|_, _| false);
     assert_eq!(n, omis::film::TileGrid::new(w, h, 32).len());
     let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
     assert_eq!(st["samples"], w as u64 * h as u64);

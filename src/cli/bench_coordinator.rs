@@ -4,7 +4,9 @@
 //! as the coordinator accepts. The coordinator runs as a process of its own, so its CPU time,
 //! peak memory and bytes written to storage are its own (from /proc). Worker CPU is the measured
 //! render time of the recorded results, so the table also gives the coordinator's CPU as a share
-//! of what real workers would have spent on the same job.
+//! of what real workers would have spent on the same job. The simulated workers run the passes'
+//! merge tasks for real (`worker::run_merge`); their process's CPU time ("merge CPU", which also
+//! holds their HTTP clients) is given as a share of the same render time.
 
 use super::child_coordinator::ChildCoordinator;
 use super::client::Client;
@@ -16,7 +18,7 @@ use crate::scene::Scene;
 use crate::service::bundle;
 use crate::service::protocol::{
     JobEvent, JobState, Lease, LeaseRequest, RegisterRequest, Registration, ResultQuery,
-    SceneSource,
+    SceneSource, TaskKind,
 };
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -99,6 +101,10 @@ struct Counters {
     /// Render CPU micro-seconds the recorded results stood for.
     worker_cpu_us: AtomicU64,
     refused: AtomicU64,
+    /// Merge tasks run (their work is real: see `worker::run_merge`).
+    merges: AtomicU64,
+    /// Bytes of merge input downloaded and output uploaded.
+    merge_out_bytes: AtomicU64,
 }
 
 /// One simulated worker: lease, upload a recorded result at once, until `done`.
@@ -139,6 +145,36 @@ async fn simulated_worker(
         }
         let lease: Lease = r.json().await?;
         let t = &lease.task;
+        if t.kind == TaskKind::Merge {
+            let input = http
+                .get(format!("{url}/v1/worker/tasks/{}/input", t.id))
+                .query(&ResultQuery {
+                    worker_id: reg.worker_id.clone(),
+                    attempt: t.attempt,
+                });
+            let out = crate::worker::run_merge(input, &lease.job.resolved)
+                .await
+                .map_err(anyhow::Error::msg)?;
+            let n = out.len() as u64;
+            let r = http
+                .put(format!("{url}/v1/worker/tasks/{}/result", t.id))
+                .query(&ResultQuery {
+                    worker_id: reg.worker_id.clone(),
+                    attempt: t.attempt,
+                })
+                .header("content-type", "application/octet-stream")
+                .body(out)
+                .timeout(Duration::from_secs(300))
+                .send()
+                .await?;
+            if r.status().is_success() {
+                counters.merges.fetch_add(1, Ordering::Relaxed);
+                counters.merge_out_bytes.fetch_add(n, Ordering::Relaxed);
+            } else {
+                counters.refused.fetch_add(1, Ordering::Relaxed);
+            }
+            continue;
+        }
         let key = (
             t.rect.width() as u32,
             t.rect.height() as u32,
@@ -207,6 +243,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
             let scene = SceneSource::Bundle(c.upload_bundle(tar.clone(), main.clone()).await?);
             let (rss0, _) = super::procstat::memory(Some(pid));
             let cpu0 = super::procstat::cpu_seconds(Some(pid));
+            let own0 = super::procstat::cpu_seconds(None);
             let io0 = super::procstat::write_bytes(pid);
             let counters = Arc::new(Counters::default());
             let done = Arc::new(AtomicBool::new(false));
@@ -241,13 +278,14 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
                 bail!("the job {state}");
             }
             let cpu = super::procstat::cpu_seconds(Some(pid)) - cpu0;
+            let own = super::procstat::cpu_seconds(None) - own0;
             let written = super::procstat::write_bytes(pid).saturating_sub(io0);
-            Ok::<_, anyhow::Error>((seconds, cpu, written, rss0, latencies, counters))
+            Ok::<_, anyhow::Error>((seconds, cpu, own, written, rss0, latencies, counters))
         });
         let (_, hwm) = super::procstat::memory(Some(pid));
         server.stop();
         let _ = std::fs::remove_dir_all(&data);
-        let (seconds, cpu, written, rss0, latencies, counters) = result?;
+        let (seconds, cpu, own_cpu, written, rss0, latencies, counters) = result?;
         let results = counters.results.load(Ordering::Relaxed);
         let bytes = counters.bytes.load(Ordering::Relaxed) as f64;
         let worker_cpu = counters.worker_cpu_us.load(Ordering::Relaxed) as f64 * 1e-6;
@@ -264,6 +302,10 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
             "coordinator_cpu_ms_per_result": cpu * 1e3 / results.max(1) as f64,
             "worker_cpu_s": worker_cpu,
             "coordinator_cpu_share": cpu / worker_cpu.max(1e-9),
+            "merges": counters.merges.load(Ordering::Relaxed),
+            "merge_output_bytes": counters.merge_out_bytes.load(Ordering::Relaxed),
+            "simulated_workers_cpu_s": own_cpu,
+            "simulated_workers_cpu_share": own_cpu / worker_cpu.max(1e-9),
             "coordinator_idle_bytes": rss0,
             "coordinator_peak_bytes": hwm,
             "disk_written_bytes": written,
@@ -295,9 +337,10 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
         r.pass_len(u32::MAX),
     );
     println!(
-        "{:>7} {:>8} {:>8} {:>9} {:>7} {:>9} {:>9} {:>8} {:>9} {:>10} {:>9} {:>9}",
+        "{:>7} {:>8} {:>7} {:>8} {:>9} {:>7} {:>9} {:>9} {:>8} {:>9} {:>10} {:>10} {:>9} {:>9}",
         "workers",
         "results",
+        "merges",
         "seconds",
         "results/s",
         "MB/s",
@@ -305,6 +348,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
         "coord CPU",
         "ms/res",
         "CPU share",
+        "merge CPU",
         "peak RSS",
         "disk MB",
         "pass lat"
@@ -312,9 +356,10 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
     for row in &rows {
         let f = |k: &str| row[k].as_f64().unwrap_or(f64::NAN);
         println!(
-            "{:>7} {:>8} {:>8.2} {:>9.1} {:>7.1} {:>9.1} {:>8.2}s {:>8.2} {:>8.2}% {:>7.0}MB {:>9.1} {:>8.3}s",
+            "{:>7} {:>8} {:>7} {:>8.2} {:>9.1} {:>7.1} {:>9.1} {:>8.2}s {:>8.2} {:>8.2}% {:>9.2}% {:>7.0}MB {:>9.1} {:>8.3}s",
             row["simulated_workers"],
             row["results"],
+            row["merges"],
             f("seconds"),
             f("results_per_second"),
             f("mb_per_second"),
@@ -322,6 +367,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
             f("coordinator_cpu_s"),
             f("coordinator_cpu_ms_per_result"),
             100.0 * f("coordinator_cpu_share"),
+            100.0 * f("simulated_workers_cpu_share"),
             f("coordinator_peak_bytes") / 1e6,
             f("disk_written_bytes") / 1e6,
             f("pass_latency_mean_s"),

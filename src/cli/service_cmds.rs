@@ -95,8 +95,9 @@ pub(crate) struct ServeArgs {
     /// Largest upload (scene bundle, reference, task result) in MiB.
     #[arg(long, default_value_t = 1024)]
     pub max_upload_mb: u64,
-    /// Tile accumulators the merge of a pass holds in memory at once, in MiB, whatever the
-    /// size of the frame (the frame is merged a few bands of tiles at a time).
+    /// Tile accumulators one merge task holds in memory, in MiB, whatever the size of the frame
+    /// (workers merge a pass band group by band group; the coordinator reads groups back with
+    /// at most this much in all after a restart and for a time-budget job's final EXR).
     #[arg(long, default_value_t = 256)]
     pub merge_memory_mb: u64,
 }

@@ -10,6 +10,7 @@ pub mod exr_io;
 mod film_tile;
 mod frame;
 pub mod layers;
+pub mod merge;
 pub mod metrics;
 pub mod plot;
 pub mod png;

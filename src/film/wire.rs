@@ -621,6 +621,21 @@ impl TileCheckpoint {
             + (pixels as u64) * layout.bytes_per_pixel() as u64
     }
 
+    /// The passes a stored checkpoint of `tile` holds, after checking its checksum, format and
+    /// tile (without decoding the accumulators).
+    pub fn peek(bytes: &[u8], tile: Tile) -> Result<u32, WireError> {
+        let bytes = checked(bytes, "tile checkpoint")?;
+        let mut r = Reader { b: bytes, at: 0 };
+        r.header(TILE_MAGIC, TILE_VERSION, "tile checkpoint")?;
+        let got = r.tile()?;
+        if got != tile {
+            return Err(WireError(format!(
+                "checkpoint of tile {got:?}, expected {tile:?}"
+            )));
+        }
+        r.u32()
+    }
+
     /// Parses the checkpoint of `tile` of a job whose films have `layout`.
     pub fn decode(
         bytes: &[u8],

@@ -6,6 +6,7 @@ pub mod api;
 pub(crate) mod bundle;
 pub(crate) mod exr_header;
 pub(crate) mod jobs;
+pub(crate) mod merge;
 pub(crate) mod pool;
 pub mod protocol;
 pub(crate) mod store;
@@ -48,7 +49,8 @@ pub(crate) struct Config {
     pub max_upload_bytes: u64,
     /// OMIS_LOG of local workers (None: inherit).
     pub worker_log: Option<String>,
-    /// Tile accumulators a pass merge holds in memory at once, in bytes.
+    /// Tile accumulators one merge task holds at most, and the coordinator when it reads
+    /// checkpoints back, in bytes.
     pub merge_memory_bytes: u64,
 }
 
@@ -81,6 +83,7 @@ pub(crate) struct Metrics {
     pub results_refused: AtomicU64,
     pub result_bytes: AtomicU64,
     pub passes_merged: AtomicU64,
+    pub merges_accepted: AtomicU64,
     pub merge_micros: AtomicU64,
     pub leases_expired: AtomicU64,
     pub worker_restarts: AtomicU64,

@@ -108,6 +108,18 @@ string_enum! {
 }
 
 string_enum! {
+    /// What a task does: render a tile's samples of a pass, or merge a finished pass into one
+    /// band group of tiles (the coordinator only moves the bytes; see `film::merge`).
+    TaskKind {
+        /// Render samples [s0, s1) of every pixel of a tile; upload a tile result.
+        Render = "render",
+        /// Merge the pass's results into a band group's tiles; download the input, upload the
+        /// group's checkpoints and images.
+        Merge = "merge",
+    }
+}
+
+string_enum! {
     /// A worker's state: `gone` after two lease times without news, `left` after deregistering.
     WorkerState {
         /// Registered, holding no lease.
@@ -643,16 +655,27 @@ pub struct LeasedTask {
     pub id: i64,
     /// Send it back with the result, a failure or a heartbeat.
     pub attempt: u32,
+    /// Render or merge (a worker of an older version only renders; absent means render).
+    #[serde(default = "render_kind")]
+    pub kind: TaskKind,
     /// The job the task belongs to.
     pub job_id: String,
     /// The pass index (from 0).
     pub pass: u32,
-    /// Index of the tile in the job's row-major tile order.
+    /// Render: index of the tile in the job's row-major tile order. Merge: index of the band
+    /// group in the pass's merge.
     pub tile: u32,
-    /// The tile's pixel rectangle.
+    /// Render: the tile's pixel rectangle. Merge: the band group's rectangle.
     pub rect: Tile,
     /// The sample range [s0, s1) of the pass.
     pub samples: [u32; 2],
+    /// Merge: the band group (rows of tiles) [b0, b1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bands: Option<[u32; 2]>,
+}
+
+fn render_kind() -> TaskKind {
+    TaskKind::Render
 }
 
 /// What a worker needs of the task's job.

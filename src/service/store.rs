@@ -3,7 +3,7 @@
 //! results are files beside it (see `Paths`).
 
 use super::protocol::{
-    EventKind, JobState, SeriesPoint, TaskState, WorkerInfo, WorkerState, WorkerTask,
+    EventKind, JobState, SeriesPoint, TaskKind, TaskState, WorkerInfo, WorkerState, WorkerTask,
 };
 use rusqlite::{Connection, OptionalExtension, params};
 use std::collections::HashMap;
@@ -171,8 +171,18 @@ pub(crate) struct TaskRow {
     pub state: TaskState,
     pub attempt: u32,
     pub worker_id: Option<String>,
-    /// Where the accepted result lies in its pass's result log (done tasks).
+    /// Where the accepted result lies in its pass's result log (done render tasks).
     pub result: Option<std::ops::Range<u64>>,
+    /// Render or merge. A merge task's `tile` is its band group's index and `s0 .. s1` are the
+    /// group's bands (`TaskRow::bands`).
+    pub kind: TaskKind,
+}
+
+impl TaskRow {
+    /// The bands of a merge task.
+    pub fn bands(&self) -> std::ops::Range<u32> {
+        self.s0..self.s1
+    }
 }
 
 /// A recorded job event.
@@ -216,24 +226,6 @@ CREATE TABLE IF NOT EXISTS jobs (
   accum_bytes INTEGER NOT NULL DEFAULT 0,
   result_bytes INTEGER NOT NULL DEFAULT 0
 );
-CREATE TABLE IF NOT EXISTS tasks (
-  id INTEGER PRIMARY KEY AUTOINCREMENT,
-  job_id TEXT NOT NULL REFERENCES jobs(id),
-  pass INTEGER NOT NULL,
-  tile INTEGER NOT NULL,
-  s0 INTEGER NOT NULL,
-  s1 INTEGER NOT NULL,
-  state TEXT NOT NULL,
-  attempt INTEGER NOT NULL DEFAULT 0,
-  worker_id TEXT,
-  lease_expires REAL,
-  failures INTEGER NOT NULL DEFAULT 0,
-  last_error TEXT,
-  result_at INTEGER,
-  result_len INTEGER,
-  UNIQUE (job_id, pass, tile)
-);
-CREATE INDEX IF NOT EXISTS tasks_state ON tasks (state, job_id, pass, tile);
 CREATE TABLE IF NOT EXISTS workers (
   id TEXT PRIMARY KEY,
   name TEXT NOT NULL,
@@ -262,12 +254,42 @@ CREATE TABLE IF NOT EXISTS events (
 CREATE INDEX IF NOT EXISTS events_job ON events (job_id, id);
 ";
 
+/// The tasks table: render tasks (`kind` 'render', one per tile and pass) and merge tasks
+/// ('merge', one per band group of a finished pass: `tile` is the group's index, s0 .. s1 its
+/// bands). The queue index orders a job's queued tasks merges first ('merge' < 'render'), then
+/// by pass and tile.
+const TASKS_TABLE: &str = "
+CREATE TABLE IF NOT EXISTS tasks (
+  id INTEGER PRIMARY KEY AUTOINCREMENT,
+  job_id TEXT NOT NULL REFERENCES jobs(id),
+  kind TEXT NOT NULL DEFAULT 'render',
+  pass INTEGER NOT NULL,
+  tile INTEGER NOT NULL,
+  s0 INTEGER NOT NULL,
+  s1 INTEGER NOT NULL,
+  state TEXT NOT NULL,
+  attempt INTEGER NOT NULL DEFAULT 0,
+  worker_id TEXT,
+  lease_expires REAL,
+  failures INTEGER NOT NULL DEFAULT 0,
+  last_error TEXT,
+  result_at INTEGER,
+  result_len INTEGER,
+  UNIQUE (job_id, pass, kind, tile)
+);
+CREATE INDEX IF NOT EXISTS tasks_queue ON tasks (state, job_id, kind, pass, tile);
+";
+
+/// The columns a tasks table of an older data folder (before merge tasks) shares with today's.
+const TASKS_V1_COLS: &str = "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, \
+    lease_expires, failures, last_error, result_at, result_len";
+
 const JOB_COLS: &str = "id, name, state, error, settings, resolved, scene_id, scene_main, \
     reference, created_at, started_at, finished_at, passes_done, spp_done, samples, rays, \
     non_finite, accum_bytes, result_bytes";
 
 const TASK_COLS: &str =
-    "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, result_at, result_len";
+    "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, result_at, result_len, kind";
 
 fn job_row(r: &rusqlite::Row) -> rusqlite::Result<JobRow> {
     Ok(JobRow {
@@ -308,6 +330,7 @@ fn task_row(r: &rusqlite::Row) -> rusqlite::Result<TaskRow> {
             (Some(at), Some(len)) if at >= 0 && len >= 0 => Some(at as u64..(at + len) as u64),
             _ => None,
         },
+        kind: r.get(11)?,
     })
 }
 
@@ -343,6 +366,8 @@ const J_RUNNING: JobState = JobState::Running;
 const T_QUEUED: TaskState = TaskState::Queued;
 const T_LEASED: TaskState = TaskState::Leased;
 const T_DONE: TaskState = TaskState::Done;
+const K_RENDER: TaskKind = TaskKind::Render;
+const K_MERGE: TaskKind = TaskKind::Merge;
 
 /// The queries the coordinator makes of its job store: jobs, their tasks pass by pass,
 /// leases, workers, the relMSE series and the event log. SQLite (`SqliteStore`) is the embedded
@@ -387,21 +412,37 @@ pub(crate) trait JobStore: Send {
         tiles: std::ops::Range<u32>,
         samples: std::ops::Range<u32>,
     ) -> StoreResult<()>;
-    /// The highest tile of a pass that has its task (None: the pass has none).
+    /// Creates the merge tasks of a finished pass, one per band group (`groups`: each group's
+    /// bands), in one transaction (idempotent).
+    fn create_merge_tasks(
+        &self,
+        id: &str,
+        pass: u32,
+        groups: &[std::ops::Range<u32>],
+    ) -> StoreResult<()>;
+    /// The merge tasks of a pass, in group order (empty: its merge has not begun).
+    fn merge_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>>;
+    /// Deletes the merge tasks of a pass (a result turned out unreadable: the pass is not
+    /// complete any more).
+    fn delete_merge_tasks(&self, id: &str, pass: u32) -> StoreResult<()>;
+    /// Marks a merge task done if it is still this worker's current attempt.
+    fn complete_merge(&self, task_id: i64, attempt: u32, worker: &str) -> StoreResult<bool>;
+    /// The highest tile of a pass that has its render task (None: the pass has none).
     fn last_tile(&self, id: &str, pass: u32) -> StoreResult<Option<u32>>;
     /// The highest pass with tasks, if any.
     fn last_pass(&self, id: &str) -> StoreResult<Option<u32>>;
-    /// Whether a task of the pass is still queued or leased.
+    /// Whether a render task of the pass is still queued or leased.
     fn pass_open(&self, id: &str, pass: u32) -> StoreResult<bool>;
-    /// Done tasks of a job's unmerged passes.
+    /// Done render tasks of a job's unmerged passes.
     fn tasks_done(&self, id: &str) -> StoreResult<u32>;
-    /// The tasks of a pass in tile order.
+    /// The render tasks of a pass in tile order.
     fn pass_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>>;
     /// A task by id.
     fn task(&self, task_id: i64) -> StoreResult<Option<TaskRow>>;
     /// Puts a task back in the queue (its result could not be merged).
     fn requeue(&self, task_id: i64) -> StoreResult<()>;
-    /// Leases the first queued task of the oldest active job (passes in order) to `worker`.
+    /// Leases the first queued task of the oldest active job to `worker`: its merge tasks
+    /// first, then its render tasks, passes in order.
     fn lease(&self, worker: &str, lease_s: f64) -> StoreResult<Option<TaskRow>>;
     /// Extends a lease; false when the task is no longer this worker's attempt.
     fn extend(&self, task_id: i64, attempt: u32, worker: &str, lease_s: f64) -> StoreResult<bool>;
@@ -455,17 +496,26 @@ impl SqliteStore {
         let conn = Connection::open(path)?;
         conn.busy_timeout(std::time::Duration::from_secs(10))?;
         conn.execute_batch(SCHEMA)?;
-        // A data folder from before the result logs: its tasks gain the columns (a done task
-        // without them is rendered again).
-        if conn
-            .prepare("SELECT result_at, result_len FROM tasks LIMIT 0")
-            .is_err()
-        {
-            conn.execute_batch(
-                "ALTER TABLE tasks ADD COLUMN result_at INTEGER; \
-                 ALTER TABLE tasks ADD COLUMN result_len INTEGER;",
-            )?;
+        let has = |sql: &str| conn.prepare(sql).is_ok();
+        let old = has("SELECT id FROM tasks LIMIT 0") && !has("SELECT kind FROM tasks LIMIT 0");
+        if old {
+            // A data folder from before the result logs: its tasks gain the columns (a done
+            // task without them is rendered again).
+            if !has("SELECT result_at, result_len FROM tasks LIMIT 0") {
+                conn.execute_batch(
+                    "ALTER TABLE tasks ADD COLUMN result_at INTEGER; \
+                     ALTER TABLE tasks ADD COLUMN result_len INTEGER;",
+                )?;
+            }
+            // From before merge tasks: the table is made again with their column (and a
+            // uniqueness that includes it); every task it held is a render task.
+            conn.execute_batch(&format!(
+                "BEGIN; ALTER TABLE tasks RENAME TO tasks_v1; {TASKS_TABLE} \
+                 INSERT INTO tasks ({TASKS_V1_COLS}) SELECT {TASKS_V1_COLS} FROM tasks_v1; \
+                 DROP TABLE tasks_v1; COMMIT;"
+            ))?;
         }
+        conn.execute_batch(TASKS_TABLE)?;
         Ok(SqliteStore { conn })
     }
 }
@@ -618,11 +668,61 @@ impl JobStore for SqliteStore {
         }
         tx.commit().map_err(StoreError::from)
     }
+    fn create_merge_tasks(
+        &self,
+        id: &str,
+        pass: u32,
+        groups: &[std::ops::Range<u32>],
+    ) -> StoreResult<()> {
+        let tx = self.conn.unchecked_transaction()?;
+        {
+            let mut st = tx.prepare_cached(
+                "INSERT OR IGNORE INTO tasks (job_id, kind, pass, tile, s0, s1, state) \
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+            )?;
+            for (g, bands) in groups.iter().enumerate() {
+                st.execute(params![
+                    id,
+                    K_MERGE,
+                    pass,
+                    g as u32,
+                    bands.start,
+                    bands.end,
+                    T_QUEUED
+                ])?;
+            }
+        }
+        tx.commit().map_err(StoreError::from)
+    }
+    fn merge_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>> {
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3 \
+             ORDER BY tile"
+        ))?;
+        st.query_map(params![id, pass, K_MERGE], task_row)?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
+    }
+    fn delete_merge_tasks(&self, id: &str, pass: u32) -> StoreResult<()> {
+        self.conn.execute(
+            "DELETE FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3",
+            params![id, pass, K_MERGE],
+        )?;
+        Ok(())
+    }
+    fn complete_merge(&self, task_id: i64, attempt: u32, worker: &str) -> StoreResult<bool> {
+        let n = self.conn.execute(
+            "UPDATE tasks SET state = ?4, lease_expires = NULL \
+             WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 AND state = ?5 AND kind = ?6",
+            params![task_id, attempt, worker, T_DONE, T_LEASED, K_MERGE],
+        )?;
+        Ok(n == 1)
+    }
     fn last_tile(&self, id: &str, pass: u32) -> StoreResult<Option<u32>> {
         self.conn
             .query_row(
-                "SELECT MAX(tile) FROM tasks WHERE job_id = ?1 AND pass = ?2",
-                params![id, pass],
+                "SELECT MAX(tile) FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3",
+                params![id, pass, K_RENDER],
                 |r| r.get(0),
             )
             .map_err(StoreError::from)
@@ -638,8 +738,8 @@ impl JobStore for SqliteStore {
         self.conn
             .query_row(
                 "SELECT EXISTS (SELECT 1 FROM tasks WHERE state IN (?3, ?4) AND job_id = ?1 \
-             AND pass = ?2)",
-                params![id, pass, T_QUEUED, T_LEASED],
+             AND kind = ?5 AND pass = ?2)",
+                params![id, pass, T_QUEUED, T_LEASED, K_RENDER],
                 |r| r.get(0),
             )
             .map_err(StoreError::from)
@@ -647,17 +747,18 @@ impl JobStore for SqliteStore {
     fn tasks_done(&self, id: &str) -> StoreResult<u32> {
         self.conn
             .query_row(
-                "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = ?2",
-                params![id, T_DONE],
+                "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = ?2 AND kind = ?3",
+                params![id, T_DONE, K_RENDER],
                 |r| r.get(0),
             )
             .map_err(StoreError::from)
     }
     fn pass_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>> {
         let mut st = self.conn.prepare(&format!(
-            "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND pass = ?2 ORDER BY tile"
+            "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND kind = ?3 AND pass = ?2 \
+             ORDER BY tile"
         ))?;
-        st.query_map(params![id, pass], task_row)?
+        st.query_map(params![id, pass, K_RENDER], task_row)?
             .collect::<rusqlite::Result<Vec<_>>>()
             .map_err(StoreError::from)
     }
@@ -693,7 +794,7 @@ impl JobStore for SqliteStore {
             id = tx
                 .query_row(
                     "SELECT id FROM tasks WHERE state = ?1 AND job_id = ?2 \
-                     ORDER BY pass, tile LIMIT 1",
+                     ORDER BY kind, pass, tile LIMIT 1",
                     params![T_QUEUED, job],
                     |r| r.get(0),
                 )

@@ -7,13 +7,14 @@
 //! in the types of [`crate::service::protocol`], renders with [`crate::integrator`] into a
 //! [`TileFilm`](crate::film::TileFilm), and ships it in the [`crate::film::wire`] format.
 
+use crate::film;
 use crate::integrator;
 use crate::integrator::vcm::PhotonCache;
 use crate::scene::Scene;
 use crate::service::bundle;
 use crate::service::protocol::{
     DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, HeldTask, Lease,
-    LeaseRequest, LeasedJob, LeasedTask, RegisterRequest, Registration, ResultQuery,
+    LeaseRequest, LeasedJob, LeasedTask, RegisterRequest, Registration, ResultQuery, TaskKind,
 };
 use anyhow::{Context, Result};
 use reqwest::StatusCode;
@@ -23,6 +24,79 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::{OnceCell, watch};
+
+/// A `Read` over the chunks of a streamed download, as they arrive from the async side (for a
+/// blocking thread).
+struct ChannelReader {
+    rx: tokio::sync::mpsc::Receiver<Result<bytes::Bytes, String>>,
+    chunk: bytes::Bytes,
+}
+
+impl ChannelReader {
+    fn new(rx: tokio::sync::mpsc::Receiver<Result<bytes::Bytes, String>>) -> ChannelReader {
+        ChannelReader {
+            rx,
+            chunk: bytes::Bytes::new(),
+        }
+    }
+}
+
+impl std::io::Read for ChannelReader {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        while self.chunk.is_empty() {
+            match self.rx.blocking_recv() {
+                Some(Ok(c)) => self.chunk = c,
+                Some(Err(e)) => return Err(std::io::Error::other(e)),
+                // The download ended.
+                None => return Ok(0),
+            }
+        }
+        let n = buf.len().min(self.chunk.len());
+        buf[..n].copy_from_slice(&self.chunk[..n]);
+        let _ = self.chunk.split_to(n);
+        Ok(n)
+    }
+}
+
+/// Runs a merge task (`film::merge`) of a job resolved as `resolved`: its input, fetched with
+/// `input` (GET /v1/worker/tasks/{id}/input), is merged as it streams in; returns the output to
+/// upload.
+pub(crate) async fn run_merge(
+    input: reqwest::RequestBuilder,
+    resolved: &crate::job::Resolved,
+) -> Result<Vec<u8>, String> {
+    let mut r = input
+        .timeout(Duration::from_secs(3600))
+        .send()
+        .await
+        .map_err(|e| format!("merge input: {e}"))?;
+    if !r.status().is_success() {
+        return Err(format!(
+            "merge input: HTTP {} {}",
+            r.status(),
+            r.text().await.unwrap_or_default()
+        ));
+    }
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    let (grid, layout) = (resolved.grid(), resolved.film_layout());
+    let merging = tokio::task::spawn_blocking(move || {
+        film::merge::run(ChannelReader::new(rx), &grid, &layout).map_err(|e| e.to_string())
+    });
+    loop {
+        let next = match r.chunk().await {
+            Ok(Some(c)) => Ok(c),
+            Ok(None) => break,
+            Err(e) => Err(format!("merge input: {e}")),
+        };
+        let failed = next.is_err();
+        // A merge that stopped (bad input) has dropped the receiver.
+        if tx.send(next).await.is_err() || failed {
+            break;
+        }
+    }
+    drop(tx);
+    merging.await.map_err(|e| format!("merge panicked: {e}"))?
+}
 
 /// How a worker runs.
 #[derive(Clone, Debug)]
@@ -287,9 +361,36 @@ impl Worker {
             .clone()
     }
 
+    /// Runs merge task `lease` (`run_merge`) with this worker's credentials.
+    async fn merge(&self, lease: &Lease) -> Result<Vec<u8>, String> {
+        let t = &lease.task;
+        let input = self
+            .req(
+                reqwest::Method::GET,
+                &format!("/v1/worker/tasks/{}/input", t.id),
+            )
+            .query(&ResultQuery {
+                worker_id: self.id(),
+                attempt: t.attempt,
+            });
+        run_merge(input, &lease.job.resolved).await
+    }
+
     async fn run_task(&self, lease: Lease) {
         let t = &lease.task;
         lock(&self.held).insert(t.id, t.attempt);
+        if t.kind == TaskKind::Merge {
+            match self.merge(&lease).await {
+                Ok(bytes) => self.upload(t, bytes).await,
+                Err(e) => {
+                    tracing::error!("merge task {}: {e}", t.id);
+                    self.fail(t, &e).await;
+                }
+            }
+            lock(&self.held).remove(&t.id);
+            lock(&self.lost).remove(&t.id);
+            return;
+        }
         match self.scene(&lease.job).await {
             Err(e) => {
                 tracing::error!("task {}: {e}", t.id);

@@ -57,8 +57,13 @@ pub(crate) async fn metrics(State(app): State<AppState>) -> ApiResult<Response> 
             &m.passes_merged,
         ),
         (
+            "omis_merges_accepted_total",
+            "Merge task outputs (one band group of a pass each) accepted.",
+            &m.merges_accepted,
+        ),
+        (
             "omis_merge_microseconds_total",
-            "Time spent merging passes.",
+            "Time the coordinator spent recording merged passes.",
             &m.merge_micros,
         ),
         (

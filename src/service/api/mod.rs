@@ -44,6 +44,7 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("post", "/v1/worker/heartbeat"),
     ("post", "/v1/worker/deregister"),
     ("get", "/v1/worker/scenes/{id}"),
+    ("get", "/v1/worker/tasks/{id}/input"),
     ("put", "/v1/worker/tasks/{id}/result"),
     ("post", "/v1/worker/tasks/{id}/fail"),
 ];
@@ -77,6 +78,7 @@ pub(crate) fn router(app: AppState) -> Router {
         .route("/v1/worker/heartbeat", post(workers::heartbeat))
         .route("/v1/worker/deregister", post(workers::deregister))
         .route("/v1/worker/scenes/{id}", get(workers::worker_scene))
+        .route("/v1/worker/tasks/{id}/input", get(workers::merge_input))
         .route("/v1/worker/tasks/{id}/result", put(workers::upload_result))
         .route("/v1/worker/tasks/{id}/fail", post(workers::fail_task))
         .route_layer(middleware::from_fn_with_state(

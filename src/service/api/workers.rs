@@ -3,14 +3,14 @@
 
 use super::errors::{ApiError, ApiResult, bad, parse_json};
 use super::{AppState, is_safe_id, scenes};
-use crate::film::{TileFilm, wire};
+use crate::film::{Tile, TileFilm, wire};
 use crate::service::protocol::{
     DeregisterAnswer, DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, JobEvent,
     JobState, Lease, LeaseRequest, LeasedJob, LeasedTask, OkAnswer, RegisterRequest, Registration,
-    ResultAnswer, ResultQuery, TaskState, TileDoneEvent, WorkerList, WorkerState,
+    ResultAnswer, ResultQuery, TaskKind, TaskState, TileDoneEvent, WorkerList, WorkerState,
 };
-use crate::service::store::{self, TaskRow};
-use crate::service::{Metrics, jobs};
+use crate::service::store::{self, JobRow, TaskRow};
+use crate::service::{Metrics, jobs, merge};
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
@@ -87,17 +87,37 @@ pub(crate) async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult
         };
         if let Some((task, Some(job))) = leased {
             let res = jobs::resolved_of(&job).map_err(ApiError::internal)?;
-            let rect = jobs::tile_rect(&res, task.tile)
-                .ok_or_else(|| ApiError::internal("tile index out of range"))?;
+            let (rect, samples, bands) = match task.kind {
+                TaskKind::Render => (
+                    jobs::tile_rect(&res, task.tile)
+                        .ok_or_else(|| ApiError::internal("tile index out of range"))?,
+                    [task.s0, task.s1],
+                    None,
+                ),
+                TaskKind::Merge => {
+                    let grid = res.grid();
+                    let b = task.bands();
+                    let rect = Tile {
+                        x0: 0,
+                        y0: (b.start * grid.size).min(res.height),
+                        x1: res.width,
+                        y1: (b.end * grid.size).min(res.height),
+                    };
+                    let s = res.pass_range(task.pass).unwrap_or(0..0);
+                    (rect, [s.start, s.end], Some([b.start, b.end]))
+                }
+            };
             let lease = Lease {
                 task: LeasedTask {
                     id: task.id,
                     attempt: task.attempt,
+                    kind: task.kind,
                     job_id: task.job_id,
                     pass: task.pass,
                     tile: task.tile,
                     rect,
-                    samples: [task.s0, task.s1],
+                    samples,
+                    bands,
                 },
                 job: LeasedJob {
                     scene_id: job.scene_id,
@@ -205,7 +225,115 @@ fn check_owner(task: &TaskRow, worker: &str, attempt: u32) -> ApiResult<()> {
     Ok(())
 }
 
-/// PUT /v1/worker/tasks/{id}/result: the task's encoded accumulators.
+/// The task `task_id` and its job, when `q` names the current attempt of the worker holding it
+/// and the job is running (404 for a task never issued, 409 for one no longer current).
+fn current_task(app: &AppState, task_id: i64, q: &ResultQuery) -> ApiResult<(TaskRow, JobRow)> {
+    let (task, job) = {
+        let db = app.db();
+        let Some(task) = db.task(task_id)? else {
+            return Err(if db.task_existed(task_id)? {
+                ApiError::field(
+                    StatusCode::CONFLICT,
+                    "id",
+                    format!("task {task_id} is no longer current (its pass was merged)"),
+                )
+            } else {
+                ApiError::not_found("task", &task_id.to_string())
+            });
+        };
+        let job = db
+            .job(&task.job_id)?
+            .ok_or_else(|| ApiError::internal("task without job"))?;
+        (task, job)
+    };
+    check_owner(&task, &q.worker_id, q.attempt)?;
+    if job.state != JobState::Running {
+        return Err(ApiError::field(
+            StatusCode::CONFLICT,
+            "id",
+            format!("job '{}' is {}", job.id, job.state),
+        ));
+    }
+    Ok((task, job))
+}
+
+/// GET /v1/worker/tasks/{id}/input: a merge task's input (`film::merge`), streamed.
+pub(crate) async fn merge_input(
+    State(app): State<AppState>,
+    Path(task_id): Path<i64>,
+    Query(q): Query<ResultQuery>,
+) -> ApiResult<Response> {
+    let (task, job) = current_task(&app, task_id, &q)?;
+    if task.kind != TaskKind::Merge {
+        return Err(ApiError::field(
+            StatusCode::CONFLICT,
+            "id",
+            format!("task {task_id} is a {} task: it has no input", task.kind),
+        ));
+    }
+    let (tx, rx) = tokio::sync::mpsc::channel::<Result<Bytes, std::io::Error>>(2);
+    let a = app.clone();
+    tokio::task::spawn_blocking(move || {
+        let mut send = |chunk: Vec<u8>| tx.blocking_send(Ok(Bytes::from(chunk))).is_ok();
+        if let Err(e) = merge::serve_input(&a, &job, &task, &mut send) {
+            tracing::warn!("merge task {}: input ended: {e}", task.id);
+            let _ = tx.blocking_send(Err(std::io::Error::other(e)));
+        }
+    });
+    let stream = futures_util::stream::unfold(rx, |mut rx| async move {
+        rx.recv().await.map(|chunk| (chunk, rx))
+    });
+    Ok((
+        [(header::CONTENT_TYPE, "application/octet-stream")],
+        axum::body::Body::from_stream(stream),
+    )
+        .into_response())
+}
+
+/// A merge task's output: checked, recorded, its checkpoints written (`merge::accept`).
+async fn upload_merge(
+    app: AppState,
+    task: TaskRow,
+    job: JobRow,
+    worker: String,
+    body: Bytes,
+) -> ApiResult<Json<ResultAnswer>> {
+    let _slot = app
+        .result_slots
+        .acquire()
+        .await
+        .map_err(ApiError::internal)?;
+    let a = app.clone();
+    let (t, w) = (task.clone(), worker.clone());
+    let outcome = tokio::task::spawn_blocking(move || merge::accept(&a, &job, &t, &w, &body))
+        .await
+        .map_err(ApiError::internal)?
+        .map_err(ApiError::internal)?;
+    match outcome {
+        merge::Accepted::Yes => {
+            Metrics::add(&app.metrics.merges_accepted, 1);
+            let a = app.clone();
+            let id = task.job_id.clone();
+            tokio::task::spawn_blocking(move || jobs::advance(&a, &id));
+            Ok(Json(ResultAnswer { accepted: true }))
+        }
+        merge::Accepted::Stale => Err(ApiError::field(
+            StatusCode::CONFLICT,
+            "attempt",
+            format!(
+                "task {} attempt {} is no longer current",
+                task.id, task.attempt
+            ),
+        )),
+        merge::Accepted::Invalid(problem) => {
+            let _ = jobs::task_failed(&app, &task, &worker, &format!("invalid merge: {problem}"));
+            Err(ApiError::field(StatusCode::BAD_REQUEST, "body", problem))
+        }
+    }
+}
+
+/// PUT /v1/worker/tasks/{id}/result: a render task's encoded accumulators, or a merge task's
+/// output.
 pub(crate) async fn upload_result(
     State(app): State<AppState>,
     Path(task_id): Path<i64>,
@@ -216,31 +344,11 @@ pub(crate) async fn upload_result(
         Metrics::add(&app.metrics.results_refused, 1);
         e
     };
-    let (task, job) = {
-        let db = app.db();
-        let Some(task) = db.task(task_id)? else {
-            return Err(refused(if db.task_existed(task_id)? {
-                ApiError::field(
-                    StatusCode::CONFLICT,
-                    "id",
-                    format!("task {task_id} is no longer current (its pass was merged)"),
-                )
-            } else {
-                ApiError::not_found("task", &task_id.to_string())
-            }));
-        };
-        let job = db
-            .job(&task.job_id)?
-            .ok_or_else(|| ApiError::internal("task without job"))?;
-        (task, job)
-    };
-    check_owner(&task, &q.worker_id, q.attempt).map_err(refused)?;
-    if job.state != JobState::Running {
-        return Err(refused(ApiError::field(
-            StatusCode::CONFLICT,
-            "id",
-            format!("job '{}' is {}", job.id, job.state),
-        )));
+    let (task, job) = current_task(&app, task_id, &q).map_err(refused)?;
+    if task.kind == TaskKind::Merge {
+        return upload_merge(app.clone(), task, job, q.worker_id, body)
+            .await
+            .map_err(refused);
     }
     let a = app.clone();
     let t = task.clone();

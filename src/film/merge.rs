@@ -1,0 +1,398 @@
+//! A pass merged by a worker instead of the coordinator: a merge task takes one band group (a few
+//! rows of tiles), reads the group's tile checkpoints and, in task order, every part of the
+//! pass's results that lands in the group, adds them with [`BandGroup`] (so the tiles get
+//! exactly the additions `Film::merge_task` makes: the in-process bits), and returns the tiles'
+//! new checkpoints and their images. The coordinator only moves bytes: it streams the input from
+//! its result log and checkpoint slots, checks the output and writes the checkpoints in place;
+//! the work that grows with the records (decoding, applying light-tracing records to the
+//! optimal systems, solving) runs on the workers and scales with them.
+//!
+//! ```text
+//! input (coordinator -> worker), streamed:
+//!   magic "OMISMRGI", version u32, bands b0 b1 u32, pass u32 (passes the tiles hold),
+//!   light paths after the pass u64, all layers u8, results n u32
+//!   per tile of the bands, in tile order: present u8 (0: no checkpoint yet, pass 0),
+//!     [length u64, the tile checkpoint (wire::TileCheckpoint) holding `pass` passes]
+//!   per result, in task order: tile u32, own length u64, sections m u32, the own part (the
+//!     result without its splats and records; empty unless its tile is in the group),
+//!     m x (band u32, length u64, the section: wire::decode_section)
+//! output (worker -> coordinator):
+//!   magic "OMISMRGO", version u32, bands b0 b1 u32, passes u32 (pass + 1), layers l u32
+//!   per tile: length u64, its checkpoint holding pass + 1 passes
+//!   per layer (beauty first, then FilmLayout::extra_layer_names), per tile: pixels x 3 f32
+//! ```
+
+use super::bands::BandGroup;
+use super::film_tile::TileGrid;
+use super::layers::FilmLayout;
+use super::wire::{TileCheckpoint, WireError, decode_section};
+use super::{FilmTile, Image, Tile, TileFilm};
+use crate::geometry::Rgb;
+use std::io::Read;
+
+const IN_MAGIC: &[u8; 8] = b"OMISMRGI";
+const OUT_MAGIC: &[u8; 8] = b"OMISMRGO";
+const VERSION: u32 = 1;
+/// No part of a merge input (a checkpoint, a result's part) is longer.
+const MAX_PART: u64 = 1 << 31;
+
+/// What a merge task merges: the header of its input.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MergeHead {
+    /// The band group.
+    pub bands: std::ops::Range<u32>,
+    /// Passes the tiles hold before the merge (the index of the pass merged).
+    pub pass: u32,
+    /// Light paths traced for the frame once the pass is merged (N_L of the optimal systems).
+    pub light_paths: u64,
+    /// Return the image of every layer the job keeps (its last pass), not only the beauty.
+    pub all_layers: bool,
+    /// Results that follow the tiles.
+    pub results: u32,
+}
+
+impl MergeHead {
+    /// The first bytes of the input.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(37);
+        out.extend_from_slice(IN_MAGIC);
+        for v in [VERSION, self.bands.start, self.bands.end, self.pass] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&self.light_paths.to_le_bytes());
+        out.push(self.all_layers as u8);
+        out.extend_from_slice(&self.results.to_le_bytes());
+        out
+    }
+}
+
+/// The bytes before a tile's checkpoint in the input (`None`: the tile has none yet).
+pub fn tile_entry(checkpoint_len: Option<u64>) -> Vec<u8> {
+    match checkpoint_len {
+        None => vec![0],
+        Some(n) => {
+            let mut out = vec![1];
+            out.extend_from_slice(&n.to_le_bytes());
+            out
+        }
+    }
+}
+
+/// The bytes before a result's own part in the input: its tile, the own part's length (0 when
+/// its tile is not in the group) and how many sections follow it.
+pub fn result_entry(tile: u32, own_len: u64, sections: u32) -> Vec<u8> {
+    let mut out = Vec::with_capacity(16);
+    out.extend_from_slice(&tile.to_le_bytes());
+    out.extend_from_slice(&own_len.to_le_bytes());
+    out.extend_from_slice(&sections.to_le_bytes());
+    out
+}
+
+/// The bytes before a section in the input.
+pub fn section_entry(band: u32, len: u64) -> Vec<u8> {
+    let mut out = Vec::with_capacity(12);
+    out.extend_from_slice(&band.to_le_bytes());
+    out.extend_from_slice(&len.to_le_bytes());
+    out
+}
+
+/// Reads a merge input from a stream, naming what was truncated or malformed.
+struct Input<R> {
+    r: R,
+}
+
+impl<R: Read> Input<R> {
+    fn bytes<const N: usize>(&mut self, what: &str) -> Result<[u8; N], WireError> {
+        let mut b = [0u8; N];
+        self.r
+            .read_exact(&mut b)
+            .map_err(|e| WireError(format!("merge input: {what}: {e}")))?;
+        Ok(b)
+    }
+    fn u8(&mut self, what: &str) -> Result<u8, WireError> {
+        Ok(self.bytes::<1>(what)?[0])
+    }
+    fn u32(&mut self, what: &str) -> Result<u32, WireError> {
+        Ok(u32::from_le_bytes(self.bytes(what)?))
+    }
+    fn u64(&mut self, what: &str) -> Result<u64, WireError> {
+        Ok(u64::from_le_bytes(self.bytes(what)?))
+    }
+    /// A part of `len` bytes (at most `MAX_PART`).
+    fn part(&mut self, len: u64, what: &str) -> Result<Vec<u8>, WireError> {
+        if len > MAX_PART {
+            return Err(WireError(format!("merge input: {what} of {len} bytes")));
+        }
+        let mut b = Vec::new();
+        (&mut self.r)
+            .take(len)
+            .read_to_end(&mut b)
+            .map_err(|e| WireError(format!("merge input: {what}: {e}")))?;
+        if b.len() as u64 != len {
+            return Err(WireError(format!(
+                "merge input: {what} truncated ({} of {len} bytes)",
+                b.len()
+            )));
+        }
+        Ok(b)
+    }
+    fn head(&mut self, grid: &TileGrid) -> Result<MergeHead, WireError> {
+        if &self.bytes::<8>("magic")? != IN_MAGIC {
+            return Err(WireError("not a merge input (bad magic)".into()));
+        }
+        let v = self.u32("version")?;
+        if v != VERSION {
+            return Err(WireError(format!(
+                "merge input version {v}, expected {VERSION}"
+            )));
+        }
+        let bands = self.u32("bands")?..self.u32("bands")?;
+        if bands.start >= bands.end || bands.end > grid.rows() {
+            return Err(WireError(format!(
+                "merge input: bands {bands:?} of a frame of {} bands",
+                grid.rows()
+            )));
+        }
+        Ok(MergeHead {
+            bands,
+            pass: self.u32("pass")?,
+            light_paths: self.u64("light paths")?,
+            all_layers: self.u8("all layers")? != 0,
+            results: self.u32("result count")?,
+        })
+    }
+}
+
+/// Images per layer (beauty first), each a list of (tile, image).
+pub type LayerImages = Vec<Vec<(Tile, Image)>>;
+
+/// The beauty of each tile and, with `all_layers`, every other layer the job keeps (in
+/// `FilmLayout::extra_layer_names` order): one list of (tile, image) per layer.
+pub fn tile_images(
+    tiles: &[FilmTile],
+    layout: &FilmLayout,
+    light_paths: u64,
+    all_layers: bool,
+) -> LayerImages {
+    let mut layers: LayerImages = Vec::new();
+    for tile in tiles {
+        let mut images = vec![tile.image(light_paths, layout.kappa)];
+        if all_layers {
+            images.extend(tile.extra_images(layout, light_paths));
+        }
+        layers.resize_with(images.len(), Vec::new);
+        for (l, img) in layers.iter_mut().zip(images) {
+            l.push((tile.tile, img));
+        }
+    }
+    layers
+}
+
+/// Runs a merge task: reads its input from `input` (for a frame tiled by `grid` whose films have
+/// `layout`), merges, and returns the output to upload.
+pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec<u8>, WireError> {
+    let mut r = Input {
+        r: std::io::BufReader::with_capacity(1 << 20, input),
+    };
+    let head = r.head(grid)?;
+    let bands = head.bands.start as usize..head.bands.end as usize;
+    let tiles = grid.tiles_of_bands(bands.clone());
+    let mut held = Vec::with_capacity(tiles.len());
+    for t in tiles.clone() {
+        let tile = grid.tile(t);
+        held.push(match r.u8("tile entry")? {
+            0 if head.pass == 0 => FilmTile::new(tile, layout),
+            0 => {
+                return Err(WireError(format!(
+                    "merge input: tile {t} has no checkpoint after {} passes",
+                    head.pass
+                )));
+            }
+            _ => {
+                let len = r.u64("checkpoint length")?;
+                let bytes = r.part(len, "tile checkpoint")?;
+                let ck = TileCheckpoint::decode(&bytes, tile, layout)?;
+                if ck.passes != head.pass {
+                    return Err(WireError(format!(
+                        "merge input: checkpoint of tile {t} holds {} passes, not {}",
+                        ck.passes, head.pass
+                    )));
+                }
+                ck.tile
+            }
+        });
+    }
+    let open = vec![true; held.len()];
+    let mut group = BandGroup::new(grid, bands.clone(), held, open);
+    for _ in 0..head.results {
+        let t = r.u32("result tile")? as usize;
+        if t >= grid.len() {
+            return Err(WireError(format!("merge input: result of tile {t}")));
+        }
+        let own_len = r.u64("own length")?;
+        let m = r.u32("section count")? as usize;
+        if m > bands.len() {
+            return Err(WireError(format!(
+                "merge input: {m} sections for {} bands",
+                bands.len()
+            )));
+        }
+        let own = if own_len > 0 {
+            if !group.holds(t) {
+                return Err(WireError(format!(
+                    "merge input: own part of tile {t}, outside bands {bands:?}"
+                )));
+            }
+            let bytes = r.part(own_len, "own part")?;
+            let (film, _) = TileFilm::decode(&bytes, grid.width, grid.height, layout)?;
+            if film.tile != grid.tile(t) {
+                return Err(WireError(format!(
+                    "merge input: own part of tile {:?} for tile {t}",
+                    film.tile
+                )));
+            }
+            Some(film)
+        } else {
+            None
+        };
+        let mut sections = Vec::with_capacity(m);
+        for _ in 0..m {
+            let b = r.u32("section band")? as usize;
+            if !bands.contains(&b) || sections.last().is_some_and(|(l, _)| *l >= b) {
+                return Err(WireError(format!(
+                    "merge input: section of band {b} (bands {bands:?})"
+                )));
+            }
+            let len = r.u64("section length")?;
+            let bytes = r.part(len, "section")?;
+            sections.push((b, decode_section(&bytes, b, grid, layout)?));
+        }
+        group.add_task(grid, t, own.as_ref(), &sections);
+    }
+    group.end_pass(head.light_paths, layout.kappa);
+    let passes = head.pass + 1;
+    let layers = tile_images(&group.tiles, layout, head.light_paths, head.all_layers);
+    let mut out = Vec::new();
+    out.extend_from_slice(OUT_MAGIC);
+    for v in [
+        VERSION,
+        head.bands.start,
+        head.bands.end,
+        passes,
+        layers.len() as u32,
+    ] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    for tile in &group.tiles {
+        let ck = TileCheckpoint::encode_parts(tile, passes);
+        out.extend_from_slice(&(ck.len() as u64).to_le_bytes());
+        out.extend_from_slice(&ck);
+    }
+    for layer in &layers {
+        for (_, img) in layer {
+            for p in &img.pixels {
+                for v in p.to_array() {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// A merge task's output, checked against what the task asked for.
+pub struct MergeOutput {
+    /// Per tile of the group, in tile order: its encoded checkpoint (holding `passes`).
+    pub checkpoints: Vec<Vec<u8>>,
+    /// Per layer (beauty first), per tile: the tile's image.
+    pub layers: LayerImages,
+}
+
+impl MergeOutput {
+    /// Parses the output of the merge of `bands` into tiles that hold `passes` passes now, for a
+    /// frame tiled by `grid` whose films have `layout`, with `layer_count` layers. Every
+    /// checkpoint is decoded (its structure and checksum checked) before it is accepted.
+    pub fn decode(
+        bytes: &[u8],
+        grid: &TileGrid,
+        layout: &FilmLayout,
+        bands: std::ops::Range<u32>,
+        passes: u32,
+        layer_count: usize,
+    ) -> Result<MergeOutput, WireError> {
+        let mut at = 0usize;
+        let mut take = |n: usize| -> Result<&[u8], WireError> {
+            if bytes.len() - at < n {
+                return Err(WireError(format!(
+                    "merge output truncated at byte {at} (wanted {n} more)"
+                )));
+            }
+            at += n;
+            Ok(&bytes[at - n..at])
+        };
+        if take(8)? != OUT_MAGIC {
+            return Err(WireError("not a merge output (bad magic)".into()));
+        }
+        let mut u32s = [0u32; 5];
+        for v in &mut u32s {
+            *v = u32::from_le_bytes(take(4)?.try_into().expect("4 bytes"));
+        }
+        let [version, b0, b1, got_passes, layers] = u32s;
+        if version != VERSION {
+            return Err(WireError(format!(
+                "merge output version {version}, expected {VERSION}"
+            )));
+        }
+        if (b0..b1) != bands || got_passes != passes || layers as usize != layer_count {
+            return Err(WireError(format!(
+                "merge output of bands {b0}..{b1} holding {got_passes} passes with {layers} \
+                 layers; the task is bands {bands:?}, {passes} passes, {layer_count} layers"
+            )));
+        }
+        let tiles = grid.tiles_of_bands(bands.start as usize..bands.end as usize);
+        let mut checkpoints = Vec::with_capacity(tiles.len());
+        for t in tiles.clone() {
+            let len = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
+            let want = TileCheckpoint::encoded_len(grid.tile(t).pixels(), layout);
+            if len != want {
+                return Err(WireError(format!(
+                    "merge output: checkpoint of tile {t} has {len} bytes, expected {want}"
+                )));
+            }
+            let ck = take(len as usize)?;
+            let decoded = TileCheckpoint::decode(ck, grid.tile(t), layout)?;
+            if decoded.passes != passes {
+                return Err(WireError(format!(
+                    "merge output: checkpoint of tile {t} holds {} passes",
+                    decoded.passes
+                )));
+            }
+            checkpoints.push(ck.to_vec());
+        }
+        let mut out_layers = Vec::with_capacity(layer_count);
+        for _ in 0..layer_count {
+            let mut list = Vec::with_capacity(tiles.len());
+            for t in tiles.clone() {
+                let tile = grid.tile(t);
+                let raw = take(tile.pixels() * 12)?;
+                let mut img = Image::new(tile.width(), tile.height());
+                for (p, c) in img.pixels.iter_mut().zip(raw.chunks_exact(12)) {
+                    let f = |k: usize| f32::from_le_bytes(c[k..k + 4].try_into().expect("4"));
+                    *p = Rgb::new(f(0), f(4), f(8));
+                }
+                list.push((tile, img));
+            }
+            out_layers.push(list);
+        }
+        if at != bytes.len() {
+            return Err(WireError(format!(
+                "merge output: {} trailing bytes",
+                bytes.len() - at
+            )));
+        }
+        Ok(MergeOutput {
+            checkpoints,
+            layers: out_layers,
+        })
+    }
+}

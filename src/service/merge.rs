@@ -1,0 +1,802 @@
+//! The merge of a finished pass, by merge tasks. When every render task of a pass is done the
+//! coordinator cuts the frame into band groups (rows of tiles) and queues one merge task per
+//! group. A worker leases it, downloads its input (the group's tile checkpoints and, in task
+//! order, the parts of the pass's results that land in the group, streamed from the result
+//! log), merges with `film::merge::run` and uploads the group's new checkpoints and images; the
+//! coordinator checks them and writes the checkpoints into the tiles' slots. Once every group is
+//! in, the checkpoints are made durable, the pass is recorded and its outputs are written.
+//!
+//! So the coordinator's work per pass is moving bytes: decoding results, adding light-tracing
+//! records into optimal systems and solving pixels (what grows with the samples) run on the
+//! workers and scale with them. Tiles get exactly `Film::merge_task`'s additions in task order
+//! whoever merges them, so the image keeps the in-process bits.
+//!
+//! Durability: a tile's checkpoint has two slots; merging pass p reads the one holding p passes
+//! and writes the other, so a merge task run twice (its lease expired, the coordinator
+//! restarted) gives the same bits, and a slot torn by a crash is passed over. A merge task is
+//! recorded done before its checkpoints are written; groups this process did not see written
+//! (after a restart) are read back from their slots before the pass is recorded, and a group
+//! whose slots do not hold the pass is merged again.
+
+use super::App;
+use super::jobs::{self, Runtime};
+use super::protocol::{JobEvent, PassDoneEvent, PreviewEvent, SeriesPoint};
+use super::store::{self, JobRow, TaskRow};
+use crate::film::merge::{self as film_merge, LayerImages, MergeHead, MergeOutput};
+use crate::film::wire::{BandedIndex, TileCheckpoint};
+use crate::film::{FilmTile, Image, RayStats, Tile, band_bytes, band_groups, metrics};
+use crate::job::Resolved;
+use std::collections::HashSet;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Why a merge cannot go on: a stored result that cannot be read (its render task is rendered
+/// again) or a problem with the job's own files (the job fails).
+pub(crate) enum MergeError {
+    /// The render task (id) whose stored result is damaged or missing, and why.
+    Result(i64, String),
+    /// The job's files cannot serve the merge.
+    Job(String),
+}
+
+impl From<std::io::Error> for MergeError {
+    fn from(e: std::io::Error) -> Self {
+        MergeError::Job(e.to_string())
+    }
+}
+
+/// One accepted result of the pass being merged.
+struct PassResult {
+    /// Its tile (its place in the merge order).
+    tile: usize,
+    /// Its render task.
+    task: i64,
+    /// Its index, with byte ranges in the pass's result log.
+    index: BandedIndex,
+}
+
+/// What the merge tasks of a pass read: the pass's accepted results in task order.
+pub(crate) struct PassInputs {
+    /// The pass.
+    pub pass: u32,
+    results: Vec<PassResult>,
+    /// The work counters of the pass's results.
+    pub stats: RayStats,
+}
+
+/// The images of the band groups of a pass that this process accepted (beauty first).
+pub(crate) struct PassImages {
+    /// The pass.
+    pub pass: u32,
+    layers: Vec<Image>,
+    /// Merge tasks (their group index) whose checkpoints were written and images put here.
+    merged: HashSet<u32>,
+}
+
+impl PassImages {
+    fn new(pass: u32) -> PassImages {
+        PassImages {
+            pass,
+            layers: Vec::new(),
+            merged: HashSet::new(),
+        }
+    }
+
+    fn blit(&mut self, r: &Resolved, layers: &[Vec<(Tile, Image)>]) {
+        let (w, h) = (r.width as usize, r.height as usize);
+        if self.layers.len() < layers.len() {
+            self.layers.resize_with(layers.len(), || Image::new(w, h));
+        }
+        for (frame, tiles) in self.layers.iter_mut().zip(layers) {
+            for (t, img) in tiles {
+                frame.blit(img, t.x0 as usize, t.y0 as usize);
+            }
+        }
+    }
+}
+
+/// Reads byte range `range` of an open file.
+fn read_range(f: &mut std::fs::File, range: &std::ops::Range<u64>) -> std::io::Result<Vec<u8>> {
+    use std::io::{Read, Seek, SeekFrom};
+    f.seek(SeekFrom::Start(range.start))?;
+    let mut buf = vec![0u8; (range.end - range.start) as usize];
+    f.read_exact(&mut buf)?;
+    Ok(buf)
+}
+
+/// The index of the result stored at `stored` of an open result log (of `log_len` bytes).
+fn read_index(
+    log: &mut std::fs::File,
+    log_len: u64,
+    stored: Option<std::ops::Range<u64>>,
+) -> Result<BandedIndex, String> {
+    use std::io::{Read, Seek, SeekFrom};
+    let stored = stored.ok_or("no stored result recorded")?;
+    if stored.end > log_len || stored.start > stored.end {
+        return Err(format!(
+            "stored result at bytes {stored:?} of a log of {log_len}"
+        ));
+    }
+    log.seek(SeekFrom::Start(stored.start))
+        .map_err(|e| e.to_string())?;
+    let len = stored.end - stored.start;
+    let mut r = std::io::BufReader::new(log.take(len));
+    Ok(BandedIndex::read(&mut r, len)
+        .map_err(|e| e.to_string())?
+        .at(stored.start))
+}
+
+/// Every accepted result of pass `pass` of job `id`, read from its index in the result log.
+fn load_inputs(app: &App, id: &str, pass: u32) -> Result<PassInputs, MergeError> {
+    let tasks = app
+        .db()
+        .pass_tasks(id, pass)
+        .map_err(|e| MergeError::Job(e.to_string()))?;
+    let log = app.paths.result_log(id, pass);
+    let mut f = std::fs::File::open(&log).ok();
+    let log_len = f
+        .as_ref()
+        .and_then(|f| f.metadata().ok())
+        .map_or(0, |m| m.len());
+    let mut results = Vec::with_capacity(tasks.len());
+    let mut stats = RayStats::default();
+    for t in tasks {
+        let index = match f.as_mut() {
+            Some(f) => read_index(f, log_len, t.result.clone()),
+            None => Err("the pass has no result log".to_string()),
+        }
+        .map_err(|e| MergeError::Result(t.id, e))?;
+        stats.add(&index.stats);
+        results.push(PassResult {
+            tile: t.tile as usize,
+            task: t.id,
+            index,
+        });
+    }
+    Ok(PassInputs {
+        pass,
+        results,
+        stats,
+    })
+}
+
+/// The inputs of pass `pass`, read once per pass (and again after a restart).
+fn pass_inputs(
+    app: &App,
+    id: &str,
+    rt: &mut Runtime,
+    pass: u32,
+) -> Result<Arc<PassInputs>, MergeError> {
+    if let Some(i) = rt.inputs.as_ref().filter(|i| i.pass == pass) {
+        return Ok(i.clone());
+    }
+    let inputs = Arc::new(load_inputs(app, id, pass)?);
+    rt.inputs = Some(inputs.clone());
+    Ok(inputs)
+}
+
+/// A stored result of pass `pass` that cannot be read: its task is rendered again, and the
+/// pass's merge waits for it (its merge tasks are dropped; a merge task already done wrote
+/// checkpoints holding the pass into slots nothing reads until the merge begins again, which
+/// writes them anew).
+fn reject_result(app: &App, job: &str, rt: &mut Runtime, pass: u32, task: i64, e: &str) {
+    tracing::error!("job {job} pass {pass}: result of task {task}: {e}; rendered again");
+    {
+        let db = app.db();
+        let _ = db.delete_merge_tasks(job, pass);
+        let _ = db.requeue(task);
+    }
+    rt.inputs = None;
+    rt.images = None;
+    app.work.notify_waiters();
+}
+
+/// The band groups of a job's merge tasks: at most 1/16 of the frame's accumulators each (so
+/// that a pass is merged by up to 16 workers at once), at least one band, at most the
+/// coordinator's merge memory.
+fn merge_groups(app: &App, r: &Resolved) -> Vec<std::ops::Range<u32>> {
+    let grid = r.grid();
+    let layout = r.film_layout();
+    let band = band_bytes(&grid, &layout);
+    let cap = app
+        .cfg
+        .merge_memory_bytes
+        .min(app.cfg.max_upload_bytes / 2)
+        .max(band);
+    let budget = (band.saturating_mul(grid.rows() as u64) / 16).clamp(band, cap);
+    band_groups(&grid, &layout, budget)
+        .into_iter()
+        .map(|g| g.start as u32..g.end as u32)
+        .collect()
+}
+
+/// Samples per pixel once pass `pass` is merged.
+fn spp_after(r: &Resolved, pass: u32) -> u32 {
+    r.pass_range(pass).map_or(0, |s| s.end)
+}
+
+/// Light paths traced for the frame after `spp` samples per pixel (N_L of the optimal-MIS
+/// systems): one per pixel sample, as `Film::light_paths` counts them.
+fn light_paths(r: &Resolved, spp: u32) -> u64 {
+    r.width as u64 * r.height as u64 * spp as u64
+}
+
+/// Whether pass `pass` is the job's last (a job with a sample count): its merge returns every
+/// layer, and its outputs are the final EXR.
+fn is_last(r: &Resolved, pass: u32) -> bool {
+    r.spp.is_some() && r.pass_range(pass + 1).is_none()
+}
+
+/// The layers a merge of pass `pass` returns: the beauty, and on the last pass every other one.
+fn layer_count(r: &Resolved, pass: u32) -> usize {
+    if is_last(r, pass) {
+        1 + r.film_layout().extra_layer_names().len()
+    } else {
+        1
+    }
+}
+
+/// Queues the merge tasks of pass `pass`, whose render tasks are all done (called by
+/// `jobs::advance`). A result that cannot be read is rendered again first.
+pub(crate) fn begin(app: &App, job: &JobRow, rt: &mut Runtime, pass: u32) -> Result<(), String> {
+    let inputs = match load_inputs(app, &job.id, pass) {
+        Ok(i) => i,
+        Err(MergeError::Result(t, e)) => {
+            reject_result(app, &job.id, rt, pass, t, &e);
+            return Ok(());
+        }
+        Err(MergeError::Job(e)) => return Err(e),
+    };
+    let groups = merge_groups(app, &rt.resolved);
+    app.db()
+        .create_merge_tasks(&job.id, pass, &groups)
+        .map_err(|e| e.to_string())?;
+    rt.inputs = Some(Arc::new(inputs));
+    rt.images = Some(PassImages::new(pass));
+    app.work.notify_waiters();
+    Ok(())
+}
+
+/// Where the checkpoint of tile `t` holding `n` passes lies: its band's file, the byte offset
+/// and the length. Each tile has two slots of the length of a full tile's checkpoint, side by
+/// side in the band's file, written in turn (`n % 2`): a write torn by a crash leaves the
+/// previous pass in the other slot. The files are made once per job and rewritten in place.
+fn checkpoint_slot(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    t: usize,
+    n: u32,
+) -> (std::path::PathBuf, u64, u64) {
+    let grid = r.grid();
+    let layout = r.film_layout();
+    let columns = grid.columns() as usize;
+    let full = TileCheckpoint::encoded_len(grid.size as usize * grid.size as usize, &layout);
+    let len = TileCheckpoint::encoded_len(grid.tile(t).pixels(), &layout);
+    let slot = 2 * (t % columns) as u64 + (n % 2) as u64;
+    (
+        app.paths.band_checkpoints(job, (t / columns) as u32),
+        slot * full,
+        len,
+    )
+}
+
+/// The bytes of tile `t`'s checkpoint holding exactly `n` passes, or None when its slot holds
+/// another pass, was never written, or fails its checksum (torn by a crash).
+fn read_slot(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    t: usize,
+    n: u32,
+) -> Result<Option<Vec<u8>>, String> {
+    use std::io::{Read, Seek, SeekFrom};
+    let (path, at, len) = checkpoint_slot(app, job, r, t, n);
+    let mut f = match std::fs::File::open(&path) {
+        Ok(f) => f,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(format!("tile checkpoint {t}: {e}")),
+    };
+    let mut bytes = vec![0u8; len as usize];
+    f.seek(SeekFrom::Start(at))
+        .map_err(|e| format!("tile checkpoint {t}: {e}"))?;
+    match f.read_exact(&mut bytes) {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(None),
+        Err(e) => return Err(format!("tile checkpoint {t}: {e}")),
+    }
+    let holds = TileCheckpoint::peek(&bytes, r.grid().tile(t)).ok();
+    Ok((holds == Some(n)).then_some(bytes))
+}
+
+/// Writes the encoded checkpoint of tile `t` holding `n` passes into its slot.
+fn write_slot(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    t: usize,
+    bytes: &[u8],
+    n: u32,
+) -> std::io::Result<()> {
+    let (path, at, len) = checkpoint_slot(app, job, r, t, n);
+    if bytes.len() as u64 != len {
+        // A checkpoint longer than its slot would overwrite the neighbouring tile's.
+        return Err(std::io::Error::other(format!(
+            "tile checkpoint {t}: {} bytes for a slot of {len}",
+            bytes.len()
+        )));
+    }
+    // Made durable all at once before the pass is recorded (`sync_tiles`) on Linux.
+    store::write_at(&path, at, bytes, !cfg!(target_os = "linux"))
+}
+
+/// The accumulators of tile `t` holding exactly `n` passes (an empty tile for 0), or None when
+/// no valid slot holds them.
+fn load_tile(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    t: usize,
+    n: u32,
+) -> Result<Option<FilmTile>, String> {
+    let tile = r.grid().tile(t);
+    let layout = r.film_layout();
+    if n == 0 {
+        return Ok(Some(FilmTile::new(tile, &layout)));
+    }
+    match read_slot(app, job, r, t, n)? {
+        None => Ok(None),
+        Some(bytes) => TileCheckpoint::decode(&bytes, tile, &layout)
+            .map(|ck| Some(ck.tile))
+            .map_err(|e| format!("tile checkpoint {t}: {e}")),
+    }
+}
+
+/// Streams the input of merge task `task` (of pass `inputs.pass`) to `send`, in pieces of about
+/// a megabyte; `send` returns false when the worker has gone (the stream ends early). Every
+/// stored part is checked against its checksum as it is read.
+pub(crate) fn stream_input(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    task: &TaskRow,
+    inputs: &PassInputs,
+    send: &mut dyn FnMut(Vec<u8>) -> bool,
+) -> Result<(), MergeError> {
+    const CHUNK: usize = 1 << 20;
+    let pass = inputs.pass;
+    let grid = r.grid();
+    let bands = task.bands().start as usize..task.bands().end as usize;
+    let tiles = grid.tiles_of_bands(bands.clone());
+    let touches = |p: &PassResult| tiles.contains(&p.tile) || p.index.span(bands.clone()).is_some();
+    let head = MergeHead {
+        bands: task.bands(),
+        pass,
+        light_paths: light_paths(r, spp_after(r, pass)),
+        all_layers: is_last(r, pass),
+        results: inputs.results.iter().filter(|p| touches(p)).count() as u32,
+    };
+    let mut buf = head.encode();
+    let flush = |buf: &mut Vec<u8>, send: &mut dyn FnMut(Vec<u8>) -> bool, at_least: usize| {
+        buf.len() < at_least || send(std::mem::take(buf))
+    };
+    for t in tiles.clone() {
+        if pass == 0 {
+            buf.extend(film_merge::tile_entry(None));
+            continue;
+        }
+        let bytes = read_slot(app, job, r, t, pass)
+            .map_err(MergeError::Job)?
+            .ok_or_else(|| {
+                MergeError::Job(format!(
+                    "tile checkpoint {t}: no valid checkpoint holding {pass} passes"
+                ))
+            })?;
+        buf.extend(film_merge::tile_entry(Some(bytes.len() as u64)));
+        buf.extend(bytes);
+        if !flush(&mut buf, send, CHUNK) {
+            return Ok(());
+        }
+    }
+    let log = app.paths.result_log(job, pass);
+    let mut f = std::fs::File::open(&log)?;
+    for p in inputs.results.iter().filter(|p| touches(p)) {
+        let bad = |e: String| MergeError::Result(p.task, e);
+        let own = if tiles.contains(&p.tile) {
+            let bytes = read_range(&mut f, &p.index.own).map_err(|e| bad(e.to_string()))?;
+            p.index.check_own(&bytes).map_err(|e| bad(e.to_string()))?;
+            bytes
+        } else {
+            Vec::new()
+        };
+        let mut sections = Vec::new();
+        if let Some(span) = p.index.span(bands.clone()) {
+            let bytes = read_range(&mut f, &span).map_err(|e| bad(e.to_string()))?;
+            for (k, (b, range)) in p.index.sections.iter().enumerate() {
+                if bands.contains(&(*b as usize)) {
+                    let part = &bytes
+                        [(range.start - span.start) as usize..(range.end - span.start) as usize];
+                    p.index
+                        .check_section(k, part)
+                        .map_err(|e| bad(e.to_string()))?;
+                    sections.push((*b, part.to_vec()));
+                }
+            }
+        }
+        buf.extend(film_merge::result_entry(
+            p.tile as u32,
+            own.len() as u64,
+            sections.len() as u32,
+        ));
+        buf.extend(own);
+        for (b, part) in sections {
+            buf.extend(film_merge::section_entry(b, part.len() as u64));
+            buf.extend(part);
+        }
+        if !flush(&mut buf, send, CHUNK) {
+            return Ok(());
+        }
+    }
+    flush(&mut buf, send, 1);
+    Ok(())
+}
+
+/// Streams the input of a leased merge task through `send` (see `stream_input`), reading the
+/// pass's inputs first if this process has not yet. A damaged stored result is rendered again
+/// (the merge tasks of its pass are dropped); a job whose checkpoints cannot be read fails.
+/// Returns the error to end the stream with, if any.
+pub(crate) fn serve_input(
+    app: &App,
+    job: &JobRow,
+    task: &TaskRow,
+    send: &mut dyn FnMut(Vec<u8>) -> bool,
+) -> Result<(), String> {
+    let rt = jobs::runtime(app, job)?;
+    let (r, inputs) = {
+        let mut rt = rt.lock().unwrap_or_else(|e| e.into_inner());
+        let r = rt.resolved.clone();
+        match pass_inputs(app, &job.id, &mut rt, task.pass) {
+            Ok(i) => (r, i),
+            Err(e) => return Err(merge_failed(app, &job.id, &mut rt, task.pass, e)),
+        }
+    };
+    match stream_input(app, &job.id, &r, task, &inputs, send) {
+        Ok(()) => Ok(()),
+        Err(e) => {
+            let mut rt = rt.lock().unwrap_or_else(|e| e.into_inner());
+            Err(merge_failed(app, &job.id, &mut rt, task.pass, e))
+        }
+    }
+}
+
+/// Acts on a merge that cannot go on and returns its message: a damaged result is rendered
+/// again, a problem with the job's files fails the job.
+fn merge_failed(app: &App, job: &str, rt: &mut Runtime, pass: u32, e: MergeError) -> String {
+    match e {
+        MergeError::Result(t, e) => {
+            reject_result(app, job, rt, pass, t, &e);
+            format!("a result of pass {pass} is damaged ({e}); it is rendered again")
+        }
+        MergeError::Job(e) => {
+            jobs::fail_job(app, job, &e);
+            e
+        }
+    }
+}
+
+/// What became of an uploaded merge output.
+pub(crate) enum Accepted {
+    /// Checked, recorded and written.
+    Yes,
+    /// The attempt is no longer current (nothing written).
+    Stale,
+    /// The output does not match its task (why).
+    Invalid(String),
+}
+
+/// Checks merge task `task`'s output `body` from `worker`, records the task done, writes the
+/// group's checkpoints into their slots and puts its images with the pass's.
+pub(crate) fn accept(
+    app: &App,
+    job: &JobRow,
+    task: &TaskRow,
+    worker: &str,
+    body: &[u8],
+) -> Result<Accepted, String> {
+    let rt = jobs::runtime(app, job)?;
+    let r = rt
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .resolved
+        .clone();
+    let grid = r.grid();
+    let layout = r.film_layout();
+    let passes = task.pass + 1;
+    let out = match MergeOutput::decode(
+        body,
+        &grid,
+        &layout,
+        task.bands(),
+        passes,
+        layer_count(&r, task.pass),
+    ) {
+        Ok(o) => o,
+        Err(e) => return Ok(Accepted::Invalid(e.to_string())),
+    };
+    // The runtime is held from the record to the images, so that the end of the pass (which
+    // holds it too) sees the group either not done or done with its checkpoints written.
+    let mut rt = rt.lock().unwrap_or_else(|e| e.into_inner());
+    if !app
+        .db()
+        .complete_merge(task.id, task.attempt, worker)
+        .map_err(|e| e.to_string())?
+    {
+        return Ok(Accepted::Stale);
+    }
+    let tiles = grid.tiles_of_bands(task.bands().start as usize..task.bands().end as usize);
+    for (t, ck) in tiles.zip(&out.checkpoints) {
+        if let Err(e) = write_slot(app, &job.id, &r, t, ck, passes) {
+            // Recorded done without its checkpoints: the end of the pass finds the group's slots
+            // without the pass and merges it again.
+            tracing::error!("job {} tile {t}: {e}", job.id);
+            return Ok(Accepted::Yes);
+        }
+    }
+    let images = rt.images.get_or_insert_with(|| PassImages::new(task.pass));
+    if images.pass == task.pass {
+        images.blit(&r, &out.layers);
+        images.merged.insert(task.tile);
+    }
+    Ok(Accepted::Yes)
+}
+
+/// Makes the tile checkpoints written without fsync durable (Linux: one syncfs of the data
+/// folder's file system; elsewhere each file was fsync'd as it was written).
+fn sync_tiles(app: &App, job: &str) -> std::io::Result<()> {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::fd::AsRawFd;
+        let dir = std::fs::File::open(app.paths.tiles_dir(job))?;
+        // SAFETY: syncfs on a file descriptor we own and keep open for the call.
+        if unsafe { libc::syncfs(dir.as_raw_fd()) } != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = (app, job);
+    Ok(())
+}
+
+/// Threads that read band groups of checkpoints back at once.
+fn read_threads() -> usize {
+    std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(4)
+}
+
+/// Runs `f` on every band group of `groups`, a few at a time (each thread holds one group's
+/// tiles, and the coordinator's merge memory bounds them together), and puts the images each
+/// returns into `images`. Stops at the first error.
+fn for_groups<F>(
+    app: &App,
+    r: &Resolved,
+    groups: &[std::ops::Range<usize>],
+    images: &mut PassImages,
+    f: F,
+) -> Result<(), String>
+where
+    F: Fn(std::ops::Range<usize>) -> Result<LayerImages, String> + Sync,
+{
+    use std::sync::Mutex;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let layout = r.film_layout();
+    let threads = read_threads()
+        .min((app.cfg.merge_memory_bytes / band_bytes(&r.grid(), &layout)).max(1) as usize);
+    let next = AtomicUsize::new(0);
+    let out = Mutex::new((images, None::<String>));
+    std::thread::scope(|s| {
+        for _ in 0..threads.min(groups.len()) {
+            s.spawn(|| {
+                loop {
+                    let g = next.fetch_add(1, Ordering::Relaxed);
+                    if g >= groups.len() || out.lock().is_ok_and(|o| o.1.is_some()) {
+                        return;
+                    }
+                    let got = f(groups[g].clone());
+                    let mut o = out.lock().unwrap_or_else(|e| e.into_inner());
+                    match got {
+                        Ok(layers) => o.0.blit(r, &layers),
+                        Err(e) => {
+                            o.1.get_or_insert(e);
+                            return;
+                        }
+                    }
+                }
+            });
+        }
+    });
+    match out.into_inner().unwrap_or_else(|e| e.into_inner()).1 {
+        Some(e) => Err(e),
+        None => Ok(()),
+    }
+}
+
+/// The images of the tiles of `bands` from their checkpoints holding `n` passes, or None when
+/// a tile's slots do not hold them.
+fn images_of(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    bands: std::ops::Range<usize>,
+    n: u32,
+    all_layers: bool,
+) -> Result<Option<LayerImages>, String> {
+    let mut held = Vec::new();
+    for t in r.grid().tiles_of_bands(bands) {
+        match load_tile(app, job, r, t, n)? {
+            Some(tile) => held.push(tile),
+            None => return Ok(None),
+        }
+    }
+    let n_l = light_paths(r, spp_after(r, n.saturating_sub(1)));
+    Ok(Some(film_merge::tile_images(
+        &held,
+        &r.film_layout(),
+        n_l,
+        all_layers,
+    )))
+}
+
+/// Records pass `pass` once every merge task (`merges`) is done: the images of groups merged
+/// before a restart are read back from their checkpoints (a group whose slots do not hold the
+/// pass is queued again, and false returned), the checkpoints are made durable, the pass and its
+/// work counters recorded, and its outputs written (the final EXR after the last pass).
+pub(crate) fn finish_pass(
+    app: &App,
+    job: &JobRow,
+    rt: &mut Runtime,
+    pass: u32,
+    merges: &[TaskRow],
+) -> Result<bool, String> {
+    let t0 = Instant::now();
+    let r = rt.resolved.clone();
+    let last = is_last(&r, pass);
+    let mut images = rt
+        .images
+        .take()
+        .filter(|i| i.pass == pass)
+        .unwrap_or_else(|| PassImages::new(pass));
+    let unseen: Vec<&TaskRow> = merges
+        .iter()
+        .filter(|m| !images.merged.contains(&m.tile))
+        .collect();
+    for m in unseen {
+        let bands = m.bands().start as usize..m.bands().end as usize;
+        let missing = std::sync::atomic::AtomicBool::new(false);
+        for_groups(app, &r, &[bands], &mut images, |bands| {
+            match images_of(app, &job.id, &r, bands, pass + 1, last)? {
+                Some(layers) => Ok(layers),
+                None => {
+                    missing.store(true, std::sync::atomic::Ordering::Relaxed);
+                    Ok(Vec::new())
+                }
+            }
+        })?;
+        if missing.into_inner() {
+            tracing::warn!(
+                "job {} pass {pass}: merge of bands {:?} is not in its checkpoints; merged again",
+                job.id,
+                m.bands()
+            );
+            app.db().requeue(m.id).map_err(|e| e.to_string())?;
+            rt.images = Some(images);
+            app.work.notify_waiters();
+            return Ok(false);
+        }
+        images.merged.insert(m.tile);
+    }
+    let stats = match pass_inputs(app, &job.id, rt, pass) {
+        Ok(i) => i.stats,
+        Err(e) => {
+            merge_failed(app, &job.id, rt, pass, e);
+            return Ok(false);
+        }
+    };
+    let spp = spp_after(&r, pass);
+    sync_tiles(app, &job.id).map_err(|e| format!("cannot sync the tile checkpoints: {e}"))?;
+    app.db()
+        .pass_merged(&job.id, pass + 1, spp, &stats)
+        .map_err(|e| e.to_string())?;
+    let _ = std::fs::remove_dir_all(app.paths.pass_dir(&job.id, pass));
+    rt.inputs = None;
+    super::Metrics::add(&app.metrics.passes_merged, 1);
+    super::Metrics::add(&app.metrics.merge_micros, t0.elapsed().as_micros() as u64);
+
+    // Outputs of the pass: preview, beauty EXR, error map, relMSE.
+    let job = app
+        .db()
+        .job(&job.id)
+        .map_err(|e| e.to_string())?
+        .ok_or("job vanished")?;
+    let mut frames = images.layers.into_iter();
+    let image = frames
+        .next()
+        .unwrap_or_else(|| Image::new(r.width as usize, r.height as usize));
+    let layers: Vec<(String, Image)> = if last {
+        r.film_layout()
+            .extra_layer_names()
+            .into_iter()
+            .zip(frames)
+            .collect()
+    } else {
+        Vec::new()
+    };
+    jobs::write_outputs(app, &job, rt, &image, &layers)?;
+    rt.final_written = last;
+    let relmse = match &rt.reference {
+        Some(reference) => Some(
+            metrics::compare(&image, reference, r.eps)
+                .map_err(|e| e.to_string())?
+                .relmse,
+        ),
+        None => None,
+    };
+    let seconds = job.started_at.map_or(0.0, |s| store::now() - s);
+    app.db()
+        .add_series(
+            &job.id,
+            &SeriesPoint {
+                pass,
+                spp,
+                seconds,
+                relmse,
+            },
+        )
+        .map_err(|e| e.to_string())?;
+    app.event(
+        &job.id,
+        JobEvent::PassDone(PassDoneEvent {
+            pass,
+            spp,
+            seconds,
+            relmse,
+        }),
+    );
+    app.event(
+        &job.id,
+        JobEvent::Preview(PreviewEvent {
+            pass,
+            spp,
+            url: format!("/v1/jobs/{}/preview.png", job.id),
+        }),
+    );
+    Ok(true)
+}
+
+/// The final EXR with every layer the job keeps, assembled band group by band group from the
+/// tile checkpoints (a job whose last pass did not write it: a time-budget job).
+pub(crate) fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
+    let r = &rt.resolved;
+    let passes = job.passes_done;
+    let groups = band_groups(
+        &r.grid(),
+        &r.film_layout(),
+        app.cfg.merge_memory_bytes / read_threads() as u64,
+    );
+    let mut images = PassImages::new(passes);
+    for_groups(app, r, &groups, &mut images, |bands| {
+        images_of(app, &job.id, r, bands, passes, true)?
+            .ok_or_else(|| format!("a tile checkpoint holding {passes} passes is missing"))
+    })?;
+    let mut frames = images.layers.into_iter();
+    let image = frames
+        .next()
+        .unwrap_or_else(|| Image::new(r.width as usize, r.height as usize));
+    let layers: Vec<(String, Image)> = r
+        .film_layout()
+        .extra_layer_names()
+        .into_iter()
+        .zip(frames)
+        .collect();
+    jobs::write_outputs(app, job, rt, &image, &layers)
+}
