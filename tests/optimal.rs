@@ -144,6 +144,53 @@ fn wire_decoding_rejects_damaged_results() {
     );
 }
 
+/// A result uploaded laid out by band is checked part by part before the coordinator stores it
+/// as it came: a flipped byte in any part, a section out of its band or of the frame, an own
+/// part that disagrees with the header are refused; a relabelled one (what the load generator
+/// replays) passes as the other task's.
+#[test]
+fn banded_uploads_are_checked_before_they_are_stored() {
+    use omis::film::TileGrid;
+    use omis::film::wire::{BandedIndex, check_banded, encode_banded, relabel_banded};
+    let scene = load("cornell-box.json", 16, 16);
+    let s = optimal(2, 3, 3);
+    let layout = s.film_layout();
+    let grid = TileGrid::new(16, 16, 8);
+    let tile = grid.tile(0);
+    let film = integrator::render_tile(&scene, &s, tile, 0..2);
+    let bytes = encode_banded(film, 0..2, &grid);
+    let index = check_banded(&bytes, &grid, &layout).expect("a worker's upload passes");
+    assert_eq!((index.tile, index.samples.clone()), (tile, 0..2));
+    assert!(index.sections.len() == 2, "light paths reach both bands");
+    // Any flipped byte of any part is found (header and table, own part, each section).
+    let parts = std::iter::once(0..index.own.start as usize)
+        .chain(std::iter::once(
+            index.own.start as usize..index.own.end as usize,
+        ))
+        .chain(
+            index
+                .sections
+                .iter()
+                .map(|(_, r)| r.start as usize..r.end as usize),
+        );
+    for r in parts {
+        let mut bad = bytes.clone();
+        bad[(r.start + r.end) / 2] ^= 0x08;
+        assert!(check_banded(&bad, &grid, &layout).is_err(), "part {r:?}");
+    }
+    // Another frame: the sections' pixels leave their bands (or the bands the frame).
+    assert!(check_banded(&bytes, &TileGrid::new(16, 8, 8), &layout).is_err());
+    assert!(check_banded(&bytes, &TileGrid::new(16, 16, 16), &layout).is_err());
+    assert!(check_banded(&bytes[..bytes.len() - 1], &grid, &layout).is_err());
+    // Relabelled as tile 3, samples 4..6: checked as that task's result, parts unchanged.
+    let moved = relabel_banded(&bytes, grid.tile(3), 4..6).expect("relabel");
+    let again = check_banded(&moved, &grid, &layout).expect("the relabelled upload passes");
+    assert_eq!((again.tile, again.samples.clone()), (grid.tile(3), 4..6));
+    assert_eq!(again.sections, index.sections);
+    let read = BandedIndex::read(&mut &moved[..], moved.len() as u64).expect("index");
+    assert_eq!(read, again);
+}
+
 #[test]
 fn balance_from_the_optimal_accumulators_equals_balance_weighted_bdpt() {
     // Same seed, same random numbers: sum_i b_i / S of every optimal system plus the balance

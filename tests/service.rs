@@ -429,7 +429,8 @@ fn tile_result(task: &Value, seed: u64) -> Vec<u8> {
     let rect: omis::film::Tile = serde_json::from_value(task["rect"].clone()).expect("rect");
     let range = task["samples"][0].as_u64().expect("s0") as u32
         ..task["samples"][1].as_u64().expect("s1") as u32;
-    omis::integrator::render_tile(&scene, &r.render, rect, range.clone()).encode(range)
+    let film = omis::integrator::render_tile(&scene, &r.render, rect, range.clone());
+    omis::film::wire::encode_banded(film, range, &r.grid())
 }
 
 fn register(c: &Client, url: &str, name: &str) -> String {
@@ -1776,7 +1777,14 @@ fn feed(
         let rect: omis::film::Tile = serde_json::from_value(t["rect"].clone()).expect("rect");
         let range = t["samples"][0].as_u64().expect("s0") as u32
             ..t["samples"][1].as_u64().expect("s1") as u32;
-        let body = synthetic_result(rect, range.clone(), w, h, layout).encode(range);
+        let size = lease["job"]["resolved"]["tile_size"]
+            .as_u64()
+            .expect("tile size") as u32;
+        let body = omis::film::wire::encode_banded(
+            synthetic_result(rect, range.clone(), w, h, layout),
+            range,
+            &omis::film::TileGrid::new(w, h, size),
+        );
         assert_eq!(upload(c, url, &lease, &worker, body), 200);
         uploaded += 1;
     }

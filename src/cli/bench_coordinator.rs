@@ -46,8 +46,8 @@ pub struct BenchCoordinatorArgs {
     pub json: bool,
 }
 
-/// Recorded results, by (tile width, tile height, pass length): encoded bytes and the CPU
-/// seconds their render took.
+/// Recorded results, by (tile width, tile height, pass length): encoded bytes (laid out by band,
+/// as a worker uploads them) and the CPU seconds their render took.
 type Recorded = HashMap<(u32, u32, u32), Vec<(Vec<u8>, f64)>>;
 
 /// Renders `per` results for every tile shape and pass length of the job, from tiles spread
@@ -73,24 +73,13 @@ fn record(scene: &Scene, r: &Resolved, per: usize) -> Recorded {
             for t in tiles.iter().step_by(step).take(per.max(1)) {
                 let c0 = super::procstat::cpu_seconds(None);
                 let film = crate::integrator::render_tile(scene, &r.render, *t, 0..len);
+                let bytes = crate::film::wire::encode_banded(film, 0..len, &grid);
                 let cpu = super::procstat::cpu_seconds(None) - c0;
-                out.entry((w, h, len))
-                    .or_default()
-                    .push((film.encode(0..len), cpu));
+                out.entry((w, h, len)).or_default().push((bytes, cpu));
             }
         }
     }
     out
-}
-
-/// A recorded result relabelled as tile `t`, samples `s0..s1` (the header fields of the wire
-/// format: tile at byte 12, samples at byte 28).
-fn relabel(bytes: &[u8], t: &Tile, s: [u32; 2]) -> Vec<u8> {
-    let mut b = bytes.to_vec();
-    for (k, v) in [t.x0, t.y0, t.x1, t.y1, s[0], s[1]].into_iter().enumerate() {
-        b[12 + 4 * k..16 + 4 * k].copy_from_slice(&v.to_le_bytes());
-    }
-    b
 }
 
 /// What the simulated workers did.
@@ -185,7 +174,8 @@ async fn simulated_worker(
             .with_context(|| format!("no recorded result for tile shape / pass {key:?}"))?;
         turn += 1;
         let (bytes, cpu) = &list[turn % list.len()];
-        let body = relabel(bytes, &t.rect, t.samples);
+        let body = crate::film::wire::relabel_banded(bytes, t.rect, t.samples[0]..t.samples[1])
+            .map_err(anyhow::Error::msg)?;
         let n = body.len() as u64;
         let r = http
             .put(format!("{url}/v1/worker/tasks/{}/result", t.id))

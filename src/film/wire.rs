@@ -848,6 +848,78 @@ pub fn encode_banded(
     w.out
 }
 
+/// Checks a banded result as a worker uploads it (`encode_banded`), for a frame tiled by `grid`
+/// whose films have `layout`: its header and section table, every part's checksum, the own part
+/// (a tile result without splats or records, with the header's tile, samples and counters) and
+/// every section (its band one of the frame's, everything in it landing there). Returns the
+/// index, its ranges relative to the start of `bytes`.
+pub fn check_banded(
+    bytes: &[u8],
+    grid: &super::TileGrid,
+    layout: &FilmLayout,
+) -> Result<BandedIndex, WireError> {
+    let index = BandedIndex::read(&mut &bytes[..], bytes.len() as u64)?;
+    let part = |r: &std::ops::Range<u64>| &bytes[r.start as usize..r.end as usize];
+    let own = part(&index.own);
+    index.check_own(own)?;
+    let (film, samples) = TileFilm::decode(own, grid.width, grid.height, layout)?;
+    if film.tile != index.tile || samples != index.samples || film.stats != index.stats {
+        return Err(WireError(format!(
+            "own part of tile {:?} samples {samples:?} under a header of tile {:?} samples {:?}",
+            film.tile, index.tile, index.samples
+        )));
+    }
+    if !film.splats.is_empty() || !film.records.is_empty() {
+        return Err(WireError(
+            "own part with splats or records (they belong in the sections)".into(),
+        ));
+    }
+    for (k, (b, r)) in index.sections.iter().enumerate() {
+        if *b >= grid.rows() {
+            return Err(WireError(format!(
+                "section of band {b}; the frame has {}",
+                grid.rows()
+            )));
+        }
+        index.check_section(k, part(r))?;
+        decode_section(part(r), *b as usize, grid, layout)?;
+    }
+    Ok(index)
+}
+
+/// A banded result with its tile and sample range changed to `tile` and `samples` (in the
+/// header and the own part, checksums made again): what a load generator replays as another
+/// task's result. `bytes` must be a banded result (`encode_banded`).
+pub fn relabel_banded(
+    bytes: &[u8],
+    tile: Tile,
+    samples: std::ops::Range<u32>,
+) -> Result<Vec<u8>, WireError> {
+    let index = BandedIndex::read(&mut &bytes[..], bytes.len() as u64)?;
+    let mut b = bytes.to_vec();
+    let fields = [
+        tile.x0,
+        tile.y0,
+        tile.x1,
+        tile.y1,
+        samples.start,
+        samples.end,
+    ];
+    // Both headers hold the tile and the samples at bytes 12 .. 36 (after magic and version).
+    for base in [0, index.own.start as usize] {
+        for (k, v) in fields.iter().enumerate() {
+            let at = base + 12 + 4 * k;
+            b[at..at + 4].copy_from_slice(&v.to_le_bytes());
+        }
+    }
+    let own_crc = crc32fast::hash(&b[index.own.start as usize..index.own.end as usize]);
+    b[BAND_HEAD - 8..BAND_HEAD - 4].copy_from_slice(&own_crc.to_le_bytes());
+    let table_end = BAND_HEAD + index.sections.len() * BAND_ENTRY;
+    let head_crc = crc32fast::hash(&b[..table_end]);
+    b[table_end..table_end + 4].copy_from_slice(&head_crc.to_le_bytes());
+    Ok(b)
+}
+
 /// Parses the section of `band` (its bytes) of a banded result for `grid`, whose films have
 /// `layout`: everything must land in the band.
 pub fn decode_section(

@@ -5,7 +5,8 @@
 //!
 //! In the flow film -> worker -> service: the worker takes its tasks and sends its results
 //! in the types of [`crate::service::protocol`], renders with [`crate::integrator`] into a
-//! [`TileFilm`](crate::film::TileFilm), and ships it in the [`crate::film::wire`] format.
+//! [`TileFilm`](crate::film::TileFilm), and ships it laid out by band
+//! ([`crate::film::wire::encode_banded`]); merge tasks run [`crate::film::merge`].
 
 use crate::film;
 use crate::integrator;
@@ -400,9 +401,16 @@ impl Worker {
                 let settings = lease.job.resolved.render.clone();
                 let (rect, range) = (t.rect, t.samples[0]..t.samples[1]);
                 let cache = self.photon_cache(&t.job_id, lease.job.resolved.pass_len(u32::MAX));
+                let grid = lease.job.resolved.grid();
                 let rendered = tokio::task::spawn_blocking(move || {
-                    integrator::render_tile_cached(&scene, &settings, rect, range.clone(), &cache)
-                        .encode(range)
+                    let film = integrator::render_tile_cached(
+                        &scene,
+                        &settings,
+                        rect,
+                        range.clone(),
+                        &cache,
+                    );
+                    film::wire::encode_banded(film, range, &grid)
                 })
                 .await;
                 match rendered {

@@ -3,7 +3,7 @@
 
 use super::errors::{ApiError, ApiResult, bad, parse_json};
 use super::{AppState, is_safe_id, scenes};
-use crate::film::{Tile, TileFilm, wire};
+use crate::film::{Tile, wire};
 use crate::service::protocol::{
     DeregisterAnswer, DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, JobEvent,
     JobState, Lease, LeaseRequest, LeasedJob, LeasedTask, OkAnswer, RegisterRequest, Registration,
@@ -363,19 +363,19 @@ pub(crate) async fn upload_result(
         let r = jobs::resolved_of(&job).map_err(ApiError::internal)?;
         let layout = r.film_layout();
         let tile = jobs::tile_rect(&r, t.tile);
-        let (film, range) = match TileFilm::decode(&body, r.width, r.height, &layout) {
+        // Uploaded laid out by band (`wire::encode_banded`), as the result log keeps it, so
+        // that a merge task reads each band's part alone: checked, then stored as it came.
+        let index = match wire::check_banded(&body, &r.grid(), &layout) {
             Err(e) => return Ok(Err(e.to_string())),
             Ok(x) => x,
         };
-        if Some(film.tile) != tile || range != (t.s0..t.s1) {
+        if Some(index.tile) != tile || index.samples != (t.s0..t.s1) {
             return Ok(Err(format!(
-                "result is for tile {:?} samples {range:?}, the task is tile {tile:?} samples {}..{}",
-                film.tile, t.s0, t.s1
+                "result is for tile {:?} samples {:?}, the task is tile {tile:?} samples {}..{}",
+                index.tile, index.samples, t.s0, t.s1
             )));
         }
-        drop(body);
-        // Stored laid out by band, so that the merge of a pass reads each band's part alone.
-        let banded = wire::encode_banded(film, range, &r.grid());
+        let banded = body;
         let path = a.paths.result_log(&t.job_id, t.pass);
         let _log = a.result_log.lock().unwrap_or_else(|e| e.into_inner());
         let stored = store::append(&path, &banded).map_err(ApiError::internal)?;
