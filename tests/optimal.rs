@@ -671,3 +671,100 @@ fn damaged_results_are_refused(
     let moved = index.clone().at(1000);
     assert_eq!(moved.own, index.own.start + 1000..index.own.end + 1000);
 }
+
+/// A merge task as a worker runs it (`film::merge::run`): fed the pass's banded results and the
+/// previous pass's checkpoints, pass after pass and group by group, its outputs have the bits of
+/// the in-process merge (images and checkpoints that the next pass continues from); an input cut
+/// anywhere is refused with an error, never a panic or a partial output.
+#[test]
+fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input() {
+    use omis::film::merge::{self, MergeHead, MergeOutput};
+    use omis::film::wire::{self, BandedIndex};
+    use omis::film::{TileGrid, band_groups};
+    let (w, h) = (24, 20);
+    let scene = load("cornell-box-small-light.json", w, h);
+    let mut s = optimal(4, 5, 2);
+    s.mis = MisKind::OptimalProgressive;
+    let layout = s.film_layout();
+    let grid = TileGrid::new(w, h, 8);
+    let tiles = grid.tiles();
+    let groups = band_groups(&grid, &layout, 1);
+    let mut film = Film::new(w, h, &layout);
+    // Per tile: its latest checkpoint (None before the first pass).
+    let mut checkpoints: Vec<Option<Vec<u8>>> = vec![None; tiles.len()];
+    for (p, range) in [0..2u32, 2..4].into_iter().enumerate() {
+        let stored: Vec<Vec<u8>> = tiles
+            .iter()
+            .map(|t| {
+                let r = integrator::render_tile(&scene, &s, *t, range.clone());
+                film.merge_task(&r);
+                wire::encode_banded(r, range.clone(), &grid)
+            })
+            .collect();
+        film.end_pass();
+        let want = film.image();
+        let last = p == 1;
+        for bands in &groups {
+            let b = bands.start as u32..bands.end as u32;
+            let group_tiles = grid.tiles_of_bands(bands.clone());
+            let mut input = MergeHead {
+                bands: b.clone(),
+                pass: p as u32,
+                light_paths: (w * h * range.end) as u64,
+                all_layers: last,
+                results: stored.len() as u32,
+            }
+            .encode();
+            for t in group_tiles.clone() {
+                let ck = checkpoints[t].as_ref();
+                input.extend(merge::tile_entry(ck.map(|c| c.len() as u64)));
+                input.extend(ck.into_iter().flatten());
+            }
+            for (u, bytes) in stored.iter().enumerate() {
+                let index = BandedIndex::read(&mut &bytes[..], bytes.len() as u64).expect("index");
+                let own = if group_tiles.contains(&u) {
+                    &bytes[index.own.start as usize..index.own.end as usize]
+                } else {
+                    &[][..]
+                };
+                let inside: Vec<_> = index
+                    .sections
+                    .iter()
+                    .filter(|(band, _)| bands.contains(&(*band as usize)))
+                    .collect();
+                let heads: Vec<(u32, u64)> =
+                    inside.iter().map(|(b, r)| (*b, r.end - r.start)).collect();
+                input.extend(merge::result_entry(u as u32, own.len() as u64, &heads));
+                input.extend_from_slice(own);
+                for (_, r) in inside {
+                    input.extend_from_slice(&bytes[r.start as usize..r.end as usize]);
+                }
+            }
+            let out = merge::run(&input[..], &grid, &layout).expect("merge");
+            let layers = 1 + if last {
+                layout.extra_layer_names().len()
+            } else {
+                0
+            };
+            let got = MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32 + 1, layers)
+                .expect("the output checks");
+            for (k, t) in group_tiles.clone().enumerate() {
+                checkpoints[t] = Some(got.checkpoints[k].clone());
+                let (tile, img) = &got.layers[0][k];
+                for y in 0..tile.height() {
+                    for x in 0..tile.width() {
+                        let px = want.get(tile.x0 as usize + x, tile.y0 as usize + y);
+                        assert_eq!(img.get(x, y), px, "pass {p} tile {t} pixel ({x}, {y})");
+                    }
+                }
+            }
+            // Another task's bands or passes: refused.
+            let other = b.start + 1..b.end + 1;
+            assert!(MergeOutput::decode(&out, &grid, &layout, other, p as u32 + 1, layers).is_err());
+            assert!(MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32, layers).is_err());
+            for cut in (0..input.len()).step_by(input.len() / 40 + 1) {
+                assert!(merge::run(&input[..cut], &grid, &layout).is_err(), "cut at {cut}");
+            }
+        }
+    }
+}

@@ -13,9 +13,10 @@
 //!   light paths after the pass u64, all layers u8, results n u32
 //!   per tile of the bands, in tile order: present u8 (0: no checkpoint yet, pass 0),
 //!     [length u64, the tile checkpoint (wire::TileCheckpoint) holding `pass` passes]
-//!   per result, in task order: tile u32, own length u64, sections m u32, the own part (the
-//!     result without its splats and records; empty unless its tile is in the group),
-//!     m x (band u32, length u64, the section: wire::decode_section)
+//!   per result, in task order: tile u32, own length u64, sections m u32, m x (band u32,
+//!     length u64), then the own part (the result without its splats and records; empty
+//!     unless its tile is in the group), then the m sections (wire::decode_section) back to
+//!     back (as the result log keeps them: the coordinator copies both straight from it)
 //! output (worker -> coordinator):
 //!   magic "OMISMRGO", version u32, bands b0 b1 u32, passes u32 (pass + 1), layers l u32
 //!   per tile: length u64, its checkpoint holding pass + 1 passes
@@ -79,20 +80,16 @@ pub fn tile_entry(checkpoint_len: Option<u64>) -> Vec<u8> {
 }
 
 /// The bytes before a result's own part in the input: its tile, the own part's length (0 when
-/// its tile is not in the group) and how many sections follow it.
-pub fn result_entry(tile: u32, own_len: u64, sections: u32) -> Vec<u8> {
-    let mut out = Vec::with_capacity(16);
+/// its tile is not in the group) and the band and length of each section that follows it.
+pub fn result_entry(tile: u32, own_len: u64, sections: &[(u32, u64)]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(16 + 12 * sections.len());
     out.extend_from_slice(&tile.to_le_bytes());
     out.extend_from_slice(&own_len.to_le_bytes());
-    out.extend_from_slice(&sections.to_le_bytes());
-    out
-}
-
-/// The bytes before a section in the input.
-pub fn section_entry(band: u32, len: u64) -> Vec<u8> {
-    let mut out = Vec::with_capacity(12);
-    out.extend_from_slice(&band.to_le_bytes());
-    out.extend_from_slice(&len.to_le_bytes());
+    out.extend_from_slice(&(sections.len() as u32).to_le_bytes());
+    for (band, len) in sections {
+        out.extend_from_slice(&band.to_le_bytes());
+        out.extend_from_slice(&len.to_le_bytes());
+    }
     out
 }
 
@@ -237,6 +234,16 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
                 bands.len()
             )));
         }
+        let mut heads: Vec<(usize, u64)> = Vec::with_capacity(m);
+        for _ in 0..m {
+            let b = r.u32("section band")? as usize;
+            if !bands.contains(&b) || heads.last().is_some_and(|(l, _)| *l >= b) {
+                return Err(WireError(format!(
+                    "merge input: section of band {b} (bands {bands:?})"
+                )));
+            }
+            heads.push((b, r.u64("section length")?));
+        }
         let own = if own_len > 0 {
             if !group.holds(t) {
                 return Err(WireError(format!(
@@ -256,14 +263,7 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
             None
         };
         let mut sections = Vec::with_capacity(m);
-        for _ in 0..m {
-            let b = r.u32("section band")? as usize;
-            if !bands.contains(&b) || sections.last().is_some_and(|(l, _)| *l >= b) {
-                return Err(WireError(format!(
-                    "merge input: section of band {b} (bands {bands:?})"
-                )));
-            }
-            let len = r.u64("section length")?;
+        for (b, len) in heads {
             let bytes = r.part(len, "section")?;
             sections.push((b, decode_section(&bytes, b, grid, layout)?));
         }

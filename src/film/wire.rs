@@ -196,11 +196,6 @@ impl Reader<'_> {
             self.take(8)?.try_into().expect("8 bytes"),
         ))
     }
-    fn f32(&mut self) -> Result<f32, WireError> {
-        Ok(f32::from_le_bytes(
-            self.take(4)?.try_into().expect("4 bytes"),
-        ))
-    }
     fn f64(&mut self) -> Result<f64, WireError> {
         Ok(f64::from_le_bytes(
             self.take(8)?.try_into().expect("8 bytes"),
@@ -248,8 +243,22 @@ impl Reader<'_> {
         pixels: std::ops::Range<u64>,
         keys: SplatKeys,
     ) -> Result<Vec<Splat>, WireError> {
+        let mut splats = Vec::new();
+        self.splat_list(pixels, keys, Some(&mut splats))?;
+        Ok(splats)
+    }
+    /// Reads a counted splat list into `out`, or only checks it when `out` is None (its values
+    /// are then skipped, not parsed).
+    fn splat_list(
+        &mut self,
+        pixels: std::ops::Range<u64>,
+        keys: SplatKeys,
+        mut out: Option<&mut Vec<Splat>>,
+    ) -> Result<(), WireError> {
         let n = self.count(13, "splats")?;
-        let mut splats = Vec::with_capacity(n);
+        if let Some(o) = out.as_deref_mut() {
+            o.reserve(n);
+        }
         let mut prev = 0;
         for _ in 0..n {
             let pixel = self.step(prev)?;
@@ -261,15 +270,18 @@ impl Reader<'_> {
             }
             let layer = if keys.layer { self.u8()? } else { u8::MAX };
             let depth = if keys.depth { self.u8()? } else { u8::MAX };
-            let value = [self.f32()?, self.f32()?, self.f32()?];
-            splats.push(Splat {
-                pixel,
-                layer,
-                depth,
-                value,
-            });
+            let v = self.take(12)?;
+            if let Some(o) = out.as_deref_mut() {
+                let f = |k: usize| f32::from_le_bytes(v[k..k + 4].try_into().expect("4 bytes"));
+                o.push(Splat {
+                    pixel,
+                    layer,
+                    depth,
+                    value: [f(0), f(4), f(8)],
+                });
+            }
         }
-        Ok(splats)
+        Ok(())
     }
     /// Optimal-MIS records whose pixels must lie in `pixels` and depths in 1..=d_opt, each with
     /// as many values as its depth asks.
@@ -278,8 +290,18 @@ impl Reader<'_> {
         pixels: std::ops::Range<u64>,
         d_opt: Option<u32>,
     ) -> Result<LtRecords, WireError> {
-        let n = self.count(2, "records")?;
         let mut records = LtRecords::default();
+        self.record_list(pixels, d_opt, Some(&mut records))?;
+        Ok(records)
+    }
+    /// Reads records into `out`, or only checks them when `out` is None (values skipped).
+    fn record_list(
+        &mut self,
+        pixels: std::ops::Range<u64>,
+        d_opt: Option<u32>,
+        mut out: Option<&mut LtRecords>,
+    ) -> Result<(), WireError> {
+        let n = self.count(2, "records")?;
         let mut prev = 0;
         for _ in 0..n {
             let p = self.step(prev)?;
@@ -289,28 +311,35 @@ impl Reader<'_> {
                     "record pixel {p} outside pixels {pixels:?}"
                 )));
             }
-            records.pixels.push(p);
+            if let Some(o) = out.as_deref_mut() {
+                o.pixels.push(p);
+            }
         }
         let mut need = 0usize;
-        for _ in 0..n {
-            let dd = self.u8()?;
+        for &dd in self.take(n)? {
             if dd == 0 || Some(dd as u32) > d_opt {
                 return Err(WireError(format!(
                     "record depth {dd} outside 1..={d_opt:?}"
                 )));
             }
             need += dd as usize + 2 + 3;
-            records.depths.push(dd);
+        }
+        if let Some(o) = out.as_deref_mut() {
+            o.depths.extend_from_slice(&self.b[self.at - n..self.at]);
         }
         let m = self.count(4, "record values")?;
         if m != need {
             return Err(WireError(format!("{m} record values, expected {need}")));
         }
-        records.values.reserve(m);
-        for _ in 0..m {
-            records.values.push(self.f32()?);
+        let values = self.take(4 * m)?;
+        if let Some(o) = out {
+            o.values.extend(
+                values
+                    .chunks_exact(4)
+                    .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes"))),
+            );
         }
-        Ok(records)
+        Ok(())
     }
     fn stats(&mut self) -> Result<RayStats, WireError> {
         Ok(RayStats {
@@ -882,7 +911,7 @@ pub fn check_banded(
             )));
         }
         index.check_section(k, part(r))?;
-        decode_section(part(r), *b as usize, grid, layout)?;
+        check_section(part(r), *b as usize, grid, layout)?;
     }
     Ok(index)
 }
@@ -920,6 +949,17 @@ pub fn relabel_banded(
     Ok(b)
 }
 
+/// Checks the section of `band` of a banded result as `decode_section` would parse it, without
+/// keeping anything (its values are skipped).
+pub fn check_section(
+    bytes: &[u8],
+    band: usize,
+    grid: &super::TileGrid,
+    layout: &FilmLayout,
+) -> Result<(), WireError> {
+    section(bytes, band, grid, layout, None)
+}
+
 /// Parses the section of `band` (its bytes) of a banded result for `grid`, whose films have
 /// `layout`: everything must land in the band.
 pub fn decode_section(
@@ -928,15 +968,29 @@ pub fn decode_section(
     grid: &super::TileGrid,
     layout: &FilmLayout,
 ) -> Result<super::Routed, WireError> {
+    let mut routed = super::Routed::default();
+    section(bytes, band, grid, layout, Some(&mut routed))?;
+    Ok(routed)
+}
+
+/// Reads a section into `out`, or only checks it when `out` is None.
+fn section(
+    bytes: &[u8],
+    band: usize,
+    grid: &super::TileGrid,
+    layout: &FilmLayout,
+    mut out: Option<&mut super::Routed>,
+) -> Result<(), WireError> {
     let mut r = Reader { b: bytes, at: 0 };
     let pixels = grid.band_pixels(band);
-    let splats = r.splats(pixels.clone(), SplatKeys::of_layout(layout))?;
-    let records = r.records(pixels, layout.d_opt())?;
+    let keys = SplatKeys::of_layout(layout);
+    r.splat_list(pixels.clone(), keys, out.as_deref_mut().map(|o| &mut o.splats))?;
+    r.record_list(pixels, layout.d_opt(), out.map(|o| &mut o.records))?;
     if r.at != bytes.len() {
         return Err(WireError(format!(
             "section of band {band}: {} trailing bytes",
             bytes.len() - r.at
         )));
     }
-    Ok(super::Routed { splats, records })
+    Ok(())
 }

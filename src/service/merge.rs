@@ -95,13 +95,18 @@ impl PassImages {
     }
 }
 
-/// Reads byte range `range` of an open file.
-fn read_range(f: &mut std::fs::File, range: &std::ops::Range<u64>) -> std::io::Result<Vec<u8>> {
+/// Appends byte range `range` of an open file to `buf`; returns where it begins in `buf`.
+fn read_into(
+    f: &mut std::fs::File,
+    range: &std::ops::Range<u64>,
+    buf: &mut Vec<u8>,
+) -> std::io::Result<usize> {
     use std::io::{Read, Seek, SeekFrom};
     f.seek(SeekFrom::Start(range.start))?;
-    let mut buf = vec![0u8; (range.end - range.start) as usize];
-    f.read_exact(&mut buf)?;
-    Ok(buf)
+    let at = buf.len();
+    buf.resize(at + (range.end - range.start) as usize, 0);
+    f.read_exact(&mut buf[at..])?;
+    Ok(at)
 }
 
 /// The index of the result stored at `stored` of an open result log (of `log_len` bytes).
@@ -403,35 +408,41 @@ pub(crate) fn stream_input(
     for p in inputs.results.iter().filter(|p| touches(p)) {
         let bad = |e: String| MergeError::Result(p.task, e);
         let own = if tiles.contains(&p.tile) {
-            let bytes = read_range(&mut f, &p.index.own).map_err(|e| bad(e.to_string()))?;
-            p.index.check_own(&bytes).map_err(|e| bad(e.to_string()))?;
-            bytes
+            p.index.own.clone()
         } else {
-            Vec::new()
+            0..0
         };
-        let mut sections = Vec::new();
-        if let Some(span) = p.index.span(bands.clone()) {
-            let bytes = read_range(&mut f, &span).map_err(|e| bad(e.to_string()))?;
-            for (k, (b, range)) in p.index.sections.iter().enumerate() {
-                if bands.contains(&(*b as usize)) {
-                    let part = &bytes
-                        [(range.start - span.start) as usize..(range.end - span.start) as usize];
-                    p.index
-                        .check_section(k, part)
-                        .map_err(|e| bad(e.to_string()))?;
-                    sections.push((*b, part.to_vec()));
-                }
-            }
-        }
+        let sections: Vec<(usize, &(u32, std::ops::Range<u64>))> = p
+            .index
+            .sections
+            .iter()
+            .enumerate()
+            .filter(|(_, (b, _))| bands.contains(&(*b as usize)))
+            .collect();
+        let heads: Vec<(u32, u64)> = sections
+            .iter()
+            .map(|(_, (b, r))| (*b, r.end - r.start))
+            .collect();
         buf.extend(film_merge::result_entry(
             p.tile as u32,
-            own.len() as u64,
-            sections.len() as u32,
+            own.end - own.start,
+            &heads,
         ));
-        buf.extend(own);
-        for (b, part) in sections {
-            buf.extend(film_merge::section_entry(b, part.len() as u64));
-            buf.extend(part);
+        // Straight from the log into the stream, each part checked where it landed.
+        if !own.is_empty() {
+            let at = read_into(&mut f, &own, &mut buf).map_err(|e| bad(e.to_string()))?;
+            p.index
+                .check_own(&buf[at..])
+                .map_err(|e| bad(e.to_string()))?;
+        }
+        if let Some(span) = p.index.span(bands.clone()) {
+            let at = read_into(&mut f, &span, &mut buf).map_err(|e| bad(e.to_string()))?;
+            for (k, (_, r)) in &sections {
+                let part = &buf[at + (r.start - span.start) as usize..at + (r.end - span.start) as usize];
+                p.index
+                    .check_section(*k, part)
+                    .map_err(|e| bad(e.to_string()))?;
+            }
         }
         if !flush(&mut buf, send, CHUNK) {
             return Ok(());

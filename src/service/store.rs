@@ -334,6 +334,21 @@ fn task_row(r: &rusqlite::Row) -> rusqlite::Result<TaskRow> {
     })
 }
 
+/// One row of `sql` (a statement prepared once per connection and cached).
+fn cached_row<T>(
+    conn: &Connection,
+    sql: &str,
+    p: impl rusqlite::Params,
+    f: impl FnOnce(&rusqlite::Row<'_>) -> rusqlite::Result<T>,
+) -> rusqlite::Result<T> {
+    conn.prepare_cached(sql)?.query_row(p, f)
+}
+
+/// Runs `sql` (a statement prepared once per connection and cached); rows changed.
+fn cached_exec(conn: &Connection, sql: &str, p: impl rusqlite::Params) -> rusqlite::Result<usize> {
+    conn.prepare_cached(sql)?.execute(p)
+}
+
 /// A store's error, whatever the engine.
 #[derive(Debug, thiserror::Error)]
 #[error("{0}")]
@@ -495,6 +510,8 @@ impl SqliteStore {
     pub fn open(path: &Path) -> rusqlite::Result<SqliteStore> {
         let conn = Connection::open(path)?;
         conn.busy_timeout(std::time::Duration::from_secs(10))?;
+        // Every query of the store is a cached statement (parsed once, not per result).
+        conn.set_prepared_statement_cache_capacity(64);
         conn.execute_batch(SCHEMA)?;
         let has = |sql: &str| conn.prepare(sql).is_ok();
         let old = has("SELECT id FROM tasks LIMIT 0") && !has("SELECT kind FROM tasks LIMIT 0");
@@ -527,7 +544,7 @@ impl JobStore for SqliteStore {
                 .query_row("SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs", [], |r| {
                     r.get(0)
                 })?;
-        self.conn.execute(
+        cached_exec(&self.conn, 
             "INSERT INTO jobs (id, seq, name, state, settings, resolved, scene_id, scene_main, \
              reference, created_at, accum_bytes) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
             params![
@@ -547,8 +564,7 @@ impl JobStore for SqliteStore {
         Ok(())
     }
     fn job(&self, id: &str) -> StoreResult<Option<JobRow>> {
-        self.conn
-            .query_row(
+        cached_row(&self.conn, 
                 &format!("SELECT {JOB_COLS} FROM jobs WHERE id = ?1"),
                 [id],
                 job_row,
@@ -565,7 +581,7 @@ impl JobStore for SqliteStore {
             .map_err(StoreError::from)
     }
     fn active_jobs(&self) -> StoreResult<Vec<JobRow>> {
-        let mut st = self.conn.prepare(&format!(
+        let mut st = self.conn.prepare_cached(&format!(
             "SELECT {JOB_COLS} FROM jobs WHERE state IN (?1, ?2) ORDER BY seq"
         ))?;
         st.query_map(params![J_QUEUED, J_RUNNING], job_row)?
@@ -574,7 +590,7 @@ impl JobStore for SqliteStore {
     }
     fn set_job_state(&self, id: &str, state: JobState, error: Option<&str>) -> StoreResult<bool> {
         let finished = (!state.is_active()).then(now);
-        let n = self.conn.execute(
+        let n = cached_exec(&self.conn, 
             "UPDATE jobs SET state = ?2, error = COALESCE(?3, error), \
              finished_at = COALESCE(?4, finished_at) WHERE id = ?1 \
              AND state IN (?5, ?6)",
@@ -609,7 +625,7 @@ impl JobStore for SqliteStore {
         spp_done: u32,
         stats: &crate::film::RayStats,
     ) -> StoreResult<()> {
-        self.conn.execute(
+        cached_exec(&self.conn, 
             "UPDATE jobs SET passes_done = ?2, spp_done = ?3, samples = samples + ?4, \
              rays = rays + ?5, non_finite = non_finite + ?6 \
              WHERE id = ?1 AND passes_done = ?2 - 1",
@@ -622,21 +638,21 @@ impl JobStore for SqliteStore {
                 stats.non_finite as i64
             ],
         )?;
-        self.conn.execute(
+        cached_exec(&self.conn, 
             "DELETE FROM tasks WHERE job_id = ?1 AND pass < ?2",
             params![id, passes_done],
         )?;
         Ok(())
     }
     fn add_series(&self, id: &str, p: &SeriesPoint) -> StoreResult<()> {
-        self.conn.execute(
+        cached_exec(&self.conn, 
             "INSERT OR REPLACE INTO series (job_id, pass, spp, seconds, relmse) VALUES (?1, ?2, ?3, ?4, ?5)",
             params![id, p.pass, p.spp, p.seconds, p.relmse],
         )?;
         Ok(())
     }
     fn series(&self, id: &str) -> StoreResult<Vec<SeriesPoint>> {
-        let mut st = self.conn.prepare(
+        let mut st = self.conn.prepare_cached(
             "SELECT pass, spp, seconds, relmse FROM series WHERE job_id = ?1 ORDER BY pass",
         )?;
         st.query_map([id], |r| {
@@ -704,14 +720,14 @@ impl JobStore for SqliteStore {
             .map_err(StoreError::from)
     }
     fn delete_merge_tasks(&self, id: &str, pass: u32) -> StoreResult<()> {
-        self.conn.execute(
+        cached_exec(&self.conn, 
             "DELETE FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3",
             params![id, pass, K_MERGE],
         )?;
         Ok(())
     }
     fn complete_merge(&self, task_id: i64, attempt: u32, worker: &str) -> StoreResult<bool> {
-        let n = self.conn.execute(
+        let n = cached_exec(&self.conn, 
             "UPDATE tasks SET state = ?4, lease_expires = NULL \
              WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 AND state = ?5 AND kind = ?6",
             params![task_id, attempt, worker, T_DONE, T_LEASED, K_MERGE],
@@ -719,8 +735,7 @@ impl JobStore for SqliteStore {
         Ok(n == 1)
     }
     fn last_tile(&self, id: &str, pass: u32) -> StoreResult<Option<u32>> {
-        self.conn
-            .query_row(
+        cached_row(&self.conn, 
                 "SELECT MAX(tile) FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3",
                 params![id, pass, K_RENDER],
                 |r| r.get(0),
@@ -728,15 +743,13 @@ impl JobStore for SqliteStore {
             .map_err(StoreError::from)
     }
     fn last_pass(&self, id: &str) -> StoreResult<Option<u32>> {
-        self.conn
-            .query_row("SELECT MAX(pass) FROM tasks WHERE job_id = ?1", [id], |r| {
+        cached_row(&self.conn, "SELECT MAX(pass) FROM tasks WHERE job_id = ?1", [id], |r| {
                 r.get(0)
             })
             .map_err(StoreError::from)
     }
     fn pass_open(&self, id: &str, pass: u32) -> StoreResult<bool> {
-        self.conn
-            .query_row(
+        cached_row(&self.conn, 
                 "SELECT EXISTS (SELECT 1 FROM tasks WHERE state IN (?3, ?4) AND job_id = ?1 \
              AND kind = ?5 AND pass = ?2)",
                 params![id, pass, T_QUEUED, T_LEASED, K_RENDER],
@@ -745,8 +758,7 @@ impl JobStore for SqliteStore {
             .map_err(StoreError::from)
     }
     fn tasks_done(&self, id: &str) -> StoreResult<u32> {
-        self.conn
-            .query_row(
+        cached_row(&self.conn, 
                 "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = ?2 AND kind = ?3",
                 params![id, T_DONE, K_RENDER],
                 |r| r.get(0),
@@ -754,7 +766,7 @@ impl JobStore for SqliteStore {
             .map_err(StoreError::from)
     }
     fn pass_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>> {
-        let mut st = self.conn.prepare(&format!(
+        let mut st = self.conn.prepare_cached(&format!(
             "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND kind = ?3 AND pass = ?2 \
              ORDER BY tile"
         ))?;
@@ -763,8 +775,7 @@ impl JobStore for SqliteStore {
             .map_err(StoreError::from)
     }
     fn task(&self, task_id: i64) -> StoreResult<Option<TaskRow>> {
-        self.conn
-            .query_row(
+        cached_row(&self.conn, 
                 &format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?1"),
                 [task_id],
                 task_row,
@@ -773,7 +784,7 @@ impl JobStore for SqliteStore {
             .map_err(StoreError::from)
     }
     fn requeue(&self, task_id: i64) -> StoreResult<()> {
-        self.conn.execute(
+        cached_exec(&self.conn, 
             "UPDATE tasks SET state = ?2, worker_id = NULL WHERE id = ?1",
             params![task_id, T_QUEUED],
         )?;
@@ -807,17 +818,17 @@ impl JobStore for SqliteStore {
             return Ok(None);
         };
         let t = now();
-        tx.execute(
+        cached_exec(&tx, 
             "UPDATE tasks SET state = ?4, attempt = attempt + 1, worker_id = ?2, \
              lease_expires = ?3 WHERE id = ?1",
             params![id, worker, t + lease_s, T_LEASED],
         )?;
-        tx.execute(
+        cached_exec(&tx, 
             "UPDATE jobs SET state = ?3, started_at = COALESCE(started_at, ?2) \
              WHERE id = (SELECT job_id FROM tasks WHERE id = ?1) AND state = ?4",
             params![id, t, J_RUNNING, J_QUEUED],
         )?;
-        let row = tx.query_row(
+        let row = cached_row(&tx, 
             &format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?1"),
             [id],
             task_row,
@@ -826,7 +837,7 @@ impl JobStore for SqliteStore {
         Ok(Some(row))
     }
     fn extend(&self, task_id: i64, attempt: u32, worker: &str, lease_s: f64) -> StoreResult<bool> {
-        let n = self.conn.execute(
+        let n = cached_exec(&self.conn, 
             "UPDATE tasks SET lease_expires = ?4 WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 \
              AND state = ?5 AND job_id IN (SELECT id FROM jobs WHERE state = ?6)",
             params![
@@ -849,7 +860,7 @@ impl JobStore for SqliteStore {
         stored: std::ops::Range<u64>,
     ) -> StoreResult<bool> {
         let tx = self.conn.unchecked_transaction()?;
-        let n = tx.execute(
+        let n = cached_exec(&tx, 
             "UPDATE tasks SET state = ?4, lease_expires = NULL, result_at = ?6, result_len = ?7 \
              WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 AND state = ?5",
             params![
@@ -863,11 +874,11 @@ impl JobStore for SqliteStore {
             ],
         )?;
         if n == 1 {
-            tx.execute(
+            cached_exec(&tx, 
                 "UPDATE jobs SET result_bytes = result_bytes + ?2 WHERE id = (SELECT job_id FROM tasks WHERE id = ?1)",
                 params![task_id, bytes as i64],
             )?;
-            tx.execute(
+            cached_exec(&tx, 
                 "UPDATE workers SET tasks_done = tasks_done + 1 WHERE id = ?1",
                 [worker],
             )?;
@@ -882,7 +893,7 @@ impl JobStore for SqliteStore {
         worker: &str,
         error: &str,
     ) -> StoreResult<Option<u32>> {
-        let n = self.conn.execute(
+        let n = cached_exec(&self.conn, 
             "UPDATE tasks SET state = ?5, worker_id = NULL, lease_expires = NULL, \
              failures = failures + 1, last_error = ?4 WHERE id = ?1 AND attempt = ?2 \
              AND worker_id = ?3 AND state = ?6",
@@ -891,8 +902,7 @@ impl JobStore for SqliteStore {
         if n == 0 {
             return Ok(None);
         }
-        self.conn
-            .query_row("SELECT failures FROM tasks WHERE id = ?1", [task_id], |r| {
+        cached_row(&self.conn, "SELECT failures FROM tasks WHERE id = ?1", [task_id], |r| {
                 r.get(0)
             })
             .map(Some)
@@ -915,7 +925,7 @@ impl JobStore for SqliteStore {
         version: &str,
     ) -> StoreResult<()> {
         let t = now();
-        self.conn.execute(
+        cached_exec(&self.conn, 
             "INSERT INTO workers (id, name, threads, version, registered_at, last_seen, state) \
              VALUES (?1, ?2, ?3, ?4, ?5, ?5, ?6) ON CONFLICT (id) DO UPDATE SET \
              name = ?2, threads = ?3, version = ?4, last_seen = ?5, state = ?6",
@@ -924,7 +934,7 @@ impl JobStore for SqliteStore {
         Ok(())
     }
     fn touch_worker(&self, id: &str, state: Option<WorkerState>) -> StoreResult<bool> {
-        let n = self.conn.execute(
+        let n = cached_exec(&self.conn, 
             "UPDATE workers SET last_seen = ?2, state = COALESCE(?3, \
              CASE state WHEN ?4 THEN ?5 ELSE state END) WHERE id = ?1",
             params![id, now(), state, WorkerState::Gone, WorkerState::Idle],
@@ -941,7 +951,7 @@ impl JobStore for SqliteStore {
     }
     fn workers(&self) -> StoreResult<Vec<WorkerInfo>> {
         let mut held: HashMap<String, Vec<WorkerTask>> = HashMap::new();
-        let mut st = self.conn.prepare(
+        let mut st = self.conn.prepare_cached(
             "SELECT worker_id, id, job_id, pass, tile, attempt FROM tasks \
              WHERE state = ?1 AND worker_id IS NOT NULL ORDER BY id",
         )?;
@@ -961,7 +971,7 @@ impl JobStore for SqliteStore {
             let (worker, task) = row?;
             held.entry(worker).or_default().push(task);
         }
-        let mut st = self.conn.prepare(
+        let mut st = self.conn.prepare_cached(
             "SELECT id, name, threads, version, registered_at, last_seen, state, tasks_done \
              FROM workers ORDER BY registered_at",
         )?;
@@ -989,7 +999,7 @@ impl JobStore for SqliteStore {
         data: &serde_json::Value,
     ) -> StoreResult<EventRow> {
         let at = now();
-        self.conn.execute(
+        cached_exec(&self.conn, 
             "INSERT INTO events (job_id, kind, data, at) VALUES (?1, ?2, ?3, ?4)",
             params![job, kind, data.to_string(), at],
         )?;
@@ -1002,7 +1012,7 @@ impl JobStore for SqliteStore {
         })
     }
     fn events_after(&self, job: &str, after: i64) -> StoreResult<Vec<EventRow>> {
-        let mut st = self.conn.prepare(
+        let mut st = self.conn.prepare_cached(
             "SELECT id, job_id, kind, data, at FROM events WHERE job_id = ?1 AND id > ?2 ORDER BY id",
         )?;
         st.query_map(params![job, after], |r| {
@@ -1023,7 +1033,7 @@ impl JobStore for SqliteStore {
             "jobs" | "tasks" | "workers" => table,
             _ => return Ok(Vec::new()),
         };
-        let mut st = self.conn.prepare(&format!(
+        let mut st = self.conn.prepare_cached(&format!(
             "SELECT state, COUNT(*) FROM {table} GROUP BY state"
         ))?;
         st.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
