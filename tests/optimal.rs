@@ -760,10 +760,17 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
             }
             // Another task's bands or passes: refused.
             let other = b.start + 1..b.end + 1;
-            assert!(MergeOutput::decode(&out, &grid, &layout, other, p as u32 + 1, layers).is_err());
-            assert!(MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32, layers).is_err());
+            assert!(
+                MergeOutput::decode(&out, &grid, &layout, other, p as u32 + 1, layers).is_err()
+            );
+            assert!(
+                MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32, layers).is_err()
+            );
             for cut in (0..input.len()).step_by(input.len() / 40 + 1) {
-                assert!(merge::run(&input[..cut], &grid, &layout).is_err(), "cut at {cut}");
+                assert!(
+                    merge::run(&input[..cut], &grid, &layout).is_err(),
+                    "cut at {cut}"
+                );
             }
         }
     }

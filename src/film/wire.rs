@@ -984,7 +984,11 @@ fn section(
     let mut r = Reader { b: bytes, at: 0 };
     let pixels = grid.band_pixels(band);
     let keys = SplatKeys::of_layout(layout);
-    r.splat_list(pixels.clone(), keys, out.as_deref_mut().map(|o| &mut o.splats))?;
+    r.splat_list(
+        pixels.clone(),
+        keys,
+        out.as_deref_mut().map(|o| &mut o.splats),
+    )?;
     r.record_list(pixels, layout.d_opt(), out.map(|o| &mut o.records))?;
     if r.at != bytes.len() {
         return Err(WireError(format!(

@@ -34,6 +34,17 @@ pub(crate) fn resolved_of(job: &JobRow) -> Result<Resolved, String> {
     serde_json::from_str(&job.resolved).map_err(|e| format!("job {}: bad settings: {e}", job.id))
 }
 
+/// The resolved settings of job `job`, from its runtime (parsed once per job, not per request).
+pub(crate) fn resolved(app: &App, job: &JobRow) -> Result<Resolved, String> {
+    let rt = runtime(app, job)?;
+    let r = rt
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .resolved
+        .clone();
+    Ok(r)
+}
+
 /// The runtime of an active job, created on first use.
 pub(crate) fn runtime(app: &App, job: &JobRow) -> Result<Arc<Mutex<Runtime>>, String> {
     let mut map = app.runtimes.lock().unwrap_or_else(|e| e.into_inner());

@@ -438,7 +438,8 @@ pub(crate) fn stream_input(
         if let Some(span) = p.index.span(bands.clone()) {
             let at = read_into(&mut f, &span, &mut buf).map_err(|e| bad(e.to_string()))?;
             for (k, (_, r)) in &sections {
-                let part = &buf[at + (r.start - span.start) as usize..at + (r.end - span.start) as usize];
+                let part =
+                    &buf[at + (r.start - span.start) as usize..at + (r.end - span.start) as usize];
                 p.index
                     .check_section(*k, part)
                     .map_err(|e| bad(e.to_string()))?;

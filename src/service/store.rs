@@ -544,7 +544,8 @@ impl JobStore for SqliteStore {
                 .query_row("SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs", [], |r| {
                     r.get(0)
                 })?;
-        cached_exec(&self.conn, 
+        cached_exec(
+            &self.conn,
             "INSERT INTO jobs (id, seq, name, state, settings, resolved, scene_id, scene_main, \
              reference, created_at, accum_bytes) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
             params![
@@ -564,13 +565,14 @@ impl JobStore for SqliteStore {
         Ok(())
     }
     fn job(&self, id: &str) -> StoreResult<Option<JobRow>> {
-        cached_row(&self.conn, 
-                &format!("SELECT {JOB_COLS} FROM jobs WHERE id = ?1"),
-                [id],
-                job_row,
-            )
-            .optional()
-            .map_err(StoreError::from)
+        cached_row(
+            &self.conn,
+            &format!("SELECT {JOB_COLS} FROM jobs WHERE id = ?1"),
+            [id],
+            job_row,
+        )
+        .optional()
+        .map_err(StoreError::from)
     }
     fn jobs(&self) -> StoreResult<Vec<JobRow>> {
         let mut st = self
@@ -590,7 +592,8 @@ impl JobStore for SqliteStore {
     }
     fn set_job_state(&self, id: &str, state: JobState, error: Option<&str>) -> StoreResult<bool> {
         let finished = (!state.is_active()).then(now);
-        let n = cached_exec(&self.conn, 
+        let n = cached_exec(
+            &self.conn,
             "UPDATE jobs SET state = ?2, error = COALESCE(?3, error), \
              finished_at = COALESCE(?4, finished_at) WHERE id = ?1 \
              AND state IN (?5, ?6)",
@@ -625,7 +628,8 @@ impl JobStore for SqliteStore {
         spp_done: u32,
         stats: &crate::film::RayStats,
     ) -> StoreResult<()> {
-        cached_exec(&self.conn, 
+        cached_exec(
+            &self.conn,
             "UPDATE jobs SET passes_done = ?2, spp_done = ?3, samples = samples + ?4, \
              rays = rays + ?5, non_finite = non_finite + ?6 \
              WHERE id = ?1 AND passes_done = ?2 - 1",
@@ -638,14 +642,16 @@ impl JobStore for SqliteStore {
                 stats.non_finite as i64
             ],
         )?;
-        cached_exec(&self.conn, 
+        cached_exec(
+            &self.conn,
             "DELETE FROM tasks WHERE job_id = ?1 AND pass < ?2",
             params![id, passes_done],
         )?;
         Ok(())
     }
     fn add_series(&self, id: &str, p: &SeriesPoint) -> StoreResult<()> {
-        cached_exec(&self.conn, 
+        cached_exec(
+            &self.conn,
             "INSERT OR REPLACE INTO series (job_id, pass, spp, seconds, relmse) VALUES (?1, ?2, ?3, ?4, ?5)",
             params![id, p.pass, p.spp, p.seconds, p.relmse],
         )?;
@@ -720,14 +726,16 @@ impl JobStore for SqliteStore {
             .map_err(StoreError::from)
     }
     fn delete_merge_tasks(&self, id: &str, pass: u32) -> StoreResult<()> {
-        cached_exec(&self.conn, 
+        cached_exec(
+            &self.conn,
             "DELETE FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3",
             params![id, pass, K_MERGE],
         )?;
         Ok(())
     }
     fn complete_merge(&self, task_id: i64, attempt: u32, worker: &str) -> StoreResult<bool> {
-        let n = cached_exec(&self.conn, 
+        let n = cached_exec(
+            &self.conn,
             "UPDATE tasks SET state = ?4, lease_expires = NULL \
              WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 AND state = ?5 AND kind = ?6",
             params![task_id, attempt, worker, T_DONE, T_LEASED, K_MERGE],
@@ -735,35 +743,41 @@ impl JobStore for SqliteStore {
         Ok(n == 1)
     }
     fn last_tile(&self, id: &str, pass: u32) -> StoreResult<Option<u32>> {
-        cached_row(&self.conn, 
-                "SELECT MAX(tile) FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3",
-                params![id, pass, K_RENDER],
-                |r| r.get(0),
-            )
-            .map_err(StoreError::from)
+        cached_row(
+            &self.conn,
+            "SELECT MAX(tile) FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3",
+            params![id, pass, K_RENDER],
+            |r| r.get(0),
+        )
+        .map_err(StoreError::from)
     }
     fn last_pass(&self, id: &str) -> StoreResult<Option<u32>> {
-        cached_row(&self.conn, "SELECT MAX(pass) FROM tasks WHERE job_id = ?1", [id], |r| {
-                r.get(0)
-            })
-            .map_err(StoreError::from)
+        cached_row(
+            &self.conn,
+            "SELECT MAX(pass) FROM tasks WHERE job_id = ?1",
+            [id],
+            |r| r.get(0),
+        )
+        .map_err(StoreError::from)
     }
     fn pass_open(&self, id: &str, pass: u32) -> StoreResult<bool> {
-        cached_row(&self.conn, 
-                "SELECT EXISTS (SELECT 1 FROM tasks WHERE state IN (?3, ?4) AND job_id = ?1 \
+        cached_row(
+            &self.conn,
+            "SELECT EXISTS (SELECT 1 FROM tasks WHERE state IN (?3, ?4) AND job_id = ?1 \
              AND kind = ?5 AND pass = ?2)",
-                params![id, pass, T_QUEUED, T_LEASED, K_RENDER],
-                |r| r.get(0),
-            )
-            .map_err(StoreError::from)
+            params![id, pass, T_QUEUED, T_LEASED, K_RENDER],
+            |r| r.get(0),
+        )
+        .map_err(StoreError::from)
     }
     fn tasks_done(&self, id: &str) -> StoreResult<u32> {
-        cached_row(&self.conn, 
-                "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = ?2 AND kind = ?3",
-                params![id, T_DONE, K_RENDER],
-                |r| r.get(0),
-            )
-            .map_err(StoreError::from)
+        cached_row(
+            &self.conn,
+            "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = ?2 AND kind = ?3",
+            params![id, T_DONE, K_RENDER],
+            |r| r.get(0),
+        )
+        .map_err(StoreError::from)
     }
     fn pass_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>> {
         let mut st = self.conn.prepare_cached(&format!(
@@ -775,16 +789,18 @@ impl JobStore for SqliteStore {
             .map_err(StoreError::from)
     }
     fn task(&self, task_id: i64) -> StoreResult<Option<TaskRow>> {
-        cached_row(&self.conn, 
-                &format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?1"),
-                [task_id],
-                task_row,
-            )
-            .optional()
-            .map_err(StoreError::from)
+        cached_row(
+            &self.conn,
+            &format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?1"),
+            [task_id],
+            task_row,
+        )
+        .optional()
+        .map_err(StoreError::from)
     }
     fn requeue(&self, task_id: i64) -> StoreResult<()> {
-        cached_exec(&self.conn, 
+        cached_exec(
+            &self.conn,
             "UPDATE tasks SET state = ?2, worker_id = NULL WHERE id = ?1",
             params![task_id, T_QUEUED],
         )?;
@@ -818,17 +834,20 @@ impl JobStore for SqliteStore {
             return Ok(None);
         };
         let t = now();
-        cached_exec(&tx, 
+        cached_exec(
+            &tx,
             "UPDATE tasks SET state = ?4, attempt = attempt + 1, worker_id = ?2, \
              lease_expires = ?3 WHERE id = ?1",
             params![id, worker, t + lease_s, T_LEASED],
         )?;
-        cached_exec(&tx, 
+        cached_exec(
+            &tx,
             "UPDATE jobs SET state = ?3, started_at = COALESCE(started_at, ?2) \
              WHERE id = (SELECT job_id FROM tasks WHERE id = ?1) AND state = ?4",
             params![id, t, J_RUNNING, J_QUEUED],
         )?;
-        let row = cached_row(&tx, 
+        let row = cached_row(
+            &tx,
             &format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?1"),
             [id],
             task_row,
@@ -837,7 +856,8 @@ impl JobStore for SqliteStore {
         Ok(Some(row))
     }
     fn extend(&self, task_id: i64, attempt: u32, worker: &str, lease_s: f64) -> StoreResult<bool> {
-        let n = cached_exec(&self.conn, 
+        let n = cached_exec(
+            &self.conn,
             "UPDATE tasks SET lease_expires = ?4 WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 \
              AND state = ?5 AND job_id IN (SELECT id FROM jobs WHERE state = ?6)",
             params![
@@ -860,7 +880,8 @@ impl JobStore for SqliteStore {
         stored: std::ops::Range<u64>,
     ) -> StoreResult<bool> {
         let tx = self.conn.unchecked_transaction()?;
-        let n = cached_exec(&tx, 
+        let n = cached_exec(
+            &tx,
             "UPDATE tasks SET state = ?4, lease_expires = NULL, result_at = ?6, result_len = ?7 \
              WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 AND state = ?5",
             params![
@@ -874,11 +895,13 @@ impl JobStore for SqliteStore {
             ],
         )?;
         if n == 1 {
-            cached_exec(&tx, 
+            cached_exec(
+                &tx,
                 "UPDATE jobs SET result_bytes = result_bytes + ?2 WHERE id = (SELECT job_id FROM tasks WHERE id = ?1)",
                 params![task_id, bytes as i64],
             )?;
-            cached_exec(&tx, 
+            cached_exec(
+                &tx,
                 "UPDATE workers SET tasks_done = tasks_done + 1 WHERE id = ?1",
                 [worker],
             )?;
@@ -893,7 +916,8 @@ impl JobStore for SqliteStore {
         worker: &str,
         error: &str,
     ) -> StoreResult<Option<u32>> {
-        let n = cached_exec(&self.conn, 
+        let n = cached_exec(
+            &self.conn,
             "UPDATE tasks SET state = ?5, worker_id = NULL, lease_expires = NULL, \
              failures = failures + 1, last_error = ?4 WHERE id = ?1 AND attempt = ?2 \
              AND worker_id = ?3 AND state = ?6",
@@ -902,11 +926,14 @@ impl JobStore for SqliteStore {
         if n == 0 {
             return Ok(None);
         }
-        cached_row(&self.conn, "SELECT failures FROM tasks WHERE id = ?1", [task_id], |r| {
-                r.get(0)
-            })
-            .map(Some)
-            .map_err(StoreError::from)
+        cached_row(
+            &self.conn,
+            "SELECT failures FROM tasks WHERE id = ?1",
+            [task_id],
+            |r| r.get(0),
+        )
+        .map(Some)
+        .map_err(StoreError::from)
     }
     fn expire_leases(&self) -> StoreResult<usize> {
         self.conn
@@ -925,7 +952,8 @@ impl JobStore for SqliteStore {
         version: &str,
     ) -> StoreResult<()> {
         let t = now();
-        cached_exec(&self.conn, 
+        cached_exec(
+            &self.conn,
             "INSERT INTO workers (id, name, threads, version, registered_at, last_seen, state) \
              VALUES (?1, ?2, ?3, ?4, ?5, ?5, ?6) ON CONFLICT (id) DO UPDATE SET \
              name = ?2, threads = ?3, version = ?4, last_seen = ?5, state = ?6",
@@ -934,7 +962,8 @@ impl JobStore for SqliteStore {
         Ok(())
     }
     fn touch_worker(&self, id: &str, state: Option<WorkerState>) -> StoreResult<bool> {
-        let n = cached_exec(&self.conn, 
+        let n = cached_exec(
+            &self.conn,
             "UPDATE workers SET last_seen = ?2, state = COALESCE(?3, \
              CASE state WHEN ?4 THEN ?5 ELSE state END) WHERE id = ?1",
             params![id, now(), state, WorkerState::Gone, WorkerState::Idle],
@@ -999,7 +1028,8 @@ impl JobStore for SqliteStore {
         data: &serde_json::Value,
     ) -> StoreResult<EventRow> {
         let at = now();
-        cached_exec(&self.conn, 
+        cached_exec(
+            &self.conn,
             "INSERT INTO events (job_id, kind, data, at) VALUES (?1, ?2, ?3, ?4)",
             params![job, kind, data.to_string(), at],
         )?;

@@ -86,7 +86,7 @@ pub(crate) async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult
             }
         };
         if let Some((task, Some(job))) = leased {
-            let res = jobs::resolved_of(&job).map_err(ApiError::internal)?;
+            let res = jobs::resolved(&app, &job).map_err(ApiError::internal)?;
             let (rect, samples, bands) = match task.kind {
                 TaskKind::Render => (
                     jobs::tile_rect(&res, task.tile)
@@ -360,7 +360,7 @@ pub(crate) async fn upload_result(
         .await
         .map_err(ApiError::internal)?;
     let checked = tokio::task::spawn_blocking(move || -> ApiResult<Result<_, String>> {
-        let r = jobs::resolved_of(&job).map_err(ApiError::internal)?;
+        let r = jobs::resolved(&a, &job).map_err(ApiError::internal)?;
         let layout = r.film_layout();
         let tile = jobs::tile_rect(&r, t.tile);
         // Uploaded laid out by band (`wire::encode_banded`), as the result log keeps it, so
@@ -419,9 +419,14 @@ pub(crate) async fn upload_result(
             bytes: n as u64,
         }),
     );
-    let a = app.clone();
-    let id = task.job_id.clone();
-    tokio::task::spawn_blocking(move || jobs::advance(&a, &id));
+    // Only the result that closes its pass can start a merge: whoever completes a pass's last
+    // task sees it closed (its own completion is committed before it looks), so the others
+    // need not advance the job.
+    if !app.db().pass_open(&task.job_id, task.pass)? {
+        let a = app.clone();
+        let id = task.job_id.clone();
+        tokio::task::spawn_blocking(move || jobs::advance(&a, &id));
+    }
     Ok(Json(ResultAnswer { accepted: true }))
 }
 
