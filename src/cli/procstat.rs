@@ -56,6 +56,36 @@ pub fn cpu_seconds(pid: Option<u32>) -> f64 {
     }
 }
 
+/// The processes whose parent is `pid` (from /proc/*/stat).
+pub fn children(pid: u32) -> Vec<u32> {
+    let Ok(dir) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    dir.filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|&p| {
+            std::fs::read_to_string(format!("/proc/{p}/stat"))
+                .ok()
+                .and_then(|t| {
+                    // The parent pid is the second field after the command name.
+                    let rest = t.rsplit_once(')')?.1.to_string();
+                    rest.split_whitespace().nth(1)?.parse::<u32>().ok()
+                })
+                == Some(pid)
+        })
+        .collect()
+}
+
+/// CPU seconds of process `pid` and of its children that are alive now (a coordinator and the
+/// local workers it started).
+pub fn cpu_seconds_with_children(pid: u32) -> f64 {
+    cpu_seconds(Some(pid))
+        + children(pid)
+            .into_iter()
+            .map(|c| cpu_seconds(Some(c)))
+            .filter(|v| v.is_finite())
+            .sum::<f64>()
+}
+
 /// Bytes process `pid` caused to be written to storage (write_bytes of /proc/PID/io); 0 where
 /// unavailable.
 pub fn write_bytes(pid: u32) -> u64 {

@@ -205,7 +205,11 @@ impl Reader<'_> {
     fn step(&mut self, from: u32) -> Result<u32, WireError> {
         let mut z = 0u64;
         for k in 0..5 {
-            let byte = self.u8()?;
+            // Indexed directly: the hot loop of checking and decoding splats and records.
+            let Some(&byte) = self.b.get(self.at) else {
+                return Err(WireError(format!("truncated at byte {}", self.at)));
+            };
+            self.at += 1;
             z |= ((byte & 0x7f) as u64) << (7 * k);
             if byte & 0x80 == 0 {
                 let d = (z >> 1) as i64 ^ -((z & 1) as i64);
