@@ -206,6 +206,7 @@ fn workers_list_the_tasks_they_hold() {
         me["tasks"],
         json!([{
             "id": lease["task"]["id"],
+            "kind": "render",
             "job_id": job["id"],
             "pass": 0,
             "tile": lease["task"]["tile"],

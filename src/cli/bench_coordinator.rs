@@ -92,7 +92,7 @@ struct Counters {
     refused: AtomicU64,
     /// Merge tasks run (their work is real: see `worker::run_merge`).
     merges: AtomicU64,
-    /// Bytes of merge input downloaded and output uploaded.
+    /// Bytes of merge output uploaded.
     merge_out_bytes: AtomicU64,
 }
 
@@ -134,7 +134,8 @@ async fn simulated_worker(
         }
         let lease: Lease = r.json().await?;
         let t = &lease.task;
-        if t.kind == TaskKind::Merge {
+        // A merge task is run for real; a render task replays a recorded result.
+        let (body, cpu) = if t.kind == TaskKind::Merge {
             let input = http
                 .get(format!("{url}/v1/worker/tasks/{}/input", t.id))
                 .query(&ResultQuery {
@@ -144,38 +145,22 @@ async fn simulated_worker(
             let out = crate::worker::run_merge(input, &lease.job.resolved)
                 .await
                 .map_err(anyhow::Error::msg)?;
-            let n = out.len() as u64;
-            let r = http
-                .put(format!("{url}/v1/worker/tasks/{}/result", t.id))
-                .query(&ResultQuery {
-                    worker_id: reg.worker_id.clone(),
-                    attempt: t.attempt,
-                })
-                .header("content-type", "application/octet-stream")
-                .body(out)
-                .timeout(Duration::from_secs(300))
-                .send()
-                .await?;
-            if r.status().is_success() {
-                counters.merges.fetch_add(1, Ordering::Relaxed);
-                counters.merge_out_bytes.fetch_add(n, Ordering::Relaxed);
-            } else {
-                counters.refused.fetch_add(1, Ordering::Relaxed);
-            }
-            continue;
-        }
-        let key = (
-            t.rect.width() as u32,
-            t.rect.height() as u32,
-            t.samples[1] - t.samples[0],
-        );
-        let list = recorded
-            .get(&key)
-            .with_context(|| format!("no recorded result for tile shape / pass {key:?}"))?;
-        turn += 1;
-        let (bytes, cpu) = &list[turn % list.len()];
-        let body = crate::film::wire::relabel_banded(bytes, t.rect, t.samples[0]..t.samples[1])
-            .map_err(anyhow::Error::msg)?;
+            (out, None)
+        } else {
+            let key = (
+                t.rect.width() as u32,
+                t.rect.height() as u32,
+                t.samples[1] - t.samples[0],
+            );
+            let list = recorded
+                .get(&key)
+                .with_context(|| format!("no recorded result for tile shape / pass {key:?}"))?;
+            turn += 1;
+            let (bytes, cpu) = &list[turn % list.len()];
+            let body = crate::film::wire::relabel_banded(bytes, t.rect, t.samples[0]..t.samples[1])
+                .map_err(anyhow::Error::msg)?;
+            (body, Some(*cpu))
+        };
         let n = body.len() as u64;
         let r = http
             .put(format!("{url}/v1/worker/tasks/{}/result", t.id))
@@ -188,14 +173,21 @@ async fn simulated_worker(
             .timeout(Duration::from_secs(300))
             .send()
             .await?;
-        if r.status().is_success() {
-            counters.results.fetch_add(1, Ordering::Relaxed);
-            counters.bytes.fetch_add(n, Ordering::Relaxed);
-            counters
-                .worker_cpu_us
-                .fetch_add((cpu * 1e6) as u64, Ordering::Relaxed);
-        } else {
-            counters.refused.fetch_add(1, Ordering::Relaxed);
+        match cpu {
+            _ if !r.status().is_success() => {
+                counters.refused.fetch_add(1, Ordering::Relaxed);
+            }
+            None => {
+                counters.merges.fetch_add(1, Ordering::Relaxed);
+                counters.merge_out_bytes.fetch_add(n, Ordering::Relaxed);
+            }
+            Some(cpu) => {
+                counters.results.fetch_add(1, Ordering::Relaxed);
+                counters.bytes.fetch_add(n, Ordering::Relaxed);
+                counters
+                    .worker_cpu_us
+                    .fetch_add((cpu * 1e6) as u64, Ordering::Relaxed);
+            }
         }
     }
     Ok(())

@@ -220,6 +220,23 @@ impl Reader<'_> {
         }
         Err(WireError("pixel step longer than 5 bytes".into()))
     }
+    /// The next pixel of a delta-coded list after `prev` (which becomes it); it must lie in
+    /// `pixels` (`what` names the list's items in the error).
+    fn pixel(
+        &mut self,
+        prev: &mut u32,
+        pixels: &std::ops::Range<u64>,
+        what: &str,
+    ) -> Result<u32, WireError> {
+        let p = self.step(*prev)?;
+        *prev = p;
+        if !pixels.contains(&(p as u64)) {
+            return Err(WireError(format!(
+                "{what} pixel {p} outside pixels {pixels:?}"
+            )));
+        }
+        Ok(p)
+    }
     /// A format's magic and version, or an error naming `what` was expected.
     fn header(&mut self, magic: &[u8; 8], version: u32, what: &str) -> Result<(), WireError> {
         if self.take(8)? != magic {
@@ -265,13 +282,7 @@ impl Reader<'_> {
         }
         let mut prev = 0;
         for _ in 0..n {
-            let pixel = self.step(prev)?;
-            prev = pixel;
-            if !pixels.contains(&(pixel as u64)) {
-                return Err(WireError(format!(
-                    "splat pixel {pixel} outside pixels {pixels:?}"
-                )));
-            }
+            let pixel = self.pixel(&mut prev, &pixels, "splat")?;
             let layer = if keys.layer { self.u8()? } else { u8::MAX };
             let depth = if keys.depth { self.u8()? } else { u8::MAX };
             let v = self.take(12)?;
@@ -308,13 +319,7 @@ impl Reader<'_> {
         let n = self.count(2, "records")?;
         let mut prev = 0;
         for _ in 0..n {
-            let p = self.step(prev)?;
-            prev = p;
-            if !pixels.contains(&(p as u64)) {
-                return Err(WireError(format!(
-                    "record pixel {p} outside pixels {pixels:?}"
-                )));
-            }
+            let p = self.pixel(&mut prev, &pixels, "record")?;
             if let Some(o) = out.as_deref_mut() {
                 o.pixels.push(p);
             }

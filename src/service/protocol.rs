@@ -572,11 +572,13 @@ pub struct WorkerInfo {
 pub struct WorkerTask {
     /// The task id.
     pub id: i64,
+    /// Render or merge.
+    pub kind: TaskKind,
     /// The job the task belongs to.
     pub job_id: String,
     /// The pass index (from 0).
     pub pass: u32,
-    /// The tile index in the job's row-major tile order.
+    /// The tile index in the job's row-major tile order (a merge task: its band group).
     pub tile: u32,
     /// The attempt number (from 1).
     pub attempt: u32,

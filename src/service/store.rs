@@ -981,7 +981,7 @@ impl JobStore for SqliteStore {
     fn workers(&self) -> StoreResult<Vec<WorkerInfo>> {
         let mut held: HashMap<String, Vec<WorkerTask>> = HashMap::new();
         let mut st = self.conn.prepare_cached(
-            "SELECT worker_id, id, job_id, pass, tile, attempt FROM tasks \
+            "SELECT worker_id, id, job_id, pass, tile, attempt, kind FROM tasks \
              WHERE state = ?1 AND worker_id IS NOT NULL ORDER BY id",
         )?;
         let rows = st.query_map(params![TaskState::Leased], |r| {
@@ -993,6 +993,7 @@ impl JobStore for SqliteStore {
                     pass: r.get(3)?,
                     tile: r.get(4)?,
                     attempt: r.get(5)?,
+                    kind: r.get(6)?,
                 },
             ))
         })?;

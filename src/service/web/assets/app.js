@@ -620,7 +620,7 @@ async function workersView(signal) {
         h('th', { class: 'num' }, 'Tasks done'), h('th', { class: 'num' }, 'Tiles / min (last minute)'),
         h('th', { class: 'num' }, 'Tiles / min (overall)'), h('th', { class: 'num' }, 'Last seen'))),
       body),
-    h('p', { class: 'hint' }, 'A task is one tile for one pass. Workers that left (drained) or went silent past twice the lease time are listed dimmed.'));
+    h('p', { class: 'hint' }, 'A task is one tile for one pass, or the merge of a finished pass into one band group of tiles. Workers that left (drained) or went silent past twice the lease time are listed dimmed.'));
   await every(2000, signal, async () => {
     const { workers } = await apiJson('/v1/workers', { signal });
     const now = Date.now() / 1000;
@@ -643,7 +643,8 @@ async function workersView(signal) {
         h('td', {}, stateBadge(w.state)),
         h('td', { class: 'num' }, w.threads),
         h('td', {}, tasks.length
-          ? tasks.map((t, i) => [i ? ', ' : '', h('a', { href: `#/jobs/${t.job_id}` }, `job ${short(t.job_id)}`), ` pass ${t.pass} tile ${t.tile}`])
+          ? tasks.map((t, i) => [i ? ', ' : '', h('a', { href: `#/jobs/${t.job_id}` }, `job ${short(t.job_id)}`),
+            t.kind === 'merge' ? ` merging pass ${t.pass} (band group ${t.tile})` : ` pass ${t.pass} tile ${t.tile}`])
           : h('span', { class: 'muted' }, '—')),
         h('td', { class: 'num' }, w.tasks_done),
         h('td', { class: 'num' }, recent === null ? '…' : recent.toFixed(1)),
