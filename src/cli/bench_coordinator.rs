@@ -38,8 +38,9 @@ pub struct BenchCoordinatorArgs {
     /// Simulated worker counts to measure, e.g. 1,4,16,64.
     #[arg(long, value_delimiter = ',', default_value = "1,4,16,64")]
     pub simulated_workers: Vec<usize>,
-    /// Real results recorded per tile shape and pass length (replayed round robin).
-    #[arg(long, default_value_t = 2)]
+    /// Real results recorded per tile shape and pass length (replayed round robin; their mean
+    /// CPU time stands for the worker CPU of the job).
+    #[arg(long, default_value_t = 4)]
     pub record: usize,
     /// Print one JSON object per line instead of the table.
     #[arg(long)]
@@ -50,8 +51,35 @@ pub struct BenchCoordinatorArgs {
 /// as a worker uploads them) and the CPU seconds their render took.
 type Recorded = HashMap<(u32, u32, u32), Vec<(Vec<u8>, f64)>>;
 
+/// `per` of `tiles` (the tiles of one shape, row-major) spread over the frame in both
+/// directions: rows evenly, columns by the golden ratio, so that the samples do not all fall in
+/// one column (a frame's edges are often background, much cheaper to render than its middle).
+fn spread(tiles: &[Tile], per: usize) -> Vec<Tile> {
+    let mut rows: Vec<u32> = tiles.iter().map(|t| t.y0).collect();
+    let mut cols: Vec<u32> = tiles.iter().map(|t| t.x0).collect();
+    rows.sort_unstable();
+    rows.dedup();
+    cols.sort_unstable();
+    cols.dedup();
+    let phi = 0.5 * (5f64.sqrt() - 1.0);
+    let mut out: Vec<Tile> = Vec::new();
+    for k in 0..per.min(tiles.len()) {
+        let y = rows[((k as f64 + 0.5) / per as f64 * rows.len() as f64) as usize % rows.len()];
+        let x = cols[((0.5 + k as f64 * phi).fract() * cols.len() as f64) as usize];
+        if let Some(t) = tiles.iter().find(|t| (t.x0, t.y0) == (x, y))
+            && !out.contains(t)
+        {
+            out.push(*t);
+        }
+    }
+    if out.is_empty() {
+        out.extend(tiles.first());
+    }
+    out
+}
+
 /// Renders `per` results for every tile shape and pass length of the job, from tiles spread
-/// over the frame.
+/// over the frame (`spread`).
 fn record(scene: &Scene, r: &Resolved, per: usize) -> Recorded {
     let grid = r.grid();
     let mut lengths: Vec<u32> = (0..r.total_passes().unwrap_or(1))
@@ -68,9 +96,9 @@ fn record(scene: &Scene, r: &Resolved, per: usize) -> Recorded {
     }
     let mut out = Recorded::new();
     for ((w, h), tiles) in by_shape {
+        let picked = spread(&tiles, per.max(1));
         for &len in &lengths {
-            let step = (tiles.len() / per.max(1)).max(1);
-            for t in tiles.iter().step_by(step).take(per.max(1)) {
+            for t in &picked {
                 let c0 = super::procstat::cpu_seconds(None);
                 let film = crate::integrator::render_tile(scene, &r.render, *t, 0..len);
                 let bytes = crate::film::wire::encode_banded(film, 0..len, &grid);
