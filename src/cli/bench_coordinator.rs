@@ -17,8 +17,8 @@ use crate::job::{Limits, Resolved};
 use crate::scene::Scene;
 use crate::service::bundle;
 use crate::service::protocol::{
-    JobEvent, JobState, Lease, LeaseRequest, RegisterRequest, Registration, ResultQuery,
-    SceneSource, TaskKind,
+    HeartbeatRequest, HeldTask, JobEvent, JobState, Lease, LeaseRequest, RegisterRequest,
+    Registration, ResultQuery, SceneSource, TaskKind,
 };
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -170,10 +170,31 @@ async fn simulated_worker(
                     worker_id: reg.worker_id.clone(),
                     attempt: t.attempt,
                 });
-            let out = crate::worker::run_merge(input, &lease.job.resolved)
-                .await
-                .map_err(anyhow::Error::msg)?;
-            (out, None)
+            // A merge takes a while: its lease is kept alive as a worker's heartbeat would.
+            let beat = {
+                let (http, url, worker) = (http.clone(), url.clone(), reg.worker_id.clone());
+                let held = vec![HeldTask {
+                    id: t.id,
+                    attempt: t.attempt,
+                }];
+                let every = Duration::from_secs_f64(reg.heartbeat_seconds.max(0.2));
+                tokio::spawn(async move {
+                    loop {
+                        tokio::time::sleep(every).await;
+                        let _ = http
+                            .post(format!("{url}/v1/worker/heartbeat"))
+                            .json(&HeartbeatRequest {
+                                worker_id: worker.clone(),
+                                tasks: held.clone(),
+                            })
+                            .send()
+                            .await;
+                    }
+                })
+            };
+            let out = crate::worker::run_merge(input, &lease.job.resolved).await;
+            beat.abort();
+            (out.map_err(anyhow::Error::msg)?, None)
         } else {
             let key = (
                 t.rect.width() as u32,
