@@ -270,6 +270,86 @@ fn render_through_the_service_equals_the_in_process_render() {
 }
 
 #[test]
+fn auto_optimal_depth_is_chosen_once_the_same_way_in_both_modes_and_reported() {
+    // Optimal MIS without --optimal-max-depth: the coordinator's pilot and the in-process
+    // pilot make the same choice, the images are equal bit for bit, and the summary, the job
+    // status and the EXR header say what was chosen.
+    let d = folder("auto-dopt");
+    let svc = d.join("svc.exr");
+    let inp = d.join("inp.exr");
+    let common = [
+        "render",
+        "scenes/cornell-box-small-light.json",
+        "--spp",
+        "8",
+        "--pass-size",
+        "4",
+        "--tile-size",
+        "8",
+        "--resolution",
+        "24x20",
+        "--integrator",
+        "bdpt",
+        "--mis",
+        "optimal",
+        "--json",
+    ];
+    let a = omis(&[&common[..], &["--workers", "2", "--out", s(&svc)]].concat());
+    assert!(a.status.success(), "{}", String::from_utf8_lossy(&a.stderr));
+    let b = omis(&[&common[..], &["--in-process", "--out", s(&inp)]].concat());
+    assert!(b.status.success(), "{}", String::from_utf8_lossy(&b.stderr));
+    let (ja, jb) = (last_json(&a), last_json(&b));
+    let choice = &jb["optimal_depth"];
+    assert!(choice["chosen"].is_u64(), "{jb}");
+    assert_eq!(
+        choice["relmse"].as_array().map(|v| v.len()),
+        Some(6),
+        "{jb}"
+    );
+    assert_eq!(ja["optimal_depth"], *choice);
+    assert_eq!(ja["optimal_max_depth"], choice["chosen"]);
+    assert_eq!(jb["optimal_max_depth"], choice["chosen"]);
+    assert!(
+        String::from_utf8_lossy(&b.stderr).contains("optimal MIS: auto D_opt"),
+        "{}",
+        String::from_utf8_lossy(&b.stderr)
+    );
+    assert_eq!(
+        omis::film::exr_io::read_exr_layers(&svc).expect("service EXR"),
+        omis::film::exr_io::read_exr_layers(&inp).expect("in-process EXR")
+    );
+    for f in [&svc, &inp] {
+        let meta = exr::meta::MetaData::read_from_file(f, false).expect("EXR header");
+        let other = &meta.headers[0].own_attributes.other;
+        let text = |k: &str| match other.get(&exr::meta::attribute::Text::from(k)) {
+            Some(exr::meta::attribute::AttributeValue::Text(t)) => t.to_string(),
+            v => panic!("{k}: {v:?}"),
+        };
+        assert_eq!(
+            text("omis.optimal_max_depth"),
+            choice["chosen"].to_string(),
+            "{}",
+            f.display()
+        );
+        assert!(text("omis.optimal_max_depth_auto").starts_with("auto D_opt"));
+    }
+    // An explicit depth runs no pilot.
+    let c = omis(
+        &[
+            &common[..],
+            &["--in-process", "--optimal-max-depth", "2", "--out", s(&inp)],
+        ]
+        .concat(),
+    );
+    assert!(c.status.success(), "{}", String::from_utf8_lossy(&c.stderr));
+    assert_eq!(last_json(&c)["optimal_max_depth"], 2);
+    assert!(last_json(&c)["optimal_depth"].is_null());
+    let bad = omis(&[&common[..], &["--optimal-max-depth", "deep"]].concat());
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("neither `auto` nor a depth"));
+}
+
+#[test]
 fn pbrt_and_mitsuba_scenes_render_through_the_service_with_their_files() {
     let Some(shared) = common::shared_scenes(
         "pbrt_and_mitsuba_scenes_render_through_the_service_with_their_files",
@@ -375,6 +455,15 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
     let points = j["equal_spp"].as_array().expect("equal_spp");
     assert_eq!(points.len(), 6, "2 spp x 3 strategies");
     assert_eq!(j["equal_time_clock"], "wall");
+    // `--optimal-max-depth auto` (the default): one pilot per seed, reported with its CPU time.
+    assert_eq!(j["optimal_max_depth"], "auto");
+    let choices = j["optimal_depth_choices"].as_array().expect("choices");
+    assert_eq!(choices.len(), 2, "{j}");
+    assert!(choices.iter().all(|c| c["chosen"].is_u64()), "{j}");
+    assert!(
+        j["pilot_cpu_seconds"].as_f64().is_some_and(|t| t > 0.0),
+        "{j}"
+    );
     let get = |m: &str, spp: u64| {
         points
             .iter()

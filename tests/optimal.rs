@@ -775,3 +775,93 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
         }
     }
 }
+
+/// relMSE-style variance across `imgs` (seeds) per pixel and channel, over (R^2 + eps) with R
+/// the mean of `norm`: (mean of the terms, its standard error).
+fn variance_terms(imgs: &[Image], norm: &[Image], eps: f64) -> (f64, f64) {
+    let k = imgs.len() as f64;
+    let mut terms = Vec::new();
+    for i in 0..imgs[0].pixels.len() {
+        for c in 0..3 {
+            let r = norm.iter().map(|m| m.pixels[i][c] as f64).sum::<f64>() / norm.len() as f64;
+            let mean = imgs.iter().map(|m| m.pixels[i][c] as f64).sum::<f64>() / k;
+            let var = imgs
+                .iter()
+                .map(|m| (m.pixels[i][c] as f64 - mean).powi(2))
+                .sum::<f64>()
+                / (k - 1.0);
+            terms.push(var / (r * r + eps));
+        }
+    }
+    let n = terms.len() as f64;
+    let m = terms.iter().sum::<f64>() / n;
+    let v = terms.iter().map(|t| (t - m).powi(2)).sum::<f64>() / (n - 1.0);
+    (m, (v / n).sqrt())
+}
+
+#[test]
+fn auto_depth_predicts_the_variance_of_independent_renders_and_keeps_optimal_where_it_pays() {
+    use omis::job::optimal_depth::{self, PILOT_SPP};
+    // The small-light box: depth 1 (NEE against light tracing and emitter hits of a 2 cm light)
+    // is where optimal weights gain most (BENCHMARKS.md #14).
+    let mut scene = load("cornell-box-small-light.json", 96, 80);
+    let s = RenderSettings {
+        seed: 11,
+        ..optimal(16, 5, 1)
+    };
+    let eps = 0.01;
+    let c = optimal_depth::choose(&mut scene, &s, eps);
+    assert_eq!(
+        (scene.camera.width, scene.camera.height),
+        (96, 80),
+        "the pilot gives the camera back"
+    );
+    let [w, h] = c.pilot_resolution;
+    assert!(
+        w * h <= optimal_depth::PILOT_PIXELS && (w as f64 / h as f64 - 1.2).abs() < 0.05,
+        "{c:?}"
+    );
+    assert_eq!(c.relmse.len(), 6, "{c:?}");
+    assert!(c.time.windows(2).all(|t| t[1] > t[0]), "{c:?}");
+    // Deterministic: the same job gives the same choice.
+    assert_eq!(optimal_depth::choose(&mut scene, &s, eps), c);
+
+    // Independent renders at the pilot's resolution and spp: balance, and optimal at D_opt 1.
+    let pilot = load("cornell-box-small-light.json", w, h);
+    let renders = |mis: MisKind, d_opt: u32| -> Vec<Image> {
+        (0..16)
+            .map(|k| {
+                let r = RenderSettings {
+                    mis,
+                    seed: 1000 + k,
+                    ..optimal(PILOT_SPP, 5, d_opt)
+                };
+                common::render(&pilot, &r, 16).image()
+            })
+            .collect()
+    };
+    let bal = renders(MisKind::Balance, 1);
+    let opt = renders(MisKind::Optimal, 1);
+    let (v0, se0) = variance_terms(&bal, &bal, eps);
+    let (v1, se1) = variance_terms(&opt, &bal, eps);
+    let measured = v1 / v0;
+    let measured_se = measured * ((se0 / v0).powi(2) + (se1 / v1).powi(2)).sqrt();
+    let predicted = c.relmse[1] / c.relmse[0];
+    let predicted_se = predicted
+        * ((c.relmse_se[0] / c.relmse[0]).powi(2) + (c.relmse_se[1] / c.relmse[1]).powi(2)).sqrt();
+    eprintln!(
+        "pilot {c:?}\nD_opt 1 / balance variance: predicted {predicted:.3} +- {predicted_se:.3}, \
+         measured over 16 seeds {measured:.3} +- {measured_se:.3}"
+    );
+    assert!(
+        (predicted - measured).abs() < 4.0 * (predicted_se.powi(2) + measured_se.powi(2)).sqrt(),
+        "predicted {predicted} +- {predicted_se}, measured {measured} +- {measured_se}"
+    );
+    // It pays here, so the pilot keeps optimal weights at depth 1 at least.
+    assert!(
+        measured + 4.0 * measured_se < 1.0,
+        "{measured} +- {measured_se}"
+    );
+    assert!(c.chosen >= 1, "{c:?}");
+    assert!(c.relative_cost(c.chosen as usize) < 1.0, "{c:?}");
+}

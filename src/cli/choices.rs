@@ -110,3 +110,28 @@ mirror! {
         Bsdf,
     }
 }
+
+/// `--optimal-max-depth`: `auto` (a pilot render chooses, `job::optimal_depth`) or a depth.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct OptimalDepthArg(pub Option<u32>);
+
+impl std::str::FromStr for OptimalDepthArg {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s == "auto" {
+            return Ok(OptimalDepthArg(None));
+        }
+        s.parse::<u32>()
+            .map(|d| OptimalDepthArg(Some(d)))
+            .map_err(|_| format!("`{s}` is neither `auto` nor a depth (0, 1, 2, ...)"))
+    }
+}
+
+impl std::fmt::Display for OptimalDepthArg {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.0 {
+            None => f.write_str("auto"),
+            Some(d) => write!(f, "{d}"),
+        }
+    }
+}

@@ -3,9 +3,10 @@
 //! (the experiments of Cailleau et al., "Optimal Multiple Importance Sampling for
 //! Bidirectional Path Tracing", Figs. 5, 7, 8, 9, 10).
 
-use super::choices::{MisArg, SamplerArg};
+use super::choices::{MisArg, OptimalDepthArg, SamplerArg};
 use crate::film::{Image, exr_io, metrics, plot};
 use crate::integrator::{IntegratorKind, RenderSettings};
+use crate::job::optimal_depth::{self, DepthChoice};
 use crate::job::{RenderOutput, Resolved};
 use crate::mis::MisKind;
 use crate::scene::Scene;
@@ -42,8 +43,10 @@ pub struct CompareArgs {
     pub seeds: u64,
     #[arg(long, default_value_t = 5)]
     pub max_depth: u32,
-    #[arg(long, default_value_t = crate::mis::DEFAULT_OPTIMAL_MAX_DEPTH)]
-    pub optimal_max_depth: u32,
+    /// Optimal MIS: weight depths 1..=D optimally; `auto`: a pilot render per seed chooses
+    /// (its CPU time is reported apart, not counted in the equal-time budget).
+    #[arg(long, default_value_t = OptimalDepthArg(None))]
+    pub optimal_max_depth: OptimalDepthArg,
     #[arg(long, default_value_t = crate::mis::DEFAULT_KAPPA)]
     pub kappa: f64,
     #[arg(long, value_enum, default_value_t = SamplerArg::Independent)]
@@ -184,7 +187,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
     if a.pt {
         methods.push(Method::Pt);
     }
-    let settings = |method: Method, spp: u32, seed: u64| RenderSettings {
+    let base = |method: Method, spp: u32, seed: u64, d_opt: u32| RenderSettings {
         integrator: match method {
             Method::Pt => IntegratorKind::Pt,
             Method::Bdpt(_) => IntegratorKind::Bdpt,
@@ -197,10 +200,36 @@ pub fn run(a: CompareArgs) -> Result<()> {
         max_depth: a.max_depth,
         seed,
         sampler: a.sampler.into(),
-        optimal_max_depth: a.optimal_max_depth,
+        optimal_max_depth: d_opt,
         optimal_kappa: a.kappa,
         depth_layers: true,
         ..Default::default()
+    };
+    // `--optimal-max-depth auto`: one pilot per seed (a function of the seed, like the render).
+    let mut pilot_cpu = 0.0;
+    let choices: Vec<Option<DepthChoice>> = (0..a.seeds)
+        .map(|seed| {
+            let s = base(Method::Bdpt(MisKind::Optimal), 1, seed, 0);
+            (a.optimal_max_depth.0.is_none()
+                && methods
+                    .iter()
+                    .any(|m| matches!(m, Method::Bdpt(k) if k.is_optimal())))
+            .then(|| {
+                let cpu0 = super::procstat::cpu_seconds(None);
+                let c = pool.install(|| optimal_depth::choose(&mut scene, &s, a.eps));
+                pilot_cpu += super::procstat::cpu_seconds(None) - cpu0;
+                eprintln!("seed {seed}: {}", c.summary());
+                c
+            })
+        })
+        .collect();
+    let settings = |method: Method, spp: u32, seed: u64| {
+        let d_opt = match (&choices[seed as usize], a.optimal_max_depth.0) {
+            (Some(c), _) => c.chosen,
+            (None, Some(d)) => d,
+            (None, None) => crate::mis::DEFAULT_OPTIMAL_MAX_DEPTH,
+        };
+        base(method, spp, seed, d_opt)
     };
     let eval = |method: Method, spp: u32, outs: Vec<(RenderOutput, f64)>| -> Result<Point> {
         let mut rel = Vec::new();
@@ -311,7 +340,8 @@ pub fn run(a: CompareArgs) -> Result<()> {
         "scene": a.scene.display().to_string(),
         "reference": a.reference.display().to_string(),
         "width": reference.width, "height": reference.height,
-        "max_depth": a.max_depth, "optimal_max_depth": a.optimal_max_depth, "kappa": a.kappa,
+        "max_depth": a.max_depth, "optimal_max_depth": a.optimal_max_depth.to_string(),
+        "optimal_depth_choices": choices, "pilot_cpu_seconds": pilot_cpu, "kappa": a.kappa,
         "seeds": a.seeds, "eps": a.eps, "equal_time_clock": clock_name(a.cpu_time),
         "equal_spp": points, "equal_time": timed,
     });

@@ -1,6 +1,8 @@
 //! The render settings flags shared by `omis render` and `omis submit`.
 
-use super::choices::{BpmWeightsArg, DirectArg, IntegratorArg, MisArg, SamplerArg, TechniquesArg};
+use super::choices::{
+    BpmWeightsArg, DirectArg, IntegratorArg, MisArg, OptimalDepthArg, SamplerArg, TechniquesArg,
+};
 use crate::job::{self, FieldError, JobSettings};
 use clap::Args;
 
@@ -31,9 +33,10 @@ pub struct JobArgs {
     /// Write the image of every path depth as EXR layers `depth<d>`.
     #[arg(long)]
     pub depth_layers: bool,
-    /// Optimal MIS: weight depths 1..=D optimally, balance above.
-    #[arg(long, default_value_t = crate::mis::DEFAULT_OPTIMAL_MAX_DEPTH)]
-    pub optimal_max_depth: u32,
+    /// Optimal MIS: weight depths 1..=D optimally, balance above; `auto`: a pilot render of
+    /// about 37k pixel samples measures which depths pay at equal time.
+    #[arg(long, default_value_t = OptimalDepthArg(None))]
+    pub optimal_max_depth: OptimalDepthArg,
     /// Optimal MIS: regularisation toward the balance solution, in pseudo-samples (0 = the
     /// plain direct estimator).
     #[arg(long, default_value_t = crate::mis::DEFAULT_KAPPA)]
@@ -95,7 +98,7 @@ impl JobArgs {
             integrator: self.integrator.into(),
             mis: self.mis.into(),
             techniques: self.techniques.into(),
-            optimal_max_depth: self.optimal_max_depth,
+            optimal_max_depth: self.optimal_max_depth.0,
             kappa: self.kappa,
             max_depth: self.max_depth,
             seed: self.seed,

@@ -8,7 +8,8 @@ use super::job_args::JobArgs;
 use super::service_cmds::{init_logging, runtime, submit_job, wait_job};
 use crate::film::RayStats;
 use crate::film::{Image, exr_io, metrics, png};
-use crate::job::{Limits, Resolved};
+use crate::job::optimal_depth::DepthChoice;
+use crate::job::{JobSettings, Limits, Resolved};
 use crate::scene::Scene;
 use crate::service;
 use crate::service::exr_header;
@@ -57,6 +58,8 @@ struct Done {
     threads: usize,
     mode: String,
     bytes_per_pixel: usize,
+    /// Optimal MIS: the D_opt rendered with, and the pilot's choice when it chose.
+    optimal: Option<(u32, Option<DepthChoice>)>,
 }
 
 fn read_reference(p: &Path, r: &Resolved) -> Result<Image> {
@@ -85,7 +88,17 @@ pub fn run(a: RenderArgs) -> Result<()> {
     for w in &scene.warnings {
         eprintln!("omis: warning: {w}");
     }
-    let resolved = settings
+    // Through the service the coordinator resolves the job (and runs the D_opt pilot); this
+    // copy only checks the settings against the scene and sizes the reference.
+    let local = if a.in_process {
+        settings.clone()
+    } else {
+        JobSettings {
+            optimal_max_depth: Some(settings.optimal_max_depth.unwrap_or(0)),
+            ..settings.clone()
+        }
+    };
+    let resolved = local
         .resolve(&mut scene, &Limits::default())
         .map_err(super::job_args::flag_error)?;
     let reference = match &a.reference {
@@ -107,7 +120,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         let (tar, main) =
             service::bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
         drop(scene);
-        through_service(&a, (tar, main), &out, bytes_per_pixel)?
+        through_service(&a, (tar, main), &out)?
     };
     summary(&a, &resolved, &out, &done, reference.as_ref())
 }
@@ -151,15 +164,16 @@ fn in_process(
         threads: pool.current_num_threads(),
         mode: "in-process".into(),
         bytes_per_pixel,
+        optimal: r.render.mis.is_optimal().then(|| {
+            (
+                r.film_layout().d_opt().unwrap_or(0),
+                r.optimal_depth.clone(),
+            )
+        }),
     })
 }
 
-fn through_service(
-    a: &RenderArgs,
-    (tar, main): (Vec<u8>, String),
-    out: &Path,
-    bytes_per_pixel: usize,
-) -> Result<Done> {
+fn through_service(a: &RenderArgs, (tar, main): (Vec<u8>, String), out: &Path) -> Result<Done> {
     let workers = a
         .workers
         .unwrap_or(if a.threads > 0 { a.threads } else { cores() })
@@ -217,7 +231,8 @@ fn through_service(
         spp: st.spp_done,
         threads: workers,
         mode: format!("{workers} worker processes"),
-        bytes_per_pixel,
+        bytes_per_pixel: st.accum_bytes_per_pixel.max(0) as usize,
+        optimal: st.optimal_max_depth.map(|d| (d, st.optimal_depth.clone())),
     })
 }
 
@@ -253,6 +268,12 @@ fn summary(
             None => String::new(),
         }
     );
+    if let Some((d_opt, choice)) = &d.optimal {
+        match choice {
+            Some(c) => eprintln!("optimal MIS: {}", c.summary()),
+            None => eprintln!("optimal MIS: D_opt {d_opt} (--optimal-max-depth)"),
+        }
+    }
     if st.non_finite > 0 {
         eprintln!(
             "omis: warning: {} samples were NaN or infinite and were dropped",
@@ -281,6 +302,10 @@ fn summary(
             "mean_rgb": mean,
             "non_finite_samples": st.non_finite,
         });
+        if let Some((d_opt, choice)) = &d.optimal {
+            j["optimal_max_depth"] = serde_json::json!(d_opt);
+            j["optimal_depth"] = serde_json::json!(choice);
+        }
         if a.in_process {
             j["closest_rays"] = serde_json::json!(st.closest);
             j["shadow_rays"] = serde_json::json!(st.shadow);

@@ -3,6 +3,7 @@
 //! service refuse the same inputs with the same words, and resolve them to the same
 //! `RenderSettings` (the in-process and distributed renders of a job must be equal).
 
+pub mod optimal_depth;
 mod schedule;
 
 pub use schedule::{RenderOutput, make_tiles};
@@ -52,8 +53,9 @@ pub struct JobSettings {
     pub mis: MisKind,
     /// BDPT: which techniques contribute (all, or light tracing / NEE alone for validation).
     pub techniques: Techniques,
-    /// Optimal MIS: depths 1 ..= D weighted optimally, balance above.
-    pub optimal_max_depth: u32,
+    /// Optimal MIS: depths 1 ..= D weighted optimally, balance above; None (the default): chosen
+    /// by a pilot render (`optimal_depth::choose`).
+    pub optimal_max_depth: Option<u32>,
     /// Optimal MIS: regularisation toward the balance solution (0 = the plain direct estimator).
     pub kappa: f64,
     /// Maximum path depth in bounces; default: the scene's, else 5.
@@ -105,7 +107,7 @@ impl Default for JobSettings {
             integrator: IntegratorKind::Pt,
             mis: MisKind::Balance,
             techniques: Techniques::All,
-            optimal_max_depth: crate::mis::DEFAULT_OPTIMAL_MAX_DEPTH,
+            optimal_max_depth: None,
             kappa: crate::mis::DEFAULT_KAPPA,
             max_depth: None,
             seed: 0,
@@ -201,6 +203,10 @@ pub struct Resolved {
     pub max_pass_size: Option<u32>,
     /// eps of relMSE = mean (I - R)^2 / (R^2 + eps).
     pub eps: f64,
+    /// Optimal MIS with D_opt left to the pilot: what it measured and chose
+    /// (`render.optimal_max_depth` holds the choice).
+    #[serde(default)]
+    pub optimal_depth: Option<optimal_depth::DepthChoice>,
 }
 
 impl Resolved {
@@ -224,9 +230,13 @@ impl Resolved {
                 format!("{:?}", r.techniques).to_lowercase(),
             ));
         }
-        if let Some(d_opt) = r.film_layout().d_opt() {
+        if r.mis.is_optimal() {
+            let d_opt = r.film_layout().d_opt().unwrap_or(0);
             attributes.push(("omis.optimal_max_depth", d_opt.to_string()));
             attributes.push(("omis.kappa", r.optimal_kappa.to_string()));
+            if let Some(c) = &self.optimal_depth {
+                attributes.push(("omis.optimal_max_depth_auto", c.summary()));
+            }
         }
         attributes
     }
@@ -288,14 +298,12 @@ impl JobSettings {
                 "light tracing or NEE alone has one technique per depth: nothing for optimal MIS to weight",
             ));
         }
-        if self.optimal_max_depth > crate::mis::optimal::MAX_OPTIMAL_DEPTH {
+        if let Some(d) = self.optimal_max_depth
+            && d > crate::mis::optimal::MAX_OPTIMAL_DEPTH
+        {
             return Err(FieldError::new(
                 "optimal_max_depth",
-                format!(
-                    "{} exceeds {}",
-                    self.optimal_max_depth,
-                    crate::mis::optimal::MAX_OPTIMAL_DEPTH
-                ),
+                format!("{d} exceeds {}", crate::mis::optimal::MAX_OPTIMAL_DEPTH),
             ));
         }
         if !(self.kappa >= 0.0 && self.kappa <= MAX_KAPPA) {
@@ -419,7 +427,7 @@ impl JobSettings {
                 ),
             ));
         }
-        let render = RenderSettings {
+        let mut render = RenderSettings {
             integrator: self.integrator,
             spp: spp.unwrap_or(self.pass_size),
             max_depth,
@@ -429,7 +437,9 @@ impl JobSettings {
             mis: self.mis,
             techniques: self.techniques,
             strategies: self.strategies,
-            optimal_max_depth: self.optimal_max_depth,
+            optimal_max_depth: self
+                .optimal_max_depth
+                .unwrap_or(crate::mis::DEFAULT_OPTIMAL_MAX_DEPTH),
             optimal_kappa: self.kappa,
             depth_layers: self.depth_layers,
             radius: self.radius.unwrap_or(0.0) as f32,
@@ -437,6 +447,11 @@ impl JobSettings {
             bdd: self.bdd,
             bpm_weights: self.bpm_weights,
         };
+        let optimal_depth = (self.optimal_max_depth.is_none() && optimal_depth::applies(&render))
+            .then(|| optimal_depth::choose(scene, &render, self.eps));
+        if let Some(c) = &optimal_depth {
+            render.optimal_max_depth = c.chosen;
+        }
         Ok(Resolved {
             width,
             height,
@@ -447,6 +462,7 @@ impl JobSettings {
             pass_size: self.pass_size,
             max_pass_size: Some(self.max_pass_size.max(self.pass_size)),
             eps: self.eps,
+            optimal_depth,
         })
     }
 }
@@ -467,6 +483,7 @@ mod tests {
             pass_size: 16,
             max_pass_size: None,
             eps: 0.01,
+            optimal_depth: None,
         };
         assert_eq!(r.total_passes(), Some(3));
         assert_eq!(r.pass_range(0), Some(0..16));

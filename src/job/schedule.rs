@@ -64,6 +64,7 @@ impl Resolved {
             pass_size,
             max_pass_size: None,
             eps: 0.01,
+            optimal_depth: None,
         }
     }
 

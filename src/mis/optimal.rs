@@ -37,9 +37,10 @@ use super::solve::solve_psd;
 /// Default regularisation strength kappa (pseudo-samples pulling toward the balance solution).
 pub const DEFAULT_KAPPA: f64 = 1.0;
 
-/// Default largest depth weighted optimally. Measured on four scenes (BENCHMARKS.md #14): the
-/// equal-spp gain is at depth 1, and depths 2-5 stay within 2 % of balance at equal spp while
-/// their systems cost 10-30 % of the samples at equal time.
+/// Largest depth weighted optimally where no pilot chooses it (`RenderSettings` built directly;
+/// jobs default to the pilot, `job::optimal_depth`). Measured on four scenes (BENCHMARKS.md
+/// #14): the equal-spp gain is at depth 1, and depths 2-5 stay within 2 % of balance at equal
+/// spp while their systems cost 10-30 % of the samples at equal time.
 pub const DEFAULT_OPTIMAL_MAX_DEPTH: u32 = 1;
 
 /// Largest depth the optimal estimator supports (N = d + 2 <= 64 techniques).
@@ -263,6 +264,21 @@ impl OptimalAccum {
         }
         solve_psd(a, n, b, 3, 1e-12, &mut scratch.factor);
         b.iter().all(|v| v.is_finite()).then_some(&b[..])
+    }
+
+    /// Samples added to depth d's system at `pixel` (null samples included): every sample adds
+    /// W W^T with sum_i W_i = 1, so the entries of A sum to the sample count.
+    pub fn samples_taken(&self, pixel: usize, d: u32) -> f64 {
+        let n = d as usize + 2;
+        let start = pixel * self.layout.stride + self.layout.offset(d);
+        let a = &self.data[start..start + n * (n + 1) / 2];
+        let mut total = 0.0;
+        for i in 0..n {
+            for j in i..n {
+                total += if i == j { 1.0 } else { 2.0 } * a[packed(n, i, j)];
+            }
+        }
+        total
     }
 
     /// The balance-heuristic estimate of depth d at `pixel` from the same accumulators:

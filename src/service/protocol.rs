@@ -484,6 +484,10 @@ pub struct JobStatus {
     pub non_finite_samples: i64,
     /// Whether the job has a reference image.
     pub has_reference: bool,
+    /// Optimal MIS: the largest depth weighted optimally (D_opt; 0: balance at every depth).
+    pub optimal_max_depth: Option<u32>,
+    /// Optimal MIS with `optimal_max_depth` left unset: what the pilot measured and chose.
+    pub optimal_depth: Option<crate::job::optimal_depth::DepthChoice>,
     /// Paths of the job's resources.
     pub links: JobLinks,
 }

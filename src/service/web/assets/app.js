@@ -481,6 +481,8 @@ async function jobView(signal, id) {
       fact('ETA', active ? fmtSeconds(eta) : '—'),
       fact('relMSE', st.has_reference ? fmtRel(st.relmse) : 'no reference', 'job-relmse'),
       fact('Integrator', s.integrator === 'bdpt' ? `bdpt, ${s.mis}` : (s.integrator || '—')),
+      ...(st.optimal_max_depth == null ? [] : [fact('Optimal max depth',
+        st.optimal_depth ? `${st.optimal_max_depth} (auto: pilot ${st.optimal_depth.pilot_resolution.join(' × ')})` : `${st.optimal_max_depth}`, 'job-dopt')]),
       fact('Seed', s.seed ?? '—'));
     if (st.error) facts.append(h('div', { class: 'wide' }, h('dt', {}, 'Error'), h('dd', { class: 'error' }, st.error)));
     cancelBtn.hidden = !active;
@@ -736,7 +738,7 @@ async function submitView(signal) {
           field('Sampler', h('select', { name: 'sampler', id: 'f-sampler' }, opt('sobol'), opt('stratified'), opt('independent'))),
           field('Direct light (pt)', h('select', { name: 'direct', id: 'f-direct' }, opt('mis'), opt('light'), opt('bsdf'))),
           field('Techniques (bdpt)', h('select', { name: 'techniques', id: 'f-techniques' }, opt('all'), opt('lt'), opt('nee'))),
-          field('Optimal max depth', num('optimal_max_depth', { min: 1, placeholder: '1' })),
+          field('Optimal max depth', num('optimal_max_depth', { min: 0, placeholder: 'auto' })),
           field('kappa', num('kappa', { min: 0, step: 'any', placeholder: 'default' })),
           field('relMSE eps', num('eps', { min: 0, step: 'any', placeholder: '0.01' })),
           h('label', { class: 'inline' }, h('input', { type: 'checkbox', name: 'depth_layers', id: 'f-depth_layers' }), 'depth layers'),

@@ -1,0 +1,275 @@
+//! The automatic choice of D_opt, the largest depth weighted optimally (issue #14): a pilot
+//! render measures, per candidate D, the error of the estimate and what its systems cost, and
+//! the job keeps optimal weights only up to the depth where they pay at equal time.
+//!
+//! Why a pilot and not the job's first pass: the choice fixes the layout of every task result
+//! and tile checkpoint, so it must be known before the first task; and it must be a function of
+//! the job alone (scene, settings, seed), so that in-process and distributed renders, tilings and
+//! retries all make the same choice and keep the same bits. The pilot is deterministic (fixed
+//! seeds, its counters instead of clocks) and small (`PILOT_PIXELS` pixels, `PILOT_REPLICAS`
+//! renders of `PILOT_SPP` samples: about 37k pixel samples, whatever the job's size).
+//!
+//! The estimates: the pilot renders the whole frame at a reduced resolution (same camera, same
+//! field of view; the techniques' relative densities per pixel do not depend on the resolution,
+//! since light tracing's N_L grows with the pixel count) with optimal systems at every depth up to
+//! `AUTO_MAX_DEPTH`, `PILOT_REPLICAS` times with independent seeds. From the same systems each
+//! depth has its balance estimate (sum_i b_i / S) and its optimal one (the solve), so each
+//! candidate D gives a pixel value per replica; the variance across replicas, over
+//! (R^2 + eps) as in relMSE, is the candidate's error V(D) at `PILOT_SPP` samples.
+//!
+//! The cost: optimal MIS adds, per technique sample at depth d, one update of the depth's system
+//! (`block_len(d)` multiply-adds, Kondapaneni et al. 2019, Algorithm 1 lines 6-7) where balance
+//! adds one RGB value. Every sample adds W W^T with sum_i W_i = 1, so the entries of A sum to the
+//! samples it took: the pilot counts the updates exactly. Relative to the render's rays,
+//! time(D) / time(balance) = 1 + `COST_PER_UPDATE_VALUE` x (values updated per pixel sample) /
+//! (rays per pixel sample), with the constant measured (BENCHMARKS.md #14). At equal time the
+//! error is V(D) x time(D); D = 0 (balance) is a candidate, and a deeper D is kept only when it
+//! beats the best shallower one by `MARGIN`.
+
+use crate::integrator::{IntegratorKind, RenderSettings, Techniques};
+use crate::mis::optimal::block_len;
+use crate::mis::{MisKind, SolveScratch};
+use crate::scene::Scene;
+use serde::{Deserialize, Serialize};
+
+/// Deepest candidate D: the measured gains lie at depths 1-2 (BENCHMARKS.md #14), and a depth-5
+/// system already costs 49 values per technique sample.
+pub const AUTO_MAX_DEPTH: u32 = 5;
+/// Pixels of the pilot frame (at most; the job's frame when smaller).
+pub const PILOT_PIXELS: u32 = 48 * 48;
+/// Independent pilot renders.
+pub const PILOT_REPLICAS: u32 = 4;
+/// Samples per pixel of each pilot render.
+pub const PILOT_SPP: u32 = 4;
+/// Time of one value of a system update, in rays traced. Calibrated in BENCHMARKS.md #14 from
+/// release renders at D_opt 0, 1, 3 and 5 (1 thread, 256x256, 8 spp, minimum of 3): 0.002 to
+/// 0.008 on three scenes at D_opt 5, where the overhead is largest and best measured.
+pub const COST_PER_UPDATE_VALUE: f64 = 0.005;
+/// A deeper D must lower the predicted error at equal time by this fraction.
+pub const MARGIN: f64 = 0.03;
+
+/// What the pilot measured and chose; kept in the job's resolved settings, its status, the
+/// render summary and the EXR header.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct DepthChoice {
+    /// The chosen D_opt (0: balance at every depth).
+    pub chosen: u32,
+    /// The pilot frame, [width, height].
+    pub pilot_resolution: [u32; 2],
+    /// Independent pilot renders.
+    pub replicas: u32,
+    /// Samples per pixel of each pilot render.
+    pub pilot_spp: u32,
+    /// Per candidate D = 0 ..= the deepest tried: relMSE of one pilot render (its variance
+    /// across the replicas over R^2 + eps).
+    pub relmse: Vec<f64>,
+    /// Per candidate D: standard error of `relmse` (over the pilot's pixels and channels).
+    pub relmse_se: Vec<f64>,
+    /// Per candidate D: predicted time relative to balance.
+    pub time: Vec<f64>,
+    /// Per candidate D: bytes of accumulators per pixel.
+    pub bytes_per_pixel: Vec<usize>,
+}
+
+impl DepthChoice {
+    /// Predicted relMSE x time of candidate D, relative to balance (1 for D = 0).
+    pub fn relative_cost(&self, d: usize) -> f64 {
+        let base = self.relmse[0] * self.time[0];
+        if base > 0.0 {
+            self.relmse[d] * self.time[d] / base
+        } else {
+            1.0
+        }
+    }
+
+    /// One line for summaries and EXR headers.
+    pub fn summary(&self) -> String {
+        let per_d: Vec<String> = (0..self.relmse.len())
+            .map(|d| format!("D{d} {:.3}", self.relative_cost(d)))
+            .collect();
+        format!(
+            "auto D_opt {} (pilot {}x{}, {} x {} spp; relMSE x time vs balance: {})",
+            self.chosen,
+            self.pilot_resolution[0],
+            self.pilot_resolution[1],
+            self.replicas,
+            self.pilot_spp,
+            per_d.join(", ")
+        )
+    }
+}
+
+/// Whether `s` is a render whose D_opt can be chosen (BDPT, optimal MIS, every technique).
+pub fn applies(s: &RenderSettings) -> bool {
+    s.integrator == IntegratorKind::Bdpt && s.mis.is_optimal() && s.techniques == Techniques::All
+}
+
+/// The pilot frame of a `width` x `height` job: the same aspect, at most `PILOT_PIXELS` pixels.
+pub fn pilot_resolution(width: u32, height: u32) -> [u32; 2] {
+    let pixels = width as u64 * height as u64;
+    if pixels <= PILOT_PIXELS as u64 {
+        return [width, height];
+    }
+    let scale = (PILOT_PIXELS as f64 / pixels as f64).sqrt();
+    let w = ((width as f64 * scale).floor() as u32).clamp(1, width);
+    let h = ((height as f64 * scale).floor() as u32).clamp(1, height);
+    [w, h]
+}
+
+/// Seed of pilot replica `k` of a job seeded `seed` (none equals the job's own samples' seed).
+fn replica_seed(seed: u64, k: u32) -> u64 {
+    // SplitMix64 finaliser of (seed, k).
+    let mut z = seed ^ (0x9e37_79b9_7f4a_7c15u64.wrapping_mul(k as u64 + 1)) ^ 0x5eed_9170;
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// Per-replica pixel values of every candidate D, and the update counts, of one pilot render.
+struct Replica {
+    /// [pixel][D][channel]
+    values: Vec<[f64; 3]>,
+    /// Values updated per pixel sample by depth d's systems, d = 1 ..= dmax (index d - 1).
+    updates: Vec<f64>,
+    /// Rays per pixel sample.
+    rays: f64,
+}
+
+/// Renders one pilot replica and evaluates every candidate D on it.
+fn replica(scene: &Scene, s: &RenderSettings, dmax: u32) -> Replica {
+    let job = super::Resolved::fixed(scene, s, 16, s.spp);
+    let out = job.render_in_process(scene, &|_| {});
+    let film = &out.film;
+    let acc = &film.acc;
+    let light_paths = film.light_paths();
+    let nd = dmax as usize + 1;
+    let pixels = acc.tile.pixels();
+    let mut values = vec![[0.0; 3]; pixels * nd];
+    let mut updates = vec![0.0; dmax as usize];
+    let mut scratch = SolveScratch::default();
+    let Some(o) = acc.optimal.as_ref() else {
+        return Replica {
+            values,
+            updates,
+            rays: 0.0,
+        };
+    };
+    for i in 0..pixels {
+        let spp = acc.sums.count[i];
+        let n = spp.max(1) as f64;
+        let rest: [f64; 3] = std::array::from_fn(|c| (acc.sums.sum[i][c] + acc.splat[i][c]) / n);
+        let bal: Vec<[f64; 3]> = (1..=dmax).map(|d| o.balance(i, d, spp)).collect();
+        let opt: Vec<[f64; 3]> = (1..=dmax)
+            .map(|d| o.solve(i, d, spp, light_paths, s.optimal_kappa, &mut scratch))
+            .collect();
+        for cand in 0..nd {
+            let mut v = rest;
+            for d in 1..=dmax as usize {
+                let f = if d <= cand { opt[d - 1] } else { bal[d - 1] };
+                for c in 0..3 {
+                    v[c] += f[c];
+                }
+            }
+            values[i * nd + cand] = v;
+        }
+        for d in 1..=dmax {
+            updates[d as usize - 1] += o.samples_taken(i, d) * block_len(d) as f64;
+        }
+    }
+    let samples = out.stats.samples.max(1) as f64;
+    for u in &mut updates {
+        *u /= samples;
+    }
+    Replica {
+        values,
+        updates,
+        rays: out.stats.rays() as f64 / samples,
+    }
+}
+
+/// Chooses D_opt for rendering `scene` (camera at the job's resolution) with `settings`, relMSE
+/// measured with `eps`. Renders on the current rayon pool; the same inputs give the same choice.
+pub fn choose(scene: &mut Scene, settings: &RenderSettings, eps: f64) -> DepthChoice {
+    let dmax = AUTO_MAX_DEPTH.min(settings.max_depth);
+    let [w, h] = pilot_resolution(scene.camera.width, scene.camera.height);
+    let mut choice = DepthChoice {
+        chosen: 0,
+        pilot_resolution: [w, h],
+        replicas: PILOT_REPLICAS,
+        pilot_spp: PILOT_SPP,
+        relmse: vec![0.0],
+        relmse_se: vec![0.0],
+        time: vec![1.0],
+        bytes_per_pixel: vec![0],
+    };
+    if dmax == 0 {
+        return choice;
+    }
+    let Ok(pilot_camera) = scene.camera.with_resolution(w, h) else {
+        return choice;
+    };
+    let camera = std::mem::replace(&mut scene.camera, pilot_camera);
+    let replicas: Vec<Replica> = (0..PILOT_REPLICAS)
+        .map(|k| {
+            let s = RenderSettings {
+                spp: PILOT_SPP,
+                seed: replica_seed(settings.seed, k),
+                mis: MisKind::Optimal,
+                optimal_max_depth: dmax,
+                depth_layers: false,
+                strategies: false,
+                ..settings.clone()
+            };
+            replica(scene, &s, dmax)
+        })
+        .collect();
+    scene.camera = camera;
+
+    let nd = dmax as usize + 1;
+    let pixels = (w * h) as usize;
+    let k = PILOT_REPLICAS as f64;
+    let mut relmse = vec![0.0; nd];
+    let mut relmse_sq = vec![0.0; nd];
+    for i in 0..pixels {
+        for c in 0..3 {
+            // The pixel's value: the mean of the balance estimates.
+            let r = replicas.iter().map(|p| p.values[i * nd][c]).sum::<f64>() / k;
+            let norm = r * r + eps;
+            for (cand, e) in relmse.iter_mut().enumerate() {
+                let vals = replicas.iter().map(|p| p.values[i * nd + cand][c]);
+                let mean = vals.clone().sum::<f64>() / k;
+                let var = vals.map(|v| (v - mean) * (v - mean)).sum::<f64>() / (k - 1.0);
+                *e += var / norm;
+                relmse_sq[cand] += (var / norm) * (var / norm);
+            }
+        }
+    }
+    let count = (pixels * 3) as f64;
+    let rays = replicas.iter().map(|p| p.rays).sum::<f64>() / k;
+    let mut time = vec![1.0; nd];
+    let mut bytes = vec![0; nd];
+    for cand in 1..nd {
+        let updates: f64 = (0..cand)
+            .map(|d| replicas.iter().map(|p| p.updates[d]).sum::<f64>() / k)
+            .sum();
+        time[cand] = 1.0 + COST_PER_UPDATE_VALUE * updates / rays.max(1.0);
+        bytes[cand] = crate::mis::Layout::new(cand as u32).bytes_per_pixel();
+    }
+    choice.relmse = relmse.iter().map(|e| e / count).collect();
+    choice.relmse_se = (0..nd)
+        .map(|c| {
+            let m = relmse[c] / count;
+            ((relmse_sq[c] / count - m * m).max(0.0) / (count - 1.0).max(1.0)).sqrt()
+        })
+        .collect();
+    choice.time = time;
+    choice.bytes_per_pixel = bytes;
+    let mut best = 0;
+    for cand in 1..nd {
+        if choice.relative_cost(cand) < choice.relative_cost(best) * (1.0 - MARGIN) {
+            best = cand;
+        }
+    }
+    choice.chosen = best as u32;
+    choice
+}
