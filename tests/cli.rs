@@ -28,6 +28,24 @@ fn last_json(out: &Output) -> serde_json::Value {
     serde_json::from_str(line).unwrap_or_else(|e| panic!("last line is not JSON ({e}): {line}"))
 }
 
+/// Runs `common` through the service (2 workers, to `svc`) and in-process (to `inp`); both must
+/// succeed.
+fn both_modes(common: &[&str], svc: &Path, inp: &Path) -> (Output, Output) {
+    let a = omis(&[common, &["--workers", "2", "--out", s(svc)]].concat());
+    assert!(
+        a.status.success(),
+        "{common:?} via the service: {}",
+        String::from_utf8_lossy(&a.stderr)
+    );
+    let b = omis(&[common, &["--in-process", "--out", s(inp)]].concat());
+    assert!(
+        b.status.success(),
+        "{common:?} in-process: {}",
+        String::from_utf8_lossy(&b.stderr)
+    );
+    (a, b)
+}
+
 fn assert_one_line_error(out: &Output, needle: &str) {
     assert!(!out.status.success(), "expected failure");
     let err = String::from_utf8_lossy(&out.stderr);
@@ -246,10 +264,7 @@ fn render_through_the_service_equals_the_in_process_render() {
         "--depth-layers",
         "--json",
     ];
-    let a = omis(&[&common[..], &["--workers", "2", "--out", s(&svc)]].concat());
-    assert!(a.status.success(), "{}", String::from_utf8_lossy(&a.stderr));
-    let b = omis(&[&common[..], &["--in-process", "--out", s(&inp)]].concat());
-    assert!(b.status.success(), "{}", String::from_utf8_lossy(&b.stderr));
+    let (a, b) = both_modes(&common, &svc, &inp);
     assert_eq!(last_json(&a)["mode"], "2 worker processes");
     assert_eq!(last_json(&b)["mode"], "in-process");
     assert!(
@@ -294,10 +309,7 @@ fn auto_optimal_depth_is_chosen_once_the_same_way_in_both_modes_and_reported() {
         "optimal",
         "--json",
     ];
-    let a = omis(&[&common[..], &["--workers", "2", "--out", s(&svc)]].concat());
-    assert!(a.status.success(), "{}", String::from_utf8_lossy(&a.stderr));
-    let b = omis(&[&common[..], &["--in-process", "--out", s(&inp)]].concat());
-    assert!(b.status.success(), "{}", String::from_utf8_lossy(&b.stderr));
+    let (a, b) = both_modes(&common, &svc, &inp);
     let (ja, jb) = (last_json(&a), last_json(&b));
     let choice = &jb["optimal_depth"];
     assert!(choice["chosen"].is_u64(), "{jb}");
@@ -378,18 +390,7 @@ fn pbrt_and_mitsuba_scenes_render_through_the_service_with_their_files() {
             "--resolution",
             "32x24",
         ];
-        let a = omis(&[&common[..], &["--workers", "2", "--out", s(&svc)]].concat());
-        assert!(
-            a.status.success(),
-            "{scene}: {}",
-            String::from_utf8_lossy(&a.stderr)
-        );
-        let b = omis(&[&common[..], &["--in-process", "--out", s(&inp)]].concat());
-        assert!(
-            b.status.success(),
-            "{scene}: {}",
-            String::from_utf8_lossy(&b.stderr)
-        );
+        both_modes(&common, &svc, &inp);
         let ia = omis::film::exr_io::read_exr(&svc).expect("service EXR");
         let ib = omis::film::exr_io::read_exr(&inp).expect("in-process EXR");
         assert_eq!(ia, ib, "{scene}");

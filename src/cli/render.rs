@@ -113,9 +113,8 @@ pub fn run(a: RenderArgs) -> Result<()> {
             .unwrap_or_else(|| "render".into());
         PathBuf::from(format!("{stem}.exr"))
     });
-    let bytes_per_pixel = resolved.film_layout().bytes_per_pixel();
     let done = if a.in_process {
-        in_process(&a, &scene, &resolved, &out, bytes_per_pixel)?
+        in_process(&a, &scene, &resolved, &out)?
     } else {
         let (tar, main) =
             service::bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
@@ -125,13 +124,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
     summary(&a, &resolved, &out, &done, reference.as_ref())
 }
 
-fn in_process(
-    a: &RenderArgs,
-    scene: &Scene,
-    r: &Resolved,
-    out: &Path,
-    bytes_per_pixel: usize,
-) -> Result<Done> {
+fn in_process(a: &RenderArgs, scene: &Scene, r: &Resolved, out: &Path) -> Result<Done> {
     let pool = super::thread_pool(a.threads)?;
     let tiles = r.tiles().len() as u64;
     let bar = ProgressBar::new(r.total_passes().map_or(0, |p| p as u64 * tiles));
@@ -163,13 +156,8 @@ fn in_process(
         spp,
         threads: pool.current_num_threads(),
         mode: "in-process".into(),
-        bytes_per_pixel,
-        optimal: r.render.mis.is_optimal().then(|| {
-            (
-                r.film_layout().d_opt().unwrap_or(0),
-                r.optimal_depth.clone(),
-            )
-        }),
+        bytes_per_pixel: r.film_layout().bytes_per_pixel(),
+        optimal: r.optimal_max_depth().map(|d| (d, r.optimal_depth.clone())),
     })
 }
 

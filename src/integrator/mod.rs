@@ -136,12 +136,17 @@ impl RenderSettings {
         }
     }
 
-    /// The optimal-MIS layout when this render accumulates optimal systems.
-    pub fn optimal_layout(&self) -> Option<crate::mis::Layout> {
-        (self.integrator == IntegratorKind::Bdpt
+    /// Whether optimal weights apply to this render at all (BDPT, optimal MIS, every technique),
+    /// whatever its D_opt.
+    pub fn optimal_applies(&self) -> bool {
+        self.integrator == IntegratorKind::Bdpt
             && self.mis.is_optimal()
             && self.techniques == Techniques::All
-            && self.optimal_max_depth >= 1)
+    }
+
+    /// The optimal-MIS layout when this render accumulates optimal systems.
+    pub fn optimal_layout(&self) -> Option<crate::mis::Layout> {
+        (self.optimal_applies() && self.optimal_max_depth >= 1)
             .then(|| crate::mis::Layout::new(self.optimal_max_depth.min(self.max_depth)))
     }
 

@@ -230,8 +230,7 @@ impl Resolved {
                 format!("{:?}", r.techniques).to_lowercase(),
             ));
         }
-        if r.mis.is_optimal() {
-            let d_opt = r.film_layout().d_opt().unwrap_or(0);
+        if let Some(d_opt) = self.optimal_max_depth() {
             attributes.push(("omis.optimal_max_depth", d_opt.to_string()));
             attributes.push(("omis.kappa", r.optimal_kappa.to_string()));
             if let Some(c) = &self.optimal_depth {
@@ -239,6 +238,15 @@ impl Resolved {
             }
         }
         attributes
+    }
+
+    /// Optimal MIS: the largest depth weighted optimally (0: balance at every depth); None for
+    /// other weights.
+    pub fn optimal_max_depth(&self) -> Option<u32> {
+        self.render
+            .mis
+            .is_optimal()
+            .then(|| self.film_layout().d_opt().unwrap_or(0))
     }
 
     /// The accumulators the job's films keep.
@@ -447,7 +455,7 @@ impl JobSettings {
             bdd: self.bdd,
             bpm_weights: self.bpm_weights,
         };
-        let optimal_depth = (self.optimal_max_depth.is_none() && optimal_depth::applies(&render))
+        let optimal_depth = (self.optimal_max_depth.is_none() && render.optimal_applies())
             .then(|| optimal_depth::choose(scene, &render, self.eps));
         if let Some(c) = &optimal_depth {
             render.optimal_max_depth = c.chosen;

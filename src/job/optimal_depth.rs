@@ -26,7 +26,7 @@
 //! error is V(D) x time(D); D = 0 (balance) is a candidate, and a deeper D is kept only when it
 //! beats the best shallower one by `MARGIN`.
 
-use crate::integrator::{IntegratorKind, RenderSettings, Techniques};
+use crate::integrator::RenderSettings;
 use crate::mis::optimal::block_len;
 use crate::mis::{MisKind, SolveScratch};
 use crate::scene::Scene;
@@ -97,11 +97,6 @@ impl DepthChoice {
             per_d.join(", ")
         )
     }
-}
-
-/// Whether `s` is a render whose D_opt can be chosen (BDPT, optimal MIS, every technique).
-pub fn applies(s: &RenderSettings) -> bool {
-    s.integrator == IntegratorKind::Bdpt && s.mis.is_optimal() && s.techniques == Techniques::All
 }
 
 /// The pilot frame of a `width` x `height` job: the same aspect, at most `PILOT_PIXELS` pixels.

@@ -163,11 +163,7 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         rays: job.rays,
         non_finite_samples: job.non_finite,
         has_reference: job.reference.is_some(),
-        optimal_max_depth: r
-            .render
-            .mis
-            .is_optimal()
-            .then(|| r.film_layout().d_opt().unwrap_or(0)),
+        optimal_max_depth: r.optimal_max_depth(),
         optimal_depth: r.optimal_depth.clone(),
         links: JobLinks::of(&job.id),
     })
