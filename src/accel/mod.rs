@@ -8,6 +8,8 @@
 //! through [`Scene`](crate::scene::Scene) (`intersect`, `occluded`, `light_pdf_dir`), and
 //! `omis bench` measures the bare ray rates.
 
+mod flat;
+
 use crate::geometry::{Ray, Vec2, Vec3};
 use obvhs::{
     Boundable, BvhBuildParams,
@@ -274,9 +276,16 @@ fn cwbvh_depth(bvh: &CwBvh) -> usize {
     deepest
 }
 
+/// Scenes of at most this many primitives answer closest-hit and occlusion queries by testing
+/// every primitive, eight triangles at a time, instead of traversing the BVH: on 20-40
+/// primitives that is about twice the ray rate (BENCHMARKS.md, issue 13).
+pub const FLAT_MAX: usize = 40;
+
 /// The BVH over a scene's triangles and spheres, answering closest-hit and occlusion queries.
 pub struct Accel {
     bvh: CwBvh,
+    /// Small scenes: every primitive in a flat list, which answers `intersect` and `occluded`.
+    flat: Option<flat::Flat>,
     /// Triangles in BVH leaf order (obvhs' `primitive_indices` resolved once).
     tris: Vec<RtTriangle>,
     /// Per BVH slot: the scene primitive it stands for.
@@ -289,12 +298,26 @@ pub struct Accel {
 }
 
 impl Accel {
-    /// `triangles[i]` are the world-space vertices of scene triangle `tri_ids[i]`; likewise spheres.
+    /// `triangles[i]` are the world-space vertices of scene triangle `tri_ids[i]`; likewise
+    /// spheres. Scenes of at most [`FLAT_MAX`] primitives are queried flat.
     pub fn build(
         triangles: &[[Vec3; 3]],
         tri_ids: &[u32],
         spheres: &[SphereGeom],
         sphere_ids: &[u32],
+    ) -> Accel {
+        let flat = triangles.len() + spheres.len() <= FLAT_MAX;
+        Accel::build_with(triangles, tri_ids, spheres, sphere_ids, flat)
+    }
+
+    /// As [`Accel::build`], with the choice between flat queries and BVH traversal made by the
+    /// caller (`omis bench` measures both; tests compare them).
+    pub fn build_with(
+        triangles: &[[Vec3; 3]],
+        tri_ids: &[u32],
+        spheres: &[SphereGeom],
+        sphere_ids: &[u32],
+        flat: bool,
     ) -> Accel {
         let start = Instant::now();
         let mut bounds: Vec<BoundsOnly> = Vec::with_capacity(triangles.len() + spheres.len());
@@ -343,8 +366,10 @@ impl Accel {
             }
         }
         let depth = cwbvh_depth(&bvh);
+        let flat = flat.then(|| flat::Flat::new(triangles, tri_ids, spheres, sphere_ids));
         Accel {
             bvh,
+            flat,
             tris,
             slots,
             spheres: sphere_geoms,
@@ -379,8 +404,19 @@ impl Accel {
         }
     }
 
-    /// Closest hit in [tmin, tmax].
+    /// Whether queries test every primitive (a scene of at most [`FLAT_MAX`] primitives) rather
+    /// than traverse the BVH.
+    pub fn is_flat(&self) -> bool {
+        self.flat.is_some()
+    }
+
+    /// Closest hit in [tmin, tmax).
     pub fn intersect(&self, ray: &Ray) -> Option<AccelHit> {
+        if let Some(f) = &self.flat {
+            return f
+                .intersect(ray)
+                .map(|(prim, t, bary)| AccelHit { prim, t, bary });
+        }
         if self.slots.is_empty() {
             return None;
         }
@@ -408,8 +444,11 @@ impl Accel {
         })
     }
 
-    /// True when something lies on the ray within [tmin, tmax] (early exit).
+    /// True when something lies on the ray within [tmin, tmax) (early exit).
     pub fn occluded(&self, ray: &Ray) -> bool {
+        if let Some(f) = &self.flat {
+            return f.occluded(ray);
+        }
         if self.slots.is_empty() {
             return false;
         }
@@ -428,5 +467,85 @@ impl Accel {
         let r = Self::to_bvh_ray(ray);
         self.bvh
             .ray_traverse_anyhit(r, |_, slot| f(self.slots[slot]));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sampler::Pcg32;
+
+    /// Flat queries and BVH traversal find the same distance, bit for bit, and the same
+    /// primitive unless two primitives lie at that distance (a shared edge); occlusion agrees.
+    #[test]
+    fn flat_queries_equal_bvh_traversal() {
+        let mut rng = Pcg32::new(7, 1);
+        let mut p = |s: f32| Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * s;
+        let mut tris: Vec<[Vec3; 3]> = (0..45)
+            .map(|_| {
+                let c = p(4.0);
+                [c, c + p(1.0), c + p(1.0)]
+            })
+            .collect();
+        // A quad split along its diagonal: rays through the diagonal hit two triangles at once.
+        let q = [
+            Vec3::ZERO,
+            Vec3::X * 4.0,
+            Vec3::new(4.0, 4.0, 0.0),
+            Vec3::Y * 4.0,
+        ];
+        tris.push([q[0], q[1], q[2]]);
+        tris.push([q[0], q[2], q[3]]);
+        let ids: Vec<u32> = (0..tris.len() as u32).map(|i| 100 + i).collect();
+        let spheres: Vec<SphereGeom> = (0..3)
+            .map(|_| SphereGeom {
+                center: p(4.0),
+                radius: 0.5,
+            })
+            .collect();
+        let sphere_ids = [7, 8, 9];
+        let flat = Accel::build_with(&tris, &ids, &spheres, &sphere_ids, true);
+        let bvh = Accel::build_with(&tris, &ids, &spheres, &sphere_ids, false);
+        assert!(flat.is_flat() && !bvh.is_flat());
+        let (mut hits, mut ties, mut blocked) = (0, 0, 0);
+        for i in 0..40_000 {
+            let o = p(6.0) - Vec3::splat(1.0);
+            // Every tenth ray aims at the diagonal of the quad.
+            let target = if i % 10 == 0 {
+                let u = p(1.0).x;
+                Vec3::new(4.0 * u, 4.0 * u, 0.0)
+            } else {
+                p(4.0)
+            };
+            let d = (target - o).normalize();
+            let tmax = if i % 2 == 0 {
+                f32::INFINITY
+            } else {
+                (target - o).length()
+            };
+            let ray = Ray {
+                o,
+                d,
+                tmin: 1e-3,
+                tmax,
+            };
+            let (a, b) = (flat.intersect(&ray), bvh.intersect(&ray));
+            assert_eq!(a.is_some(), b.is_some(), "ray {i}");
+            assert_eq!(flat.occluded(&ray), bvh.occluded(&ray), "ray {i}");
+            blocked += flat.occluded(&ray) as u32;
+            let (Some(a), Some(b)) = (a, b) else { continue };
+            hits += 1;
+            assert_eq!(a.t.to_bits(), b.t.to_bits(), "ray {i}");
+            if a.prim != b.prim {
+                ties += 1;
+            } else {
+                assert_eq!(a.bary, b.bary, "ray {i}");
+            }
+        }
+        assert!(
+            hits > 10_000 && blocked > 10_000,
+            "{hits} hits, {blocked} blocked"
+        );
+        assert!(ties < hits / 100, "{ties} ties of {hits} hits");
     }
 }

@@ -55,6 +55,21 @@ pub struct BenchArgs {
     /// Print one JSON object per target.
     #[arg(long)]
     pub json: bool,
+    /// Ray queries: `auto` (flat for scenes of at most 64 primitives, else the BVH), `bvh` or
+    /// `flat`, to compare the two on one scene.
+    #[arg(long, value_enum, default_value_t = AccelChoice::Auto)]
+    pub accel: AccelChoice,
+}
+
+/// How `omis bench` answers ray queries.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum AccelChoice {
+    /// As renders do: flat for small scenes, else the BVH.
+    Auto,
+    /// Always the BVH.
+    Bvh,
+    /// Every primitive tested against every ray.
+    Flat,
 }
 
 /// Box-downsamples `img` to `w` x `h` (its size must be an integer multiple of it).
@@ -94,6 +109,8 @@ fn downsample(img: &Image, w: usize, h: usize) -> Result<Image> {
 }
 
 struct RayRates {
+    /// The queries tested every primitive (no BVH).
+    flat: bool,
     closest_1t: f64,
     occlusion_1t: f64,
     closest_nt: f64,
@@ -142,6 +159,7 @@ fn measure_rays(accel: &Accel, lo: Vec3, hi: Vec3, n: usize, pool: &rayon::Threa
         }
     };
     RayRates {
+        flat: accel.is_flat(),
         closest_1t: time(&closest, false),
         occlusion_1t: time(&occl, false),
         closest_nt: time(&closest, true),
@@ -162,6 +180,11 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let mut scene = Scene::load(path).map_err(anyhow::Error::msg)?;
         let load = t0.elapsed().as_secs_f64();
         let rss_loaded = super::procstat::peak_rss_mib();
+        match a.accel {
+            AccelChoice::Auto => {}
+            AccelChoice::Bvh => scene.rebuild_accel(false),
+            AccelChoice::Flat => scene.rebuild_accel(true),
+        }
         scene.camera = scene
             .camera
             .with_resolution(w, h)
@@ -219,7 +242,10 @@ pub fn run(a: BenchArgs) -> Result<()> {
             tris.extend(m.indices.iter().map(|t| t.map(|k| m.positions[k as usize])));
         }
         let ids: Vec<u32> = (0..tris.len() as u32).collect();
-        let accel = Accel::build(&tris, &ids, &[] as &[SphereGeom], &[]);
+        let accel = match a.accel {
+            AccelChoice::Auto => Accel::build(&tris, &ids, &[] as &[SphereGeom], &[]),
+            choice => Accel::build_with(&tris, &ids, &[], &[], choice == AccelChoice::Flat),
+        };
         // As for scenes: the load time includes the BVH build.
         let load = t0.elapsed().as_secs_f64();
         let rss_loaded = super::procstat::peak_rss_mib();
@@ -304,7 +330,7 @@ fn report(
     if a.json {
         let mut j = serde_json::json!({
             "target": name, "triangles": triangles, "load_seconds": load,
-            "bvh_build_seconds": build, "threads": threads,
+            "bvh_build_seconds": build, "threads": threads, "flat": r.flat,
             "closest_mrays_1t": r.closest_1t / 1e6, "occlusion_mrays_1t": r.occlusion_1t / 1e6,
             "closest_mrays": r.closest_nt / 1e6, "occlusion_mrays": r.occlusion_nt / 1e6,
             "peak_rss_mib_after_load": rss_loaded, "peak_rss_mib": rss_end,
@@ -326,13 +352,14 @@ fn report(
     println!(
         "{name}: {triangles} triangles, load {load:.3} s (BVH build {build:.3} s of it); peak memory (VmHWM) {rss_loaded:.0} MiB after load"
     );
+    let queries = if r.flat { "flat" } else { "BVH" };
     println!(
-        "  random rays, 1 thread : closest {:.2} Mrays/s, occlusion {:.2} Mrays/s",
+        "  random rays ({queries}), 1 thread : closest {:.2} Mrays/s, occlusion {:.2} Mrays/s",
         r.closest_1t / 1e6,
         r.occlusion_1t / 1e6
     );
     println!(
-        "  random rays, {threads} thread(s): closest {:.2} Mrays/s, occlusion {:.2} Mrays/s",
+        "  random rays ({queries}), {threads} thread(s): closest {:.2} Mrays/s, occlusion {:.2} Mrays/s",
         r.closest_nt / 1e6,
         r.occlusion_nt / 1e6
     );

@@ -165,6 +165,31 @@ pub struct Scene {
     emitters_occlude: bool,
 }
 
+/// The world-space geometry of the triangles and spheres, in the scene's order.
+fn primitives(
+    positions: &[Vec3],
+    triangles: &[Triangle],
+    spheres: &[Sphere],
+) -> (Vec<[Vec3; 3]>, Vec<SphereGeom>) {
+    let tris = triangles
+        .iter()
+        .map(|t| t.v.map(|k| positions[k as usize]))
+        .collect();
+    let spheres = spheres
+        .iter()
+        .map(|s| SphereGeom {
+            center: s.center,
+            radius: s.radius,
+        })
+        .collect();
+    (tris, spheres)
+}
+
+/// Indices 0 .. n of a primitive list.
+fn ids<T>(list: &[T]) -> Vec<u32> {
+    (0..list.len() as u32).collect()
+}
+
 /// Above this many area lights the light-pdf sum of a direction uses the emitter BVH.
 const EMITTER_BVH_THRESHOLD: usize = 8;
 
@@ -276,6 +301,13 @@ impl Scene {
     /// The BVH over all primitives.
     pub fn accel(&self) -> &Accel {
         &self.accel
+    }
+
+    /// Builds the acceleration structure again, flat (every primitive tested) or a BVH, for
+    /// benchmarks that compare the two ([`Accel::build`] chooses by the primitive count).
+    pub fn rebuild_accel(&mut self, flat: bool) {
+        let (tris, spheres) = primitives(&self.positions, &self.triangles, &self.spheres);
+        self.accel = Accel::build_with(&tris, &ids(&tris), &spheres, &ids(&spheres), flat);
     }
 
     /// Probability of selecting light `l`.
@@ -662,22 +694,8 @@ impl SceneBuilder {
         let powers: Vec<f32> = lights.iter().map(|l| l.power()).collect();
         let light_select = Distribution1D::new(&powers);
 
-        let tri_geom: Vec<[Vec3; 3]> = self
-            .triangles
-            .iter()
-            .map(|t| t.v.map(|k| self.positions[k as usize]))
-            .collect();
-        let tri_ids: Vec<u32> = (0..self.triangles.len() as u32).collect();
-        let sphere_geom: Vec<SphereGeom> = self
-            .spheres
-            .iter()
-            .map(|s| SphereGeom {
-                center: s.center,
-                radius: s.radius,
-            })
-            .collect();
-        let sphere_ids: Vec<u32> = (0..self.spheres.len() as u32).collect();
-        let accel = Accel::build(&tri_geom, &tri_ids, &sphere_geom, &sphere_ids);
+        let (tri_geom, sphere_geom) = primitives(&self.positions, &self.triangles, &self.spheres);
+        let accel = Accel::build(&tri_geom, &ids(&tri_geom), &sphere_geom, &ids(&sphere_geom));
         let emitter_accel = (area_lights.len() > EMITTER_BVH_THRESHOLD)
             .then(|| Accel::build(&emit_tris, &emit_tri_ids, &emit_spheres, &emit_sphere_ids));
         let emitters_occlude = !coplanar_triangle_lights(&lights, &area_lights);
