@@ -305,8 +305,7 @@ fn random_walk(
         path[prev].pdf_rev = if s.delta {
             1.0
         } else {
-            let back = bsdf.pdf(s.wi, wo);
-            path[cur].area_density(back, &path[prev])
+            path[cur].area_density(s.pdf_rev, &path[prev])
         };
         beta *= s.f * (s.wi.dot(hit.ns).abs() / s.pdf);
         if beta == Rgb::ZERO {
@@ -945,7 +944,7 @@ fn next_event(
     };
     let zp = &ws.cam[t - 2];
     let (wo, _) = dir_to(z.p, zp.p);
-    let f = z.bsdf.eval(wo, ls.wi, Mode::Radiance);
+    let (f, pdf_fwd, pdf_rev) = z.bsdf.eval_pdfs(wo, ls.wi, Mode::Radiance);
     let contribution = z.beta * f * ls.le * (ls.wi.dot(z.ns).abs() / (pmf * ls.pdf));
     // Zero-contribution samples (occluded, or a zero BSDF / emission) are weighted as paths only
     // this technique could make (W = e_s): exact for occluded connections (every other technique
@@ -970,11 +969,11 @@ fn next_event(
         pe_y1: if ls.delta {
             0.0
         } else {
-            z.area_density(z.bsdf.pdf(wo, ls.wi), &v0)
+            z.area_density(pdf_fwd, &v0)
         },
         pe_y2: 0.0,
         pl_z1: v0.area_density(pdf_dir, z),
-        pl_z2: z.area_density(z.bsdf.pdf(ls.wi, wo), zp),
+        pl_z2: z.area_density(pdf_rev, zp),
         q1: if ls.delta {
             pmf
         } else {
@@ -1012,8 +1011,9 @@ fn connect(
     }
     let (wo_y, _) = dir_to(y.p, yp.p);
     let (wo_z, _) = dir_to(z.p, zp.p);
-    let fy = y.bsdf.eval(wo_y, w_yz, Mode::Importance);
-    let fz = z.bsdf.eval(wo_z, -w_yz, Mode::Radiance);
+    // y's value and densities toward z and back, z's likewise.
+    let (fy, y_to_z, y_back) = y.bsdf.eval_pdfs(wo_y, w_yz, Mode::Importance);
+    let (fz, z_to_y, z_back) = z.bsdf.eval_pdfs(wo_z, -w_yz, Mode::Radiance);
     let g = w_yz.dot(y.ns).abs() * w_yz.dot(z.ns).abs() / d2;
     let contribution = y.beta * fy * fz * z.beta * g;
     // Zero-contribution samples (occluded, or a zero BSDF / emission) are weighted as paths only
@@ -1031,10 +1031,10 @@ fn connect(
         return true;
     }
     let c = Connection {
-        pe_y1: z.area_density(z.bsdf.pdf(wo_z, -w_yz), y),
-        pe_y2: y.area_density(y.bsdf.pdf(w_yz, wo_y), yp),
-        pl_z1: y.area_density(y.bsdf.pdf(wo_y, w_yz), z),
-        pl_z2: z.area_density(z.bsdf.pdf(-w_yz, wo_z), zp),
+        pe_y1: z.area_density(z_to_y, y),
+        pe_y2: y.area_density(y_back, yp),
+        pl_z1: y.area_density(y_to_z, z),
+        pl_z2: z.area_density(z_back, zp),
         q1: ws.q1,
     };
     report(ws, sink, None, s, t, &c, depth, pixel, contribution);
@@ -1081,17 +1081,15 @@ fn connect_to_camera(
     let we = cam.we(w_cy);
     let cos_cam = w_cy.dot(cam.forward());
     let w_yc = -w_cy;
-    let (f, cos_y, wo_y) = if s == 1 {
+    // y's value toward the camera, and (s >= 2) the density of sampling its predecessor back.
+    let (f, cos_y, y_back) = if s == 1 {
         let light = &scene.lights[y.light as usize];
-        (light.le(y.ng, w_yc), y.abs_cos_ng(w_yc), Vec3::ZERO)
+        (light.le(y.ng, w_yc), y.abs_cos_ng(w_yc), 0.0)
     } else {
         let yp = &ws.light[s - 2];
         let (wo_y, _) = dir_to(y.p, yp.p);
-        (
-            y.bsdf.eval(wo_y, w_yc, Mode::Importance),
-            w_yc.dot(y.ns).abs(),
-            wo_y,
-        )
+        let (f, _, back) = y.bsdf.eval_pdfs(wo_y, w_yc, Mode::Importance);
+        (f, w_yc.dot(y.ns).abs(), back)
     };
     let contribution = y.beta * f * (cos_y * we * cos_cam / d2);
     // A zero-contribution light-tracing sample (occluded, or a zero BSDF) is weighted as a path
@@ -1107,8 +1105,7 @@ fn connect_to_camera(
     let z0 = &ws.cam[0];
     let pe_y1 = z0.area_density(cam.pdf_dir(w_cy), y);
     let pe_y2 = if s >= 2 {
-        let yp = &ws.light[s - 2];
-        y.area_density(y.bsdf.pdf(w_yc, wo_y), yp)
+        y.area_density(y_back, &ws.light[s - 2])
     } else {
         0.0
     };

@@ -331,21 +331,21 @@ fn merge(
             if depth > max_depth {
                 return;
             }
-            let f = z.bsdf().eval(wo, ph.wi, Mode::Radiance);
+            let (f, pdf_fwd, pdf_rev) = z.bsdf().eval_pdfs(wo, ph.wi, Mode::Radiance);
             if f == Rgb::ZERO {
                 return;
             }
             let contribution = z.throughput() * f * ph.beta * norm;
             // Light side: m(1 / (eta pL_i)) S_i, S_i completed with pE_{i-1} from the camera's
             // direction.
-            let pe_prev = z.bsdf().pdf(wo, ph.wi) as f64 * ph.g as f64;
+            let pe_prev = pdf_fwd as f64 * ph.g as f64;
             let light = (ph.alpha + ph.beta_m * m(pe_prev)) / (eta_b * m(ph.pl as f64));
             // Camera side: m(1 / (eta pE(z))) T_{t-1}, T_{t-1} completed with pL(z_{t-2}) from
             // the photon's direction.
             let sum = if t == 2 {
                 1.0
             } else {
-                let pl_zp = z.area_density(z.bsdf().pdf(ph.wi, wo), zp) as f64;
+                let pl_zp = z.area_density(pdf_rev, zp) as f64;
                 let v = !zp.is_delta() as u8 as f64;
                 let merge_zp = if zp.is_delta() { 0.0 } else { eta_b * m(pl_zp) };
                 v + m(pl_zp / zp.pdf_fwd() as f64) * ws.camera_sum(j - 1) + merge_zp

@@ -182,6 +182,42 @@ impl Lobe {
         }
     }
 
+    /// `(eval(wo, wi, mode), pdf(wo, wi), pdf(wi, wo))`, bit for bit, sharing what the three
+    /// have in common (Phong's cos^n).
+    #[inline]
+    pub fn eval_pdfs(&self, wo: Vec3, wi: Vec3, mode: Mode) -> (Rgb, f32, f32) {
+        self.eval_pdfs_if(wo, wi, mode, true)
+    }
+
+    /// `eval_pdfs`, with pdf(wi, wo) computed only when `rev` (else 0, unless it came free).
+    #[inline]
+    fn eval_pdfs_if(&self, wo: Vec3, wi: Vec3, mode: Mode, rev: bool) -> (Rgb, f32, f32) {
+        match *self {
+            Lobe::Phong { kd, ks, n, q } => {
+                if wo.z <= 0.0 || wi.z <= 0.0 {
+                    return (Rgb::ZERO, 0.0, 0.0);
+                }
+                // reflect_z(wo) . wi = reflect_z(wi) . wo, operation for operation.
+                let c = reflect_z(wo).dot(wi);
+                let cn = c.max(0.0).powf(n);
+                let f = kd * INV_PI + ks * ((n + 2.0) * INV_2PI * cn);
+                // power_cosine_pdf(c, n) with the power above.
+                let spec = if c > 0.0 {
+                    (n + 1.0) * INV_2PI * cn
+                } else {
+                    0.0
+                };
+                let pdf = |cos_i: f32| (1.0 - q) * cosine_hemisphere_pdf(cos_i) + q * spec;
+                (f, pdf(wi.z), pdf(wo.z))
+            }
+            _ => (
+                self.eval(wo, wi, mode),
+                self.pdf(wo, wi),
+                if rev { self.pdf(wi, wo) } else { 0.0 },
+            ),
+        }
+    }
+
     /// Solid-angle density with which [`sample`](Self::sample) produces `wi` (0 for delta lobes).
     pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
         match *self {
@@ -216,13 +252,13 @@ impl Lobe {
     /// Samples wi given wo; `u_lobe` picks a lobe, `u` the direction within it.
     pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2, mode: Mode) -> Option<LocalSample> {
         let continuous = |wi: Vec3| -> Option<LocalSample> {
-            let pdf = self.pdf(wo, wi);
+            let (f, pdf, _) = self.eval_pdfs_if(wo, wi, mode, false);
             if !(pdf > 0.0) || !pdf.is_finite() {
                 return None;
             }
             Some(LocalSample {
                 wi,
-                f: self.eval(wo, wi, mode),
+                f,
                 pdf,
                 delta: false,
             })

@@ -206,6 +206,12 @@ impl Material {
     }
 }
 
+/// A density as the BSDF reports it: zero where the lobe's is negative, NaN or infinite.
+#[inline]
+fn clean_pdf(p: f32) -> f32 {
+    if p.is_finite() && p > 0.0 { p } else { 0.0 }
+}
+
 /// A BSDF sample in world space.
 #[derive(Clone, Copy, Debug)]
 pub struct BsdfSample {
@@ -217,6 +223,8 @@ pub struct BsdfSample {
     pub pdf: f32,
     /// True when a delta lobe was chosen (no MIS with light sampling).
     pub delta: bool,
+    /// The density of sampling wo from wi, `pdf(wi, wo)` (0 for a delta sample, as `pdf`).
+    pub pdf_rev: f32,
 }
 
 /// The BSDF at one surface point: a resolved lobe in the shading frame, plus the geometric normal
@@ -322,13 +330,39 @@ impl Bsdf {
         }
     }
 
+    /// `(eval(wo, wi, mode), pdf(wo, wi), pdf(wi, wo))` bit for bit, in one change of frame:
+    /// what a BDPT connection or a merge needs of a vertex (its value and the densities of the
+    /// two directions sampled from each other).
+    #[inline]
+    pub fn eval_pdfs(&self, wo: Vec3, wi: Vec3, mode: Mode) -> (Rgb, f32, f32) {
+        let Some((lo, li)) = self.localize(wo, wi) else {
+            return (Rgb::ZERO, 0.0, 0.0);
+        };
+        let (f, fwd, rev) = self.lobe.eval_pdfs(lo, li, mode);
+        let f = f * self.shading_correction(wo, wi, mode);
+        (
+            if f.is_finite() { f } else { Rgb::ZERO },
+            clean_pdf(fwd),
+            self.swapped_pdf(rev, li, wi),
+        )
+    }
+
+    /// `pdf(wi, wo)` from `rev`, the lobe's density of the pair `localize(wo, wi)` returned,
+    /// swapped: `localize(wi, wo)` is that pair swapped, but for transmitting lobes, which also
+    /// ask wi to lie on the side of the shading normal its geometric side says.
+    #[inline]
+    fn swapped_pdf(&self, rev: f32, li: Vec3, wi: Vec3) -> f32 {
+        if self.lobe.transmits() && li.z * wi.dot(self.ng) <= 0.0 {
+            0.0
+        } else {
+            clean_pdf(rev)
+        }
+    }
+
     /// Solid-angle density of sampling wi from wo. Zero for delta lobes; never negative or NaN.
     pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
         match self.localize(wo, wi) {
-            Some((lo, li)) => {
-                let p = self.lobe.pdf(lo, li);
-                if p.is_finite() && p > 0.0 { p } else { 0.0 }
-            }
+            Some((lo, li)) => clean_pdf(self.lobe.pdf(lo, li)),
             None => 0.0,
         }
     }
@@ -364,16 +398,22 @@ impl Bsdf {
         }
         let wi = self.frame.to_world(li);
         // Reject samples whose geometric side contradicts the local one (keeps pdf consistent).
-        self.localize(wo, wi)?;
+        let (lo, li) = self.localize(wo, wi)?;
         let f = s.f * self.shading_correction(wo, wi, mode);
         if !(s.pdf > 0.0) || !s.pdf.is_finite() || !f.is_finite() {
             return None;
         }
+        let pdf_rev = if s.delta {
+            0.0
+        } else {
+            self.swapped_pdf(self.lobe.pdf(li, lo), li, wi)
+        };
         Some(BsdfSample {
             wi,
             f,
             pdf: s.pdf,
             delta: s.delta,
+            pdf_rev,
         })
     }
 }

@@ -662,6 +662,17 @@ fn fuzz_one(bsdf: &Bsdf, fz: &mut Fuzz) -> Result<(), String> {
         if !valid_rgb(f) {
             return Err(format!("eval {mode:?} = {f} at {}", ctx()));
         }
+        // The fused query is the three separate ones, bit for bit.
+        let fused = bsdf.eval_pdfs(wo, wi, mode);
+        let apart = (f, bsdf.pdf(wo, wi), bsdf.pdf(wi, wo));
+        let bits =
+            |(f, a, b): (Rgb, f32, f32)| (f.to_array().map(f32::to_bits), a.to_bits(), b.to_bits());
+        if bits(fused) != bits(apart) {
+            return Err(format!(
+                "eval_pdfs {mode:?} = {fused:?}, apart {apart:?} at {}",
+                ctx()
+            ));
+        }
     }
     let p = bsdf.pdf(wo, wi);
     if !(p.is_finite() && p >= 0.0) {
@@ -676,6 +687,15 @@ fn fuzz_one(bsdf: &Bsdf, fz: &mut Fuzz) -> Result<(), String> {
     } else {
         Mode::Importance
     };
+    if let Some(s) = bsdf.sample(wo, ul, u, mode) {
+        let rev = if s.delta { 0.0 } else { bsdf.pdf(s.wi, wo) };
+        if s.pdf_rev.to_bits() != rev.to_bits() {
+            return Err(format!(
+                "sample {mode:?} = {s:?}, pdf(wi, wo) = {rev} at {}",
+                ctx()
+            ));
+        }
+    }
     if let Some(s) = bsdf.sample(wo, ul, u, mode)
         && !(valid_rgb(s.f)
             && s.pdf > 0.0
