@@ -71,7 +71,14 @@ pub struct Vertex {
     delta: bool,
     /// Point light: a delta in position, never hit.
     delta_pos: bool,
+    /// The surface's material ([`NO_MATERIAL`] for the camera and light endpoints) and uv: what
+    /// the BSDF was made from, so that a stored vertex can make it again.
+    material: u32,
+    uv: Vec2,
 }
+
+/// The material of a path endpoint (camera or light vertex): its BSDF is black.
+const NO_MATERIAL: u32 = u32::MAX;
 
 impl Vertex {
     fn endpoint(kind: Kind, p: Vec3, n: Vec3, beta: Rgb, pdf_fwd: f32) -> Vertex {
@@ -87,6 +94,24 @@ impl Vertex {
             pdf_rev: 0.0,
             delta: false,
             delta_pos: false,
+            material: NO_MATERIAL,
+            uv: Vec2::ZERO,
+        }
+    }
+
+    /// The vertex without its BSDF (76 bytes instead of 176), for keeping many light subpaths.
+    pub(crate) fn stored(&self) -> StoredVertex {
+        StoredVertex {
+            p: self.p,
+            ng: self.ng,
+            ns: self.ns,
+            beta: self.beta,
+            uv: self.uv,
+            pdf_fwd: self.pdf_fwd,
+            pdf_rev: self.pdf_rev,
+            material: self.material,
+            light: self.light,
+            delta_pos: self.delta_pos,
         }
     }
 
@@ -163,6 +188,58 @@ impl Vertex {
         }
         let w = d / dist2.sqrt();
         pdf_dir * next.abs_cos_ng(w) / dist2
+    }
+}
+
+/// A light subpath vertex as [`Vertex::stored`] keeps it: the BSDF is made again from the
+/// material and uv ([`StoredVertex::load`]), the same bits as the one the random walk made.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct StoredVertex {
+    p: Vec3,
+    ng: Vec3,
+    ns: Vec3,
+    beta: Rgb,
+    uv: Vec2,
+    pdf_fwd: f32,
+    pdf_rev: f32,
+    material: u32,
+    light: u32,
+    delta_pos: bool,
+}
+
+impl StoredVertex {
+    /// Position.
+    pub(crate) fn position(&self) -> Vec3 {
+        self.p
+    }
+
+    /// The vertex again; `first` for y_0 (on the light), else a surface vertex.
+    pub(crate) fn load(&self, scene: &Scene, first: bool) -> Vertex {
+        let bsdf = if self.material == NO_MATERIAL {
+            Bsdf::new_black()
+        } else {
+            Bsdf::new(
+                &scene.materials[self.material as usize],
+                self.ng,
+                self.ns,
+                self.uv,
+            )
+        };
+        Vertex {
+            kind: if first { Kind::Light } else { Kind::Surface },
+            p: self.p,
+            ng: self.ng,
+            ns: self.ns,
+            bsdf,
+            light: self.light,
+            beta: self.beta,
+            pdf_fwd: self.pdf_fwd,
+            pdf_rev: self.pdf_rev,
+            delta: !first && bsdf.is_delta(),
+            delta_pos: self.delta_pos,
+            material: self.material,
+            uv: self.uv,
+        }
     }
 }
 
@@ -284,6 +361,8 @@ fn random_walk(
             pdf_rev: 0.0,
             delta: bsdf.is_delta(),
             delta_pos: false,
+            material: hit.material,
+            uv: hit.uv,
         };
         v.pdf_fwd = if via_delta {
             1.0
@@ -538,6 +617,14 @@ impl Workspace {
     /// The camera subpath z_0 (the pinhole) ...
     pub(crate) fn camera_vertices(&self) -> &[Vertex] {
         &self.cam
+    }
+
+    /// Takes `path` (a light subpath kept by [`Vertex::stored`]) as the light subpath, in place
+    /// of tracing one: the same vertices as `light_subpath` made.
+    pub(crate) fn load_light(&mut self, scene: &Scene, path: &[StoredVertex]) {
+        self.light.clear();
+        self.light
+            .extend(path.iter().enumerate().map(|(i, v)| v.load(scene, i == 0)));
     }
 
     /// The prepared partial sum S_j of light vertex j.
@@ -815,14 +902,48 @@ pub fn pixel_sample(
     sink: &mut dyn SampleSink,
     stats: &mut RayStats,
 ) {
-    let film = ps.cam_sampler.next_2d();
-    let raster = Vec2::new(ps.pixel.0 as f32 + film.x, ps.pixel.1 as f32 + film.y);
-    camera_subpath(scene, raster, ps.cam_sampler, ps.max_depth, ws, stats);
+    pixel_camera_subpath(scene, ps.pixel, ps.cam_sampler, ps.max_depth, ws, stats);
     light_subpath(scene, ps.light_sampler, ps.max_depth, ws, stats);
+    connect_all(
+        scene,
+        ps.pixel,
+        ps.max_depth,
+        ps.cam_sampler,
+        ws,
+        sink,
+        stats,
+    );
+}
+
+/// The camera subpath of a pixel sample: a raster position in `pixel`, then the walk.
+pub(crate) fn pixel_camera_subpath(
+    scene: &Scene,
+    pixel: (u32, u32),
+    sampler: &mut Sampler,
+    max_depth: u32,
+    ws: &mut Workspace,
+    stats: &mut RayStats,
+) {
+    let film = sampler.next_2d();
+    let raster = Vec2::new(pixel.0 as f32 + film.x, pixel.1 as f32 + film.y);
+    camera_subpath(scene, raster, sampler, max_depth, ws, stats);
+}
+
+/// Every technique of the traced (or loaded) subpaths of a pixel sample, reported to `sink`;
+/// `cam_sampler` gives next-event estimation its numbers.
+pub(crate) fn connect_all(
+    scene: &Scene,
+    pixel: (u32, u32),
+    max_depth: u32,
+    cam_sampler: &mut Sampler,
+    ws: &mut Workspace,
+    sink: &mut dyn SampleSink,
+    stats: &mut RayStats,
+) {
     ws.prepare(scene, sink.heuristic());
     let n_c = ws.cam.len();
     let n_l = ws.light.len();
-    let max_d = ps.max_depth as usize;
+    let max_d = max_depth as usize;
     for t in 1..=max_d + 2 {
         for s in 0..=max_d + 2 - t {
             if s + t < 2 {
@@ -838,27 +959,17 @@ pub fn pixel_sample(
             }
             if t > n_c {
                 if zero {
-                    sink.unsampled(ps.pixel, depth, s as u32);
+                    sink.unsampled(pixel, depth, s as u32);
                 }
                 continue;
             }
             let produced = match s {
-                0 => hit_emitter(scene, ws, t, depth, ps.pixel, zero, sink),
-                1 => next_event(
-                    scene,
-                    ws,
-                    t,
-                    depth,
-                    ps.pixel,
-                    ps.cam_sampler,
-                    zero,
-                    sink,
-                    stats,
-                ),
-                _ => s <= n_l && connect(scene, ws, s, t, depth, ps.pixel, zero, sink, stats),
+                0 => hit_emitter(scene, ws, t, depth, pixel, zero, sink),
+                1 => next_event(scene, ws, t, depth, pixel, cam_sampler, zero, sink, stats),
+                _ => s <= n_l && connect(scene, ws, s, t, depth, pixel, zero, sink, stats),
             };
             if !produced && zero {
-                sink.unsampled(ps.pixel, depth, s as u32);
+                sink.unsampled(pixel, depth, s as u32);
             }
         }
     }

@@ -86,7 +86,7 @@ impl<'a> Mixing<'a> {
         let mut qs: Vec<Photon> = Vec::new();
         frozen.query(m.p, |q| qs.push(*q));
         for q in &qs {
-            let v = (q.prev - m.p).normalize_or_zero();
+            let v = (frozen.prev(q) - m.p).normalize_or_zero();
             let (w1_0, _, f_t) = m.w1_parts(v);
             let e = luminance(q.beta) / frozen.flux.max(f64::MIN_POSITIVE);
             a_sum += w1_0 * f_t * e / n_f;
@@ -199,9 +199,9 @@ pub fn pixel_sample(
             let w = if c == m + 1 {
                 w_next
             } else if c == m && !ph.caustic {
-                mixing
-                    .as_ref()
-                    .map_or(1.0, |mx| 1.0 - mx.w1((ph.prev - mx.p).normalize_or_zero()))
+                mixing.as_ref().map_or(1.0, |mx| {
+                    1.0 - mx.w1((map.prev(ph) - mx.p).normalize_or_zero())
+                })
             } else {
                 1.0
             };

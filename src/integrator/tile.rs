@@ -334,18 +334,15 @@ fn render_tile_vcm(
         for y in tile.y0..tile.y1 {
             for x in tile.x0..tile.x1 {
                 let idx = (y - tile.y0) as usize * tile.width() + (x - tile.x0) as usize;
-                let new = |stream| {
-                    Sampler::new(
-                        settings.sampler,
-                        settings.seed,
-                        x,
-                        y,
-                        i,
-                        settings.spp,
-                        stream,
-                    )
-                };
-                let (mut sampler, mut light_sampler) = (new(Stream::Camera), new(Stream::Light));
+                let mut sampler = Sampler::new(
+                    settings.sampler,
+                    settings.seed,
+                    x,
+                    y,
+                    i,
+                    settings.spp,
+                    Stream::Camera,
+                );
                 if bpm {
                     let l = bpm::pixel_sample(
                         scene,
@@ -378,12 +375,9 @@ fn render_tile_vcm(
                 };
                 vcm::pixel_sample(
                     scene,
-                    bdpt::PixelSample {
-                        pixel: (x, y),
-                        max_depth,
-                        cam_sampler: &mut sampler,
-                        light_sampler: &mut light_sampler,
-                    },
+                    (x, y),
+                    max_depth,
+                    &mut sampler,
                     &map,
                     &mut ws,
                     &mut sink,

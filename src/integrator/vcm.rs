@@ -5,8 +5,9 @@
 //! An iteration is one sample index i: its N_L = width x height light subpaths are those BDPT
 //! traces for the pixel samples (x, y, i), so they are deterministic functions of (seed, i,
 //! pixel). Their vertices after the first bounce that are not specular are the iteration's
-//! photons ([`PhotonMap`], a hash grid). A pixel sample of iteration i is BDPT's (every
-//! connection, with its own light subpath) plus merging: every camera vertex z_j (j >= 1, not
+//! photons ([`PhotonMap`], a hash grid). The map keeps the subpaths too, so each is traced once
+//! per iteration: a pixel sample of iteration i is BDPT's (every connection, with its own light
+//! subpath, taken from the map) plus merging: every camera vertex z_j (j >= 1, not
 //! specular) gathers the photons within r_i, each a path of depth i_photon + j - 1. One MIS covers
 //! connections and merges, the recursive weights of [`bdpt::Workspace::prepare`] with eta =
 //! N_L pi r_i^2.
@@ -21,7 +22,7 @@
 //! threads, the workers or retries.
 
 use super::RenderSettings;
-use super::bdpt::{self, SampleSink, Workspace};
+use super::bdpt::{self, SampleSink, StoredVertex, Workspace};
 use crate::film::RayStats;
 use crate::geometry::{Rgb, Vec3};
 use crate::material::Mode;
@@ -50,39 +51,44 @@ pub fn radius(scene: &Scene, settings: &RenderSettings, iteration: u32) -> f32 {
     (r0 as f64 * (iteration as f64 + 1.0).powf(0.5 * (alpha - 1.0))) as f32
 }
 
-/// One stored light vertex y_i (i >= 1, not specular) and what its merges need of its subpath.
+/// A light vertex y_i (i >= 1, not specular) as merges use it: one 64-byte cache line, so that
+/// a query's scan of a grid bucket reads everything an accepted photon needs.
 #[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
 pub struct Photon {
+    /// The light side of a merge's weight is `light_a + light_b m(pE)`, pE the density with
+    /// which the camera vertex's BSDF samples the direction toward y_{i-1}: the light subpath's
+    /// partial sum S_i (see `Workspace::prepare`) over m(eta pL_i), completed with
+    /// pE_{i-1} = pE |cos at y_{i-1}| / distance^2 (Georgiev et al. 2012, the dVCM / dVM terms).
+    light_a: f64,
+    light_b: f64,
     /// Position.
     pub p: Vec3,
     /// Unit direction toward y_{i-1} (the direction the light arrived from).
     pub wi: Vec3,
     /// Throughput of the light subpath up to y_i (f / p).
     pub beta: Rgb,
+    /// Index of y_i in the map's kept subpaths (y_{i-1} precedes it).
+    vertex: u32,
     /// i: the vertex's index in its light subpath (edges from the light).
     pub index: u32,
-    /// y_{i-1}, where the light came from.
-    pub prev: Vec3,
     /// Whether y_1 .. y_{i-1} are all specular: a direct or caustic photon.
     pub caustic: bool,
-    /// pL_i: area density of y_i from y_{i-1}.
-    pl: f32,
-    /// Converts a solid-angle density at y_i toward y_{i-1} into area density at y_{i-1}
-    /// (|cos| at y_{i-1} / distance^2; 0 when y_{i-1} is a point light).
-    g: f32,
-    /// The light subpath's partial sum S_i (see `Workspace::prepare`) is
-    /// `alpha + beta * m(pE_{i-1})`, pE_{i-1} known only at the merge (it depends on the
-    /// camera's direction).
-    alpha: f64,
-    beta_m: f64,
 }
 
-/// The photons of one iteration in a hash grid (cells of 2 r, so that a query visits at most 8).
+/// The photons of one iteration in a hash grid (cells of 2 r, so that a query visits at most 8),
+/// and the iteration's light subpaths.
 pub struct PhotonMap {
     /// Photons, sorted by bucket (stable: in light-path order within a bucket).
     photons: Vec<Photon>,
     /// Bucket b holds photons[start[b] .. start[b + 1]].
     start: Vec<u32>,
+    /// Every light subpath's vertices; subpath k (pixel k in row-major order) is
+    /// vertices[path_start[k] .. path_start[k + 1]].
+    vertices: Vec<StoredVertex>,
+    path_start: Vec<u32>,
+    /// Frame width (pixels per row of subpaths).
+    width: u32,
     lo: Vec3,
     inv_cell: f32,
     /// Merge radius of the iteration.
@@ -99,8 +105,8 @@ pub struct PhotonMap {
 }
 
 impl PhotonMap {
-    /// Traces the N_L light subpaths of iteration `iteration` (one per pixel, in row-major order)
-    /// and stores their photons.
+    /// Traces the N_L light subpaths of iteration `iteration` (one per pixel, in row-major order),
+    /// keeps them and stores their photons.
     pub fn build(scene: &Scene, settings: &RenderSettings, iteration: u32) -> PhotonMap {
         let (w, h) = (scene.camera.width, scene.camera.height);
         let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
@@ -114,6 +120,8 @@ impl PhotonMap {
         ws.set_merging(eta);
         let mut stats = RayStats::default();
         let mut photons = Vec::new();
+        let mut vertices = Vec::new();
+        let mut path_start = Vec::with_capacity(light_paths as usize + 1);
         let mut flux = 0.0f64;
         for y in 0..h {
             for x in 0..w {
@@ -129,15 +137,22 @@ impl PhotonMap {
                 bdpt::light_subpath(scene, &mut sampler, max_depth, &mut ws, &mut stats);
                 ws.clear_camera();
                 ws.prepare(scene, heuristic);
-                ws.photons(eta_b, b, &mut photons);
+                let base = vertices.len() as u32;
+                path_start.push(base);
+                vertices.extend(ws.light_vertices().iter().map(|v| v.stored()));
+                ws.photons(eta_b, b, base, &mut photons);
                 if let Some(y1) = ws.light_vertices().get(1) {
                     flux += luminance(y1.throughput());
                 }
             }
         }
+        path_start.push(vertices.len() as u32);
         let mut map = PhotonMap {
             photons: Vec::new(),
             start: Vec::new(),
+            vertices,
+            path_start,
+            width: w,
             lo: Vec3::ZERO,
             inv_cell: 1.0 / (2.0 * radius.max(f32::MIN_POSITIVE)),
             radius,
@@ -204,9 +219,24 @@ impl PhotonMap {
         self.photons.is_empty()
     }
 
-    /// Bytes the photons occupy (what shipping the map would cost, before compression).
+    /// Bytes the map occupies: photons, grid and light subpaths (what shipping it would cost,
+    /// before compression).
     pub fn bytes(&self) -> usize {
-        self.photons.len() * std::mem::size_of::<Photon>() + self.start.len() * 4
+        use std::mem::size_of;
+        self.photons.len() * size_of::<Photon>()
+            + self.vertices.len() * size_of::<StoredVertex>()
+            + (self.start.len() + self.path_start.len()) * 4
+    }
+
+    /// The light subpath of pixel `pixel` (the one BDPT traces for that pixel sample).
+    pub(crate) fn light_path(&self, pixel: (u32, u32)) -> &[StoredVertex] {
+        let k = pixel.1 as usize * self.width as usize + pixel.0 as usize;
+        &self.vertices[self.path_start[k] as usize..self.path_start[k + 1] as usize]
+    }
+
+    /// y_{i-1} of photon `ph`: where its light came from.
+    pub(crate) fn prev(&self, ph: &Photon) -> Vec3 {
+        self.vertices[ph.vertex as usize - 1].position()
     }
 
     /// Calls `f` for every photon within the radius of `p`, in a fixed order.
@@ -259,9 +289,11 @@ fn heuristic(settings: &RenderSettings) -> MisKind {
 }
 
 impl Workspace {
-    /// Appends the photons of the prepared light subpath (`prepare` with merging on).
-    fn photons(&self, eta_b: f64, b: i32, out: &mut Vec<Photon>) {
+    /// Appends the photons of the prepared light subpath (`prepare` with merging on), whose
+    /// vertices are kept from index `base` on.
+    fn photons(&self, eta_b: f64, b: i32, base: u32, out: &mut Vec<Photon>) {
         let light = self.light_vertices();
+        let m = |x: f64| mis::ratio_term(x, b);
         let mut caustic = true;
         for i in 1..light.len() {
             if i >= 2 {
@@ -272,14 +304,15 @@ impl Workspace {
                 continue;
             }
             let (wi, d2) = bdpt::dir_to(y.position(), yp.position());
+            // pE_{i-1} = pE g: the camera's solid-angle density at y_i to area density at y_{i-1}.
             let g = if yp.is_point() || !(d2 > 0.0) {
                 0.0
             } else {
                 yp.abs_cos_ng(wi) / d2
-            };
-            let m = |x: f64| mis::ratio_term(x, b);
+            } as f64;
+            // S_i = alpha + beta m(pE_{i-1}) (see `Workspace::prepare`).
             let pl_prev = m(yp.pdf_fwd() as f64);
-            let (alpha, beta_m) = if i == 1 {
+            let (alpha, beta) = if i == 1 {
                 let v0 = !yp.is_point() as u8 as f64;
                 (m(self.q1() as f64) / pl_prev, v0 / pl_prev)
             } else {
@@ -287,17 +320,16 @@ impl Workspace {
                 let merge_prev = if yp.is_delta() { 0.0 } else { eta_b };
                 (v, self.light_sum(i - 1) / pl_prev + merge_prev)
             };
+            let over = eta_b * m(y.pdf_fwd() as f64);
             out.push(Photon {
+                light_a: alpha / over,
+                light_b: beta * m(g) / over,
                 p: y.position(),
                 wi,
                 beta: y.throughput(),
+                vertex: base + i as u32,
                 index: i as u32,
-                prev: yp.position(),
                 caustic,
-                pl: y.pdf_fwd(),
-                g,
-                alpha,
-                beta_m,
             });
         }
     }
@@ -338,8 +370,7 @@ fn merge(
             let contribution = z.throughput() * f * ph.beta * norm;
             // Light side: m(1 / (eta pL_i)) S_i, S_i completed with pE_{i-1} from the camera's
             // direction.
-            let pe_prev = pdf_fwd as f64 * ph.g as f64;
-            let light = (ph.alpha + ph.beta_m * m(pe_prev)) / (eta_b * m(ph.pl as f64));
+            let light = ph.light_a + ph.light_b * m(pdf_fwd as f64);
             // Camera side: m(1 / (eta pE(z))) T_{t-1}, T_{t-1} completed with pL(z_{t-2}) from
             // the photon's direction.
             let sum = if t == 2 {
@@ -367,18 +398,24 @@ fn merge(
 }
 
 /// Renders one pixel sample of VCM: BDPT's techniques weighted with merging, then the merges
-/// against `map` (the photons of this sample's iteration).
+/// against `map` (the photons of this sample's iteration). `sampler` is the pixel sample's
+/// camera stream; its light subpath is the one `map` kept for `pixel` (the one BDPT would trace
+/// from the light stream, the same bits).
+#[allow(clippy::too_many_arguments)]
 pub fn pixel_sample(
     scene: &Scene,
-    ps: bdpt::PixelSample,
+    pixel: (u32, u32),
+    max_depth: u32,
+    sampler: &mut Sampler,
     map: &PhotonMap,
     ws: &mut Workspace,
     sink: &mut dyn SampleSink,
     stats: &mut RayStats,
 ) {
-    let (pixel, max_depth) = (ps.pixel, ps.max_depth);
     ws.set_merging(map.eta);
-    bdpt::pixel_sample(scene, ps, ws, sink, stats);
+    bdpt::pixel_camera_subpath(scene, pixel, sampler, max_depth, ws, stats);
+    ws.load_light(scene, map.light_path(pixel));
+    bdpt::connect_all(scene, pixel, max_depth, sampler, ws, sink, stats);
     merge(ws, map, max_depth, pixel, sink);
 }
 

@@ -95,6 +95,25 @@ pub const DEFAULT_PASS_SIZE: u32 = 16;
 /// Default longest pass: passes double from `DEFAULT_PASS_SIZE` up to this, so that a job's
 /// merges grow as O(log spp) rather than O(spp), and light-tracing records per task stay bounded.
 pub const DEFAULT_MAX_PASS_SIZE: u32 = 256;
+/// VCM and BPM: every process that renders a pass holds the photon map of each of its
+/// iterations at once (a map keeps the iteration's light subpaths and photons: 573 bytes per
+/// pixel on SmallVCM's scene 2 at depth 9, BENCHMARKS.md #15), so their passes are kept short
+/// enough that a pass's maps fit in this many bytes, at `PHOTON_MAP_BYTES_PER_PIXEL` a map.
+pub const PHOTON_PASS_BYTES: u64 = 4 << 30;
+/// What a photon map is assumed to take per pixel when passes are limited (about twice what
+/// SmallVCM's scene 2 takes).
+pub const PHOTON_MAP_BYTES_PER_PIXEL: u64 = 1024;
+
+/// VCM's and BPM's (first pass, longest pass): the settings', each at most the largest power of
+/// two of iterations whose photon maps fit in `PHOTON_PASS_BYTES` (at least 1).
+pub fn photon_passes(width: u32, height: u32, pass_size: u32, max_pass_size: u32) -> (u32, u32) {
+    let per_map = (width as u64 * height as u64 * PHOTON_MAP_BYTES_PER_PIXEL).max(1);
+    let fit = (PHOTON_PASS_BYTES / per_map).clamp(1, 1 << 16) as u32;
+    let limit = 1 << fit.ilog2();
+    let first = pass_size.min(limit);
+    (first, max_pass_size.max(first).min(limit))
+}
+
 /// Default tile edge.
 pub const DEFAULT_TILE_SIZE: u32 = 32;
 
@@ -435,9 +454,15 @@ impl JobSettings {
                 ),
             ));
         }
+        let (pass_size, max_pass_size) =
+            if matches!(self.integrator, IntegratorKind::Vcm | IntegratorKind::Bpm) {
+                photon_passes(width, height, self.pass_size, self.max_pass_size)
+            } else {
+                (self.pass_size, self.max_pass_size.max(self.pass_size))
+            };
         let mut render = RenderSettings {
             integrator: self.integrator,
-            spp: spp.unwrap_or(self.pass_size),
+            spp: spp.unwrap_or(pass_size),
             max_depth,
             seed: self.seed,
             sampler: self.sampler,
@@ -467,8 +492,8 @@ impl JobSettings {
             spp,
             time_budget_s: self.time_budget_s,
             tile_size: self.tile_size,
-            pass_size: self.pass_size,
-            max_pass_size: Some(self.max_pass_size.max(self.pass_size)),
+            pass_size,
+            max_pass_size: Some(max_pass_size),
             eps: self.eps,
             optimal_depth,
         })
@@ -478,6 +503,44 @@ impl JobSettings {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A VCM or BPM pass holds one photon map per iteration in every process that renders it:
+    /// passes are cut to what fits in `PHOTON_PASS_BYTES`; other integrators keep theirs.
+    #[test]
+    fn photon_passes_fit_the_memory_budget() {
+        assert_eq!(photon_passes(512, 512, 16, 256), (16, 16));
+        assert_eq!(photon_passes(512, 512, 1, 4), (1, 4));
+        assert_eq!(photon_passes(1920, 1080, 16, 256), (2, 2));
+        assert_eq!(photon_passes(3840, 2160, 16, 256), (1, 1));
+        assert_eq!(photon_passes(64, 64, 16, 256), (16, 256));
+        for (w, h) in [(1, 1), (512, 512), (1920, 1080), (65536, 65536)] {
+            let (first, max) = photon_passes(w, h, 16, 256);
+            assert!(first >= 1 && max >= first && max.is_power_of_two());
+            let maps = max as u64 * w as u64 * h as u64 * PHOTON_MAP_BYTES_PER_PIXEL;
+            assert!(max == 1 || maps <= PHOTON_PASS_BYTES, "{w}x{h}: {max}");
+        }
+        let mut scene = crate::scene::Scene::load(std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/scenes/cornell-box.json"
+        )))
+        .expect("the Cornell box");
+        for (integrator, pass) in [
+            (IntegratorKind::Vcm, Some(16)),
+            (IntegratorKind::Bpm, Some(16)),
+            (IntegratorKind::Bdpt, Some(256)),
+        ] {
+            let job = JobSettings {
+                resolution: Some([512, 512]),
+                spp: Some(64),
+                integrator,
+                ..Default::default()
+            };
+            let r = job
+                .resolve(&mut scene, &Limits::default())
+                .expect("resolves");
+            assert_eq!(r.max_pass_size, pass, "{integrator:?}");
+        }
+    }
 
     #[test]
     fn pass_ranges_cover_the_samples_once() {
