@@ -348,18 +348,31 @@ def main():
             raise Fail(f"tile_done events of pass {task['pass']} tile {task['tile']}: {merged}")
         log("the refused result was never merged (the tile's one tile_done is the other worker's)")
 
-        # 3. A worker killed mid-job.
-        s3 = dict(name="kill", size=128, spp=256, pass_size=16, tile_size=32, seed=5)
+        # 3. A worker killed mid-job. Tasks of 64 x 64 pixels x 32 spp (a few tenths of a second):
+        #    a worker seen holding a task can still finish it before `docker kill` lands, so the
+        #    coordinator's view right after the kill decides whether a lease was cut; if not, the
+        #    worker is started again and killed again.
+        s3 = dict(name="kill", size=128, spp=256, pass_size=32, tile_size=64, seed=5)
         job3 = submit(st, a.omis, s3)
         wait_for("a live second worker", 60, lambda: len(st.worker_map()) == 2)
         expired0 = st.metric("omis_leases_expired_total")
-        cid, w = wait_for("a worker holding a task of the job", 60, lambda: next(
-            ((c, w) for c, w in st.worker_map().items() if any(t["job_id"] == job3 for t in w["tasks"])), None), every=0.1)
-        run(["docker", "kill", cid], timeout=30)
+        for attempt in range(5):
+            cid, w = wait_for("a worker holding a task of the job", 60, lambda: next(
+                ((c, w) for c, w in st.worker_map().items() if any(t["job_id"] == job3 for t in w["tasks"])), None),
+                every=0.05)
+            run(["docker", "kill", cid], timeout=30)
+            held = [t for x in st.api("GET", "/v1/workers")["workers"] if x["id"] == w["id"]
+                    for t in x["tasks"] if t["job_id"] == job3]
+            if held:
+                break
+            log(f"worker {w['name']} finished its task before the kill landed; starting it to kill again")
+            run(["docker", "start", cid], timeout=60)
+        else:
+            raise Fail("five kills all landed between two tasks")
         j = st.api("GET", f"/v1/jobs/{job3}")
         if j["state"] != "running":
             raise Fail(f"the job is {j['state']} at the kill; want running (mid-job)")
-        log(f"killed worker {w['name']} mid-job (pass {j['passes_done']} of {j['passes_total']} merged)")
+        log(f"killed worker {w['name']} mid-job holding {len(held)} task(s) (pass {j['passes_done']} of {j['passes_total']} merged)")
         wait_for("the killed worker's lease to expire", a.lease * 3 + 30, lambda: st.metric("omis_leases_expired_total") > expired0, every=0.5)
         log("its lease expired; the task is requeued")
         check_image(st, a, job3, s3, tmp)
