@@ -111,8 +111,9 @@ impl TileFilm {
             }
         }
         // Stable: equal keys keep their order; each key's values are summed in f64, in render
-        // order, and rounded to f32 once.
-        self.splats.sort_by_key(|s| (s.pixel, s.layer, s.depth));
+        // order, and rounded to f32 once. A radix sort (O(n), and only over the bytes in which
+        // the keys differ): a tile's splats are tens of thousands of light-tracing hits.
+        radsort::sort_by_key(&mut self.splats, |s| (s.pixel, s.layer, s.depth));
         let key = |s: &Splat| (s.pixel, s.layer, s.depth);
         let mut out: Vec<Splat> = Vec::with_capacity(self.splats.len());
         let mut i = 0;
@@ -178,14 +179,15 @@ impl LtRecords {
             offsets.push(off);
             off += d as usize + 2 + 3;
         }
-        let mut order: Vec<usize> = (0..self.len()).collect();
-        order.sort_by_key(|&k| self.pixels[k]);
+        let mut order: Vec<u32> = (0..self.len() as u32).collect();
+        radsort::sort_by_key(&mut order, |&k| self.pixels[k as usize]);
         let mut sorted = LtRecords {
             pixels: Vec::with_capacity(self.len()),
             depths: Vec::with_capacity(self.len()),
             values: Vec::with_capacity(self.values.len()),
         };
         for k in order {
+            let k = k as usize;
             let n = self.depths[k] as usize + 2 + 3;
             sorted.pixels.push(self.pixels[k]);
             sorted.depths.push(self.depths[k]);
