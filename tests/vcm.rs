@@ -290,6 +290,47 @@ fn vcm_merge_bias_is_the_disc_average_and_shrinks_with_the_radius() {
     );
 }
 
+/// `--depth-layers` splits every integrator's image by path depth: the layers add up to the
+/// image, and a scene lit by caustics and interreflections fills several of them (BPM's stayed
+/// empty before stop 23).
+#[test]
+fn every_integrators_depth_layers_add_up_to_its_image() {
+    use omis::integrator::bpm::BpmWeights;
+    let scene = load("caustic-mirror.json", 24, 24);
+    let runs = [
+        (IntegratorKind::Pt, BpmWeights::Fixed),
+        (IntegratorKind::Bdpt, BpmWeights::Fixed),
+        (IntegratorKind::Vcm, BpmWeights::Fixed),
+        (IntegratorKind::Bpm, BpmWeights::Fixed),
+        (IntegratorKind::Bpm, BpmWeights::Optimal),
+    ];
+    for (integrator, bpm_weights) in runs {
+        let s = RenderSettings {
+            radius: 0.05,
+            bpm_weights,
+            depth_layers: true,
+            ..settings(integrator, MisKind::Balance, 4, 6)
+        };
+        let film = common::render_on(&scene, &s, 8, 2).film;
+        let (image, layers) = (film.image(), film.depth_images());
+        assert_eq!(layers.len(), 7, "{integrator:?}");
+        for (i, p) in image.pixels.iter().enumerate() {
+            let sum = layers
+                .iter()
+                .fold(omis::geometry::Rgb::ZERO, |a, l| a + l.pixels[i]);
+            assert!(
+                (sum - *p).abs().max_element() <= 1e-4 * (1.0 + p.max_element()),
+                "{integrator:?} {bpm_weights:?} pixel {i}: layers {sum} vs image {p}"
+            );
+        }
+        let lit = layers
+            .iter()
+            .filter(|l| l.pixels.iter().any(|p| p.max_element() > 0.0))
+            .count();
+        assert!(lit >= 3, "{integrator:?} {bpm_weights:?}: {lit} depths lit");
+    }
+}
+
 #[test]
 fn bpm_agrees_with_bdpt_on_the_cornell_box() {
     use omis::integrator::bpm::BpmWeights;

@@ -144,7 +144,8 @@ impl<'a> Mixing<'a> {
 
 /// Renders one pixel sample of BPM: the camera subpath, its emission seen through specular
 /// vertices, and its merges with `map`; `frozen` (iteration 0's map) for the optimal weights,
-/// None for fixed BDD. Returns the pixel sample's estimate.
+/// None for fixed BDD. Returns the pixel sample's estimate; with `per_depth` (max_depth + 1
+/// entries) its parts by path depth go there too.
 #[allow(clippy::too_many_arguments)]
 pub fn pixel_sample(
     scene: &Scene,
@@ -155,6 +156,7 @@ pub fn pixel_sample(
     map: &PhotonMap,
     frozen: Option<&PhotonMap>,
     ws: &mut Workspace,
+    mut per_depth: Option<&mut [Rgb]>,
     stats: &mut RayStats,
 ) -> Rgb {
     let film = sampler.next_2d();
@@ -173,7 +175,11 @@ pub fn pixel_sample(
         let (z, zp) = (&cam[j], &cam[j - 1]);
         let (wo, _) = bdpt::dir_to(z.position(), zp.position());
         if c == 0 && z.light_index() != NO_LIGHT {
-            value += z.throughput() * scene.lights[z.light_index() as usize].le(z.normal(), wo);
+            let e = z.throughput() * scene.lights[z.light_index() as usize].le(z.normal(), wo);
+            value += e;
+            if let Some(pd) = per_depth.as_deref_mut() {
+                pd[j - 1] += e;
+            }
         }
         if z.is_delta() {
             continue;
@@ -192,8 +198,10 @@ pub fn pixel_sample(
             mixing = Some(mx);
         }
         let mut sum = Rgb::ZERO;
+        let beta = z.throughput();
         map.query(z.position(), |ph| {
-            if ph.index + j as u32 - 1 > max_depth || c < m && !ph.caustic {
+            let depth = ph.index + j as u32 - 1;
+            if depth > max_depth || c < m && !ph.caustic {
                 return;
             }
             let w = if c == m + 1 {
@@ -209,9 +217,13 @@ pub fn pixel_sample(
                 return;
             }
             let f = z.bsdf().eval(wo, ph.wi, Mode::Radiance);
-            sum += f * ph.beta * w as f32;
+            let v = f * ph.beta * w as f32;
+            sum += v;
+            if let Some(pd) = per_depth.as_deref_mut() {
+                pd[depth as usize] += beta * v * norm;
+            }
         });
-        value += z.throughput() * sum * norm;
+        value += beta * sum * norm;
     }
     value
 }

@@ -219,11 +219,7 @@ pub fn render_tile_cached(
                             stats,
                         );
                         if l.is_finite() {
-                            for (k, v) in per_depth.iter().enumerate() {
-                                for c in 0..3 {
-                                    film.depths[idx * nd + k][c] += v[c] as f64;
-                                }
-                            }
+                            add_depths(&mut film.depths[idx * nd..(idx + 1) * nd], &per_depth);
                         }
                         l
                     }
@@ -284,6 +280,15 @@ pub fn render_tile_cached(
     finish(film, &settings.film_layout())
 }
 
+/// Adds one pixel sample's parts by depth to a pixel's depth sums.
+fn add_depths(sums: &mut [[f64; 3]], per_depth: &[Rgb]) {
+    for (s, v) in sums.iter_mut().zip(per_depth) {
+        for c in 0..3 {
+            s[c] += v[c] as f64;
+        }
+    }
+}
+
 /// Adds one pixel sample's estimate `l` to pixel `idx` (a non-finite one is counted and added
 /// as zero).
 fn add_sample(stats: &mut RayStats, sums: &mut PixelSums, idx: usize, l: Rgb) {
@@ -325,6 +330,7 @@ fn render_tile_vcm(
     let mut ws = bdpt::Workspace::default();
     let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
     let nd = settings.depth_count();
+    let mut per_depth = vec![Rgb::ZERO; nd];
     let cam = &scene.camera;
     let bpm = settings.integrator == IntegratorKind::Bpm;
     let frozen =
@@ -344,6 +350,7 @@ fn render_tile_vcm(
                     Stream::Camera,
                 );
                 if bpm {
+                    per_depth.fill(Rgb::ZERO);
                     let l = bpm::pixel_sample(
                         scene,
                         (x, y),
@@ -353,8 +360,12 @@ fn render_tile_vcm(
                         &map,
                         frozen.as_deref(),
                         &mut ws,
+                        (nd > 0).then_some(&mut per_depth[..]),
                         &mut film.stats,
                     );
+                    if l.is_finite() {
+                        add_depths(&mut film.depths[idx * nd..(idx + 1) * nd], &per_depth);
+                    }
                     add_sample(&mut film.stats, &mut film.sums, idx, l);
                     continue;
                 }
