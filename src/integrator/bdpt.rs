@@ -1055,7 +1055,7 @@ fn next_event(
     };
     let zp = &ws.cam[t - 2];
     let (wo, _) = dir_to(z.p, zp.p);
-    let (f, pdf_fwd, pdf_rev) = z.bsdf.eval_pdfs(wo, ls.wi, Mode::Radiance);
+    let (f, dirs) = z.bsdf.eval_local(wo, ls.wi, Mode::Radiance);
     let contribution = z.beta * f * ls.le * (ls.wi.dot(z.ns).abs() / (pmf * ls.pdf));
     // Zero-contribution samples (occluded, or a zero BSDF / emission) are weighted as paths only
     // this technique could make (W = e_s): exact for occluded connections (every other technique
@@ -1071,6 +1071,7 @@ fn next_event(
         }
         return true;
     }
+    let (pdf_fwd, pdf_rev) = z.bsdf.pdfs(dirs.as_ref());
     let mut v0 = Vertex::endpoint(Kind::Light, ls.p, ls.n, Rgb::ONE, 0.0);
     v0.light = li;
     v0.delta_pos = ls.delta;
@@ -1122,9 +1123,8 @@ fn connect(
     }
     let (wo_y, _) = dir_to(y.p, yp.p);
     let (wo_z, _) = dir_to(z.p, zp.p);
-    // y's value and densities toward z and back, z's likewise.
-    let (fy, y_to_z, y_back) = y.bsdf.eval_pdfs(wo_y, w_yz, Mode::Importance);
-    let (fz, z_to_y, z_back) = z.bsdf.eval_pdfs(wo_z, -w_yz, Mode::Radiance);
+    let (fy, y_dirs) = y.bsdf.eval_local(wo_y, w_yz, Mode::Importance);
+    let (fz, z_dirs) = z.bsdf.eval_local(wo_z, -w_yz, Mode::Radiance);
     let g = w_yz.dot(y.ns).abs() * w_yz.dot(z.ns).abs() / d2;
     let contribution = y.beta * fy * fz * z.beta * g;
     // Zero-contribution samples (occluded, or a zero BSDF / emission) are weighted as paths only
@@ -1141,6 +1141,9 @@ fn connect(
         }
         return true;
     }
+    // y's densities toward z and back, z's likewise.
+    let (y_to_z, y_back) = y.bsdf.pdfs(y_dirs.as_ref());
+    let (z_to_y, z_back) = z.bsdf.pdfs(z_dirs.as_ref());
     let c = Connection {
         pe_y1: z.area_density(z_to_y, y),
         pe_y2: y.area_density(y_back, yp),
@@ -1192,15 +1195,15 @@ fn connect_to_camera(
     let we = cam.we(w_cy);
     let cos_cam = w_cy.dot(cam.forward());
     let w_yc = -w_cy;
-    // y's value toward the camera, and (s >= 2) the density of sampling its predecessor back.
-    let (f, cos_y, y_back) = if s == 1 {
+    // y's value toward the camera, and (s >= 2) its directions for the density back.
+    let (f, cos_y, y_dirs) = if s == 1 {
         let light = &scene.lights[y.light as usize];
-        (light.le(y.ng, w_yc), y.abs_cos_ng(w_yc), 0.0)
+        (light.le(y.ng, w_yc), y.abs_cos_ng(w_yc), None)
     } else {
         let yp = &ws.light[s - 2];
         let (wo_y, _) = dir_to(y.p, yp.p);
-        let (f, _, back) = y.bsdf.eval_pdfs(wo_y, w_yc, Mode::Importance);
-        (f, w_yc.dot(y.ns).abs(), back)
+        let (f, dirs) = y.bsdf.eval_local(wo_y, w_yc, Mode::Importance);
+        (f, w_yc.dot(y.ns).abs(), dirs)
     };
     let contribution = y.beta * f * (cos_y * we * cos_cam / d2);
     // A zero-contribution light-tracing sample (occluded, or a zero BSDF) is weighted as a path
@@ -1216,7 +1219,7 @@ fn connect_to_camera(
     let z0 = &ws.cam[0];
     let pe_y1 = z0.area_density(cam.pdf_dir(w_cy), y);
     let pe_y2 = if s >= 2 {
-        y.area_density(y_back, &ws.light[s - 2])
+        y.area_density(y.bsdf.pdf_back(y_dirs.as_ref()), &ws.light[s - 2])
     } else {
         0.0
     };

@@ -189,6 +189,19 @@ impl Lobe {
         self.eval_pdfs_if(wo, wi, mode, true)
     }
 
+    /// `(pdf(wo, wi), pdf(wi, wo))`, bit for bit, sharing what the two have in common (Phong's
+    /// cos^n).
+    #[inline]
+    pub fn pdfs(&self, wo: Vec3, wi: Vec3) -> (f32, f32) {
+        match *self {
+            Lobe::Phong { .. } => {
+                let (_, fwd, rev) = self.eval_pdfs_if(wo, wi, Mode::Radiance, true);
+                (fwd, rev)
+            }
+            _ => (self.pdf(wo, wi), self.pdf(wi, wo)),
+        }
+    }
+
     /// `eval_pdfs`, with pdf(wi, wo) computed only when `rev` (else 0, unless it came free).
     #[inline]
     fn eval_pdfs_if(&self, wo: Vec3, wi: Vec3, mode: Mode, rev: bool) -> (Rgb, f32, f32) {

@@ -673,6 +673,17 @@ fn fuzz_one(bsdf: &Bsdf, fz: &mut Fuzz) -> Result<(), String> {
                 ctx()
             ));
         }
+        // The deferred query (value now, densities after the shadow ray) is the same bits.
+        let (fl, pair) = bsdf.eval_local(wo, wi, mode);
+        let (fwd, rev) = bsdf.pdfs(pair.as_ref());
+        let back = bsdf.pdf_back(pair.as_ref());
+        if bits((fl, fwd, rev)) != bits(apart) || back.to_bits() != apart.2.to_bits() {
+            return Err(format!(
+                "eval_local {mode:?} = {:?}, pdfs ({fwd}, {rev}), pdf_back {back}; apart {apart:?} at {}",
+                fl,
+                ctx()
+            ));
+        }
     }
     let p = bsdf.pdf(wo, wi);
     if !(p.is_finite() && p >= 0.0) {
