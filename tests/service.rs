@@ -531,6 +531,46 @@ fn a_late_result_of_an_expired_lease_is_refused_and_changes_nothing() {
     assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(64));
 }
 
+#[test]
+fn a_running_jobs_exr_waits_for_the_interval_and_a_cancel_writes_the_merged_passes() {
+    let dir = folder("exr-interval");
+    let (_server, url) = serve(&dir.join("data"), &["--exr-interval", "3600"]);
+    let c = http();
+    // 16 passes of 4 spp, 6 tiles each; this test is the only worker.
+    let id = submit(&c, &url, 64);
+    let w = register(&c, &url, "manual");
+    let start = Instant::now();
+    while get_json(&c, &format!("{url}/v1/jobs/{id}"))["spp_done"] != 4 {
+        assert!(start.elapsed() < WAIT, "the first pass was not merged");
+        let t = lease(&c, &url, &w);
+        match (t["task"]["kind"].as_str(), t["task"]["pass"].as_u64()) {
+            (Some("merge"), _) => assert_eq!(merge_task(&c, &url, &t, &w), 200),
+            (Some("render"), Some(0)) => {
+                assert_eq!(upload(&c, &url, &t, &w, tile_result(&t["task"], 7)), 200)
+            }
+            // A task of the second pass stays leased: the job does not get past its first.
+            _ => {}
+        }
+    }
+    let file = |name: &str| {
+        c.get(format!("{url}/v1/jobs/{id}/{name}"))
+            .send()
+            .expect("GET")
+    };
+    // The pass rewrote the preview, but not the EXR: the interval has not passed.
+    assert_eq!(file("preview.png").status().as_u16(), 200);
+    let r = file("image.exr");
+    assert_eq!(r.status().as_u16(), 404);
+    assert!(r.text().unwrap_or_default().contains("\"field\""));
+    // Cancelled, the job writes the passes it merged.
+    let (s, v) = post(&c, &format!("{url}/v1/jobs/{id}/cancel"), &json!({}));
+    assert_eq!(s, 200, "{v}");
+    let img = download_exr(&c, &url, &id, &dir);
+    assert_eq!((img.width, img.height), (40, 32));
+    let mean = img.pixels.iter().map(|p| p.x + p.y + p.z).sum::<f32>() / img.pixels.len() as f32;
+    assert!(mean.is_finite() && mean > 0.0, "mean {mean}");
+}
+
 /// A metric's value from GET /metrics.
 fn metric(c: &Client, url: &str, name: &str) -> f64 {
     let text = c

@@ -100,6 +100,11 @@ pub(crate) struct ServeArgs {
     /// at most this much in all after a restart and for a time-budget job's final EXR).
     #[arg(long, default_value_t = 256)]
     pub merge_memory_mb: u64,
+    /// Shortest time between two rewrites of a running job's image.exr after a pass, in
+    /// seconds (the preview is rewritten after every pass, the final EXR always written; 0:
+    /// the EXR after every pass too).
+    #[arg(long, default_value_t = service::DEFAULT_EXR_INTERVAL_S)]
+    pub exr_interval: f64,
 }
 
 pub(crate) fn serve(a: ServeArgs) -> Result<()> {
@@ -130,6 +135,10 @@ pub(crate) fn serve(a: ServeArgs) -> Result<()> {
         bail!("--merge-memory-mb must be >= 1");
     }
     cfg.merge_memory_bytes = a.merge_memory_mb.saturating_mul(1 << 20);
+    if !(a.exr_interval >= 0.0 && a.exr_interval.is_finite()) {
+        bail!("--exr-interval must be a finite number of seconds >= 0");
+    }
+    cfg.exr_interval_s = a.exr_interval;
     let rt = runtime()?;
     let result = rt.block_on(async move {
         let running = service::start(cfg).await?;

@@ -27,6 +27,17 @@ pub(crate) struct Runtime {
     pub inputs: Option<Arc<merge::PassInputs>>,
     /// The images of its band groups merged so far.
     pub images: Option<merge::PassImages>,
+    /// When a pass last wrote image.exr, or (before one did) when this coordinator took the
+    /// job up.
+    pub exr_written: std::time::Instant,
+}
+
+impl Runtime {
+    /// Whether a pass ending now rewrites image.exr: the last pass always, another when the
+    /// last rewrite (or the job's start here) is `interval_s` old.
+    pub fn exr_due(&self, last: bool, interval_s: f64) -> bool {
+        last || self.exr_written.elapsed().as_secs_f64() >= interval_s
+    }
 }
 
 /// The resolved settings a job was created with.
@@ -62,6 +73,7 @@ pub(crate) fn runtime(app: &App, job: &JobRow) -> Result<Arc<Mutex<Runtime>>, St
         final_written: false,
         inputs: None,
         images: None,
+        exr_written: std::time::Instant::now(),
     }));
     map.insert(job.id.clone(), rt.clone());
     Ok(rt)
@@ -257,14 +269,26 @@ fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
     Ok(())
 }
 
-/// Writes image.exr (the beauty and `layers`), preview.png and (with a reference) error.png.
+/// Writes preview.png, (with a reference) error.png and, when `exr`, image.exr (the beauty and
+/// `layers`).
 pub(crate) fn write_outputs(
     app: &App,
     job: &JobRow,
     rt: &Runtime,
     image: &Image,
     layers: &[(String, Image)],
+    exr: bool,
 ) -> Result<(), String> {
+    let preview = png::encode_rgb8(image.width, image.height, &png::to_srgb8(image, 0.0))?;
+    write_atomic(&app.paths.output(&job.id, "preview.png"), &preview).map_err(|e| e.to_string())?;
+    if let Some(r) = &rt.reference {
+        let map = metrics::error_map(image, r, rt.resolved.eps, 1.0)?;
+        let bytes = png::encode_rgb8(image.width, image.height, &map)?;
+        write_atomic(&app.paths.output(&job.id, "error.png"), &bytes).map_err(|e| e.to_string())?;
+    }
+    if !exr {
+        return Ok(());
+    }
     let mut attrs = rt.resolved.exr_attributes(&job.scene_main, job.spp_done);
     attrs.push(("omis.job", job.id.clone()));
     let tmp = app.paths.output(&job.id, "image.exr.tmp");
@@ -276,15 +300,7 @@ pub(crate) fn write_outputs(
         })
         .collect();
     exr_io::write_exr(&tmp, image, &named, &attrs)?;
-    let preview = png::encode_rgb8(image.width, image.height, &png::to_srgb8(image, 0.0))?;
-    write_atomic(&app.paths.output(&job.id, "preview.png"), &preview).map_err(|e| e.to_string())?;
-    std::fs::rename(&tmp, app.paths.output(&job.id, "image.exr")).map_err(|e| e.to_string())?;
-    if let Some(r) = &rt.reference {
-        let map = metrics::error_map(image, r, rt.resolved.eps, 1.0)?;
-        let bytes = png::encode_rgb8(image.width, image.height, &map)?;
-        write_atomic(&app.paths.output(&job.id, "error.png"), &bytes).map_err(|e| e.to_string())?;
-    }
-    Ok(())
+    std::fs::rename(&tmp, app.paths.output(&job.id, "image.exr")).map_err(|e| e.to_string())
 }
 
 /// Records a failed attempt; after `MAX_FAILURES` the job fails with the worker's error.
@@ -349,6 +365,20 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
     if ended {
         app.event(id, JobEvent::Cancelled(CancelledEvent {}));
         app.work.notify_waiters();
+        // The passes merged so far as image.exr with every layer: a pass rewrites it at most
+        // every `exr_interval_s`, so the last one may not have.
+        if job.passes_done > 0 {
+            let rt = runtime(app, &job)?;
+            let rt = rt.lock().unwrap_or_else(|e| e.into_inner());
+            if !rt.final_written
+                && let Err(e) = merge::write_final(app, &job, &rt)
+            {
+                tracing::warn!(
+                    "job {id}: cancelled; its EXR of {} passes: {e}",
+                    job.passes_done
+                );
+            }
+        }
     }
     drop_runtime(app, id);
     Ok(ended)

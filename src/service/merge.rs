@@ -382,8 +382,9 @@ pub(crate) fn stream_input(
         results: inputs.results.iter().filter(|p| touches(p)).count() as u32,
     };
     let mut buf = head.encode();
+    // Chunks come from the coordinator's reused buffers (`send` gives them back once sent).
     let flush = |buf: &mut Vec<u8>, send: &mut dyn FnMut(Vec<u8>) -> bool, at_least: usize| {
-        buf.len() < at_least || send(std::mem::take(buf))
+        buf.len() < at_least || send(std::mem::replace(buf, app.buffers.take(2 * CHUNK)))
     };
     for t in tiles.clone() {
         if pass == 0 {
@@ -743,7 +744,11 @@ pub(crate) fn finish_pass(
     } else {
         Vec::new()
     };
-    jobs::write_outputs(app, &job, rt, &image, &layers)?;
+    let exr = rt.exr_due(last, app.cfg.exr_interval_s);
+    jobs::write_outputs(app, &job, rt, &image, &layers, exr)?;
+    if exr {
+        rt.exr_written = std::time::Instant::now();
+    }
     rt.final_written = last;
     let relmse = match &rt.reference {
         Some(reference) => Some(
@@ -810,5 +815,5 @@ pub(crate) fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), S
         .into_iter()
         .zip(frames)
         .collect();
-    jobs::write_outputs(app, job, rt, &image, &layers)
+    jobs::write_outputs(app, job, rt, &image, &layers, true)
 }

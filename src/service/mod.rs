@@ -3,6 +3,7 @@
 //! bundles and results only as accumulators: it never touches a BSDF.
 
 pub mod api;
+pub(crate) mod buffers;
 pub(crate) mod bundle;
 pub(crate) mod exr_header;
 pub(crate) mod jobs;
@@ -52,7 +53,18 @@ pub(crate) struct Config {
     /// Tile accumulators one merge task holds at most, and the coordinator when it reads
     /// checkpoints back, in bytes.
     pub merge_memory_bytes: u64,
+    /// Shortest time between two rewrites of a running job's image.exr after a pass, in
+    /// seconds (the last pass's is always written; 0: after every pass). A 1080p beauty EXR
+    /// costs its ZIP compression, ~0.4 CPU-seconds: a third of what a path-traced job's
+    /// coordinator spent when it was written after every pass (BENCHMARKS.md #12).
+    pub exr_interval_s: f64,
 }
+
+/// Bytes of free upload and merge-input buffers the coordinator keeps for reuse.
+const KEPT_BUFFER_BYTES: usize = 128 << 20;
+
+/// Default of `Config::exr_interval_s`.
+pub const DEFAULT_EXR_INTERVAL_S: f64 = 30.0;
 
 impl Config {
     /// A coordinator on `bind` keeping its state in `data`, with default limits, no tokens, no
@@ -72,6 +84,7 @@ impl Config {
             max_upload_bytes: 1 << 30,
             worker_log: None,
             merge_memory_bytes: 256 << 20,
+            exr_interval_s: DEFAULT_EXR_INTERVAL_S,
         }
     }
 }
@@ -118,6 +131,8 @@ pub(crate) struct App {
     pub result_slots: tokio::sync::Semaphore,
     /// Held while a result is appended to its pass's result log (one append at a time).
     pub result_log: Mutex<()>,
+    /// Reused buffers for uploads and merge inputs (`buffers`).
+    pub buffers: Arc<buffers::Buffers>,
 }
 
 impl App {
@@ -224,6 +239,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
             std::thread::available_parallelism().map_or(2, |n| n.get().max(2)),
         ),
         result_log: Mutex::new(()),
+        buffers: Arc::new(buffers::Buffers::new(KEPT_BUFFER_BYTES)),
     });
     if cfg.client_token.is_none() && cfg.worker_token.is_none() {
         tracing::warn!("no tokens given: serving {addr} (loopback only) without authentication");

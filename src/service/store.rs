@@ -457,7 +457,8 @@ pub(crate) trait JobStore: Send {
     /// Puts a task back in the queue (its result could not be merged).
     fn requeue(&self, task_id: i64) -> StoreResult<()>;
     /// Leases the first queued task of the oldest active job to `worker`: its merge tasks
-    /// first, then its render tasks, passes in order.
+    /// first, then its render tasks, passes in order; the worker is marked busy in the same
+    /// transaction.
     fn lease(&self, worker: &str, lease_s: f64) -> StoreResult<Option<TaskRow>>;
     /// Extends a lease; false when the task is no longer this worker's attempt.
     fn extend(&self, task_id: i64, attempt: u32, worker: &str, lease_s: f64) -> StoreResult<bool>;
@@ -819,12 +820,11 @@ impl JobStore for SqliteStore {
         let mut id: Option<i64> = None;
         for job in &jobs {
             id = tx
-                .query_row(
+                .prepare_cached(
                     "SELECT id FROM tasks WHERE state = ?1 AND job_id = ?2 \
                      ORDER BY kind, pass, tile LIMIT 1",
-                    params![T_QUEUED, job],
-                    |r| r.get(0),
-                )
+                )?
+                .query_row(params![T_QUEUED, job], |r| r.get(0))
                 .optional()?;
             if id.is_some() {
                 break;
@@ -845,6 +845,11 @@ impl JobStore for SqliteStore {
             "UPDATE jobs SET state = ?3, started_at = COALESCE(started_at, ?2) \
              WHERE id = (SELECT job_id FROM tasks WHERE id = ?1) AND state = ?4",
             params![id, t, J_RUNNING, J_QUEUED],
+        )?;
+        cached_exec(
+            &tx,
+            "UPDATE workers SET last_seen = ?2, state = ?3 WHERE id = ?1",
+            params![worker, t, WorkerState::Busy],
         )?;
         let row = cached_row(
             &tx,

@@ -4,6 +4,7 @@
 use super::errors::{ApiError, ApiResult, bad, parse_json};
 use super::{AppState, is_safe_id, scenes};
 use crate::film::{Tile, wire};
+use crate::service::buffers::{self, BodyError, Pooled};
 use crate::service::protocol::{
     DeregisterAnswer, DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, JobEvent,
     JobState, Lease, LeaseRequest, LeasedJob, LeasedTask, OkAnswer, RegisterRequest, Registration,
@@ -12,7 +13,7 @@ use crate::service::protocol::{
 use crate::service::store::{self, JobRow, TaskRow};
 use crate::service::{Metrics, jobs, merge};
 use axum::Json;
-use axum::body::Bytes;
+use axum::body::{Body, Bytes};
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
@@ -78,7 +79,6 @@ pub(crate) async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult
             let db = app.db();
             match db.lease(&r.worker_id, app.cfg.lease_s)? {
                 Some(t) => {
-                    db.touch_worker(&r.worker_id, Some(WorkerState::Busy))?;
                     let job = db.job(&t.job_id)?;
                     Some((t, job))
                 }
@@ -257,6 +257,16 @@ fn current_task(app: &AppState, task_id: i64, q: &ResultQuery) -> ApiResult<(Tas
     Ok((task, job))
 }
 
+/// An upload's body, read into a reused buffer: 413 over `--max-upload-mb`, 400 if unreadable.
+async fn read_upload(app: &AppState, body: Body) -> ApiResult<Pooled> {
+    buffers::read_body(body, app.cfg.max_upload_bytes, &app.buffers)
+        .await
+        .map_err(|e| match e {
+            BodyError::TooLarge(m) => ApiError::field(StatusCode::PAYLOAD_TOO_LARGE, "body", m),
+            BodyError::Read(m) => ApiError::field(StatusCode::BAD_REQUEST, "body", m),
+        })
+}
+
 /// GET /v1/worker/tasks/{id}/input: a merge task's input (`film::merge`), streamed.
 pub(crate) async fn merge_input(
     State(app): State<AppState>,
@@ -274,7 +284,11 @@ pub(crate) async fn merge_input(
     let (tx, rx) = tokio::sync::mpsc::channel::<Result<Bytes, std::io::Error>>(2);
     let a = app.clone();
     tokio::task::spawn_blocking(move || {
-        let mut send = |chunk: Vec<u8>| tx.blocking_send(Ok(Bytes::from(chunk))).is_ok();
+        let pool = a.buffers.clone();
+        let mut send = |chunk: Vec<u8>| {
+            let chunk = Pooled::new(chunk, pool.clone()).into_bytes();
+            tx.blocking_send(Ok(chunk)).is_ok()
+        };
         if let Err(e) = merge::serve_input(&a, &job, &task, &mut send) {
             tracing::warn!("merge task {}: input ended: {e}", task.id);
             let _ = tx.blocking_send(Err(std::io::Error::other(e)));
@@ -296,7 +310,7 @@ async fn upload_merge(
     task: TaskRow,
     job: JobRow,
     worker: String,
-    body: Bytes,
+    body: Pooled,
 ) -> ApiResult<Json<ResultAnswer>> {
     let _slot = app
         .result_slots
@@ -338,12 +352,15 @@ pub(crate) async fn upload_result(
     State(app): State<AppState>,
     Path(task_id): Path<i64>,
     Query(q): Query<ResultQuery>,
-    body: Bytes,
+    body: Body,
 ) -> ApiResult<Json<ResultAnswer>> {
     let refused = |e: ApiError| {
         Metrics::add(&app.metrics.results_refused, 1);
         e
     };
+    // Read whole before it is judged (as an extractor would): a client refused while it is
+    // still sending would see its connection cut rather than the answer.
+    let body = read_upload(&app, body).await.map_err(refused)?;
     let (task, job) = current_task(&app, task_id, &q).map_err(refused)?;
     if task.kind == TaskKind::Merge {
         return upload_merge(app.clone(), task, job, q.worker_id, body)
@@ -365,7 +382,7 @@ pub(crate) async fn upload_result(
         let tile = jobs::tile_rect(&r, t.tile);
         // Uploaded laid out by band (`wire::encode_banded`), as the result log keeps it, so
         // that a merge task reads each band's part alone: checked, then stored as it came.
-        let index = match wire::check_banded(&body, &r.grid(), &layout) {
+        let index = match wire::check_banded(&body[..], &r.grid(), &layout) {
             Err(e) => return Ok(Err(e.to_string())),
             Ok(x) => x,
         };
@@ -378,7 +395,7 @@ pub(crate) async fn upload_result(
         let banded = body;
         let path = a.paths.result_log(&t.job_id, t.pass);
         let _log = a.result_log.lock().unwrap_or_else(|e| e.into_inner());
-        let stored = store::append(&path, &banded).map_err(ApiError::internal)?;
+        let stored = store::append(&path, &banded[..]).map_err(ApiError::internal)?;
         Ok(Ok(stored))
     })
     .await
