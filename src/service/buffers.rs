@@ -29,16 +29,23 @@ impl Buffers {
         }
     }
 
-    /// An empty buffer with room for `want` bytes: a free one if any is that large (else the
-    /// largest free one, grown), or a new one.
+    /// An empty buffer with room for `want` bytes: the smallest free one that holds it without
+    /// wasting more than `want` + 1 MB, else the largest smaller one (grown), else a new one. A
+    /// buffer in use keeps all its pages resident, so a small request never takes a large one.
     pub fn take(&self, want: usize) -> Vec<u8> {
         let mut free = self.free.lock().unwrap_or_else(|e| e.into_inner());
+        let fits = |c: usize| c >= want && c <= 2 * want + (1 << 20);
         let pick = free
             .iter()
             .enumerate()
-            .filter(|(_, b)| b.capacity() >= want)
+            .filter(|(_, b)| fits(b.capacity()))
             .min_by_key(|(_, b)| b.capacity())
-            .or_else(|| free.iter().enumerate().max_by_key(|(_, b)| b.capacity()))
+            .or_else(|| {
+                free.iter()
+                    .enumerate()
+                    .filter(|(_, b)| b.capacity() < want)
+                    .max_by_key(|(_, b)| b.capacity())
+            })
             .map(|(k, _)| k);
         let mut v = match pick {
             Some(k) => free.swap_remove(k),
@@ -162,6 +169,10 @@ mod tests {
         assert_eq!(pool.held(), 0);
         drop(bytes);
         assert!(pool.held() >= 1 << 20);
+        // A small request does not take a much larger buffer (it would hold its pages).
+        let small = pool.take(1000);
+        assert!(small.capacity() < 2 << 20, "{}", small.capacity());
+        drop(small);
         // Beyond `keep`, buffers are freed rather than kept.
         let bufs: Vec<Vec<u8>> = (0..5).map(|_| pool.take(1 << 20)).collect();
         for v in bufs {
