@@ -191,6 +191,56 @@ fn banded_uploads_are_checked_before_they_are_stored() {
     assert_eq!(read, again);
 }
 
+/// The coordinator checks sections without decoding them (`check_section`'s short path over
+/// the pixel steps); whatever it accepts or refuses, decoding accepts or refuses alike, for
+/// sections damaged anywhere (a splat's or record's pixel step, a count, a value).
+#[test]
+fn checking_a_section_agrees_with_decoding_it() {
+    use omis::film::TileGrid;
+    use omis::film::wire::{BandedIndex, check_section, decode_section, encode_banded};
+    let scene = load("cornell-box.json", 16, 16);
+    let s = optimal(2, 3, 3);
+    let layout = s.film_layout();
+    let grid = TileGrid::new(16, 16, 8);
+    let film = integrator::render_tile(&scene, &s, grid.tile(0), 0..2);
+    let bytes = encode_banded(film, 0..2, &grid);
+    let index = BandedIndex::read(&mut &bytes[..], bytes.len() as u64).expect("index");
+    let mut rng = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = move || {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        rng
+    };
+    let (mut refused, mut tried) = (0, 0);
+    for (band, r) in &index.sections {
+        let section = &bytes[r.start as usize..r.end as usize];
+        assert!(check_section(section, *band as usize, &grid, &layout).is_ok());
+        for _ in 0..1500 {
+            let mut bad = section.to_vec();
+            for _ in 0..1 + next() % 3 {
+                let at = (next() % bad.len() as u64) as usize;
+                bad[at] ^= 1 << (next() % 8);
+            }
+            let checked = check_section(&bad, *band as usize, &grid, &layout);
+            let decoded = decode_section(&bad, *band as usize, &grid, &layout);
+            assert_eq!(
+                checked.is_ok(),
+                decoded.is_ok(),
+                "band {band}: check {checked:?}, decode {:?}",
+                decoded.err()
+            );
+            tried += 1;
+            refused += checked.is_err() as u32;
+        }
+    }
+    // Both outcomes were exercised.
+    assert!(
+        refused > 0 && refused < tried,
+        "{refused} of {tried} refused"
+    );
+}
+
 #[test]
 fn balance_from_the_optimal_accumulators_equals_balance_weighted_bdpt() {
     // Same seed, same random numbers: sum_i b_i / S of every optimal system plus the balance
