@@ -10,7 +10,7 @@
 use bytes::Bytes;
 use std::sync::{Arc, Mutex};
 
-/// Buffers largest first are not worth keeping beyond this (a rare huge result).
+/// Buffers larger than this are freed rather than kept (a rare huge result).
 const LARGEST_KEPT: usize = 64 << 20;
 
 /// A bounded pool of empty byte buffers with their capacity.
@@ -118,7 +118,7 @@ impl Drop for Pooled {
 /// Why a request body was not read.
 #[derive(Debug)]
 pub(crate) enum BodyError {
-    /// Longer than the limit (what it was).
+    /// Longer than the limit (the message names it).
     TooLarge(String),
     /// The connection failed or the body was malformed.
     Read(String),
