@@ -366,18 +366,19 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
         app.event(id, JobEvent::Cancelled(CancelledEvent {}));
         app.work.notify_waiters();
         // The passes merged so far as image.exr with every layer: a pass rewrites it at most
-        // every `exr_interval_s`, so the last one may not have.
-        if job.passes_done > 0 {
-            let rt = runtime(app, &job)?;
-            let rt = rt.lock().unwrap_or_else(|e| e.into_inner());
-            if !rt.final_written
-                && let Err(e) = merge::write_final(app, &job, &rt)
-            {
-                tracing::warn!(
-                    "job {id}: cancelled; its EXR of {} passes: {e}",
-                    job.passes_done
-                );
-            }
+        // every `exr_interval_s`, so the last one may not have. The row is read again under the
+        // runtime's lock, which a pass holds while it is recorded: its count then matches the
+        // checkpoints.
+        let rt = runtime(app, &job)?;
+        let rt = rt.lock().unwrap_or_else(|e| e.into_inner());
+        let now = app.db().job(id).map_err(|e| e.to_string())?;
+        if let Some(job) = now.filter(|j| j.passes_done > 0 && !rt.final_written)
+            && let Err(e) = merge::write_final(app, &job, &rt)
+        {
+            tracing::warn!(
+                "job {id}: cancelled; its EXR of {} passes: {e}",
+                job.passes_done
+            );
         }
     }
     drop_runtime(app, id);
