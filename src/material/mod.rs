@@ -327,29 +327,23 @@ impl Bsdf {
 
     /// f(wo, wi) without the cosine. Zero for delta lobes; never negative, NaN or infinite.
     pub fn eval(&self, wo: Vec3, wi: Vec3, mode: Mode) -> Rgb {
-        match self.localize(wo, wi) {
-            Some((lo, li)) => {
-                // Cosines at the edge of f32 overflow the shading correction (|wo.ng| |wi.ns|
-                // below ~1e-38 gives inf, and 0 * inf = NaN) or underflow a microfacet
-                // denominator (4 wo.z wi.z = 0 with G2 = 0 gives 0 / 0). `sample` drops such
-                // values and `pdf` maps them to zero; eval must agree.
-                let f = self.lobe.eval(lo, li, mode) * self.shading_correction(wo, wi, mode);
-                if f.is_finite() { f } else { Rgb::ZERO }
-            }
-            None => Rgb::ZERO,
-        }
+        self.eval_local(wo, wi, mode).0
     }
 
     /// `eval(wo, wi, mode)`, and the pair of directions in the shading frame from which
     /// [`Bsdf::pdfs`] gives `pdf(wo, wi)` and `pdf(wi, wo)` later without a second change of
     /// frame: for a BDPT connection, whose densities are needed only once its shadow ray finds
-    /// it unoccluded (computing them before cost 9 % more instructions on Veach's scene, whose
-    /// GGX densities are dear).
+    /// it unoccluded (computing them for occluded ones too cost 0.8 % more instructions on
+    /// Veach's scene, BENCHMARKS.md #13 stop 24).
     #[inline]
     pub fn eval_local(&self, wo: Vec3, wi: Vec3, mode: Mode) -> (Rgb, Option<LocalPair>) {
         let Some((lo, li)) = self.localize(wo, wi) else {
             return (Rgb::ZERO, None);
         };
+        // Cosines at the edge of f32 overflow the shading correction (|wo.ng| |wi.ns| below
+        // ~1e-38 gives inf, and 0 * inf = NaN) or underflow a microfacet denominator (4 wo.z wi.z
+        // = 0 with G2 = 0 gives 0 / 0). `sample` drops such values and `pdf` maps them to zero;
+        // eval must agree.
         let f = self.lobe.eval(lo, li, mode) * self.shading_correction(wo, wi, mode);
         let pair = LocalPair {
             lo,
