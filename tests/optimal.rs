@@ -761,7 +761,7 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
                 bands: b.clone(),
                 pass: p as u32,
                 light_paths: (w * h * range.end) as u64,
-                all_layers: last,
+                last,
                 results: stored.len() as u32,
             }
             .encode();
@@ -791,15 +791,21 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
                 }
             }
             let out = merge::run(&input[..], &grid, &layout).expect("merge");
-            let layers = 1 + if last {
-                layout.extra_layer_names().len()
-            } else {
-                0
-            };
-            let got = MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32 + 1, layers)
+            let got = MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32 + 1, last)
                 .expect("the output checks");
+            // The last pass returns every layer and no checkpoint (nothing continues from it).
+            assert_eq!(got.layers.len(), MergeOutput::layer_count(&layout, last));
+            assert_eq!(
+                got.checkpoints.len(),
+                if last { 0 } else { group_tiles.len() }
+            );
+            assert!(
+                MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32 + 1, !last).is_err()
+            );
             for (k, t) in group_tiles.clone().enumerate() {
-                checkpoints[t] = Some(got.checkpoints[k].clone());
+                if !last {
+                    checkpoints[t] = Some(got.checkpoints[k].clone());
+                }
                 let (tile, img) = &got.layers[0][k];
                 for y in 0..tile.height() {
                     for x in 0..tile.width() {
@@ -810,12 +816,8 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
             }
             // Another task's bands or passes: refused.
             let other = b.start + 1..b.end + 1;
-            assert!(
-                MergeOutput::decode(&out, &grid, &layout, other, p as u32 + 1, layers).is_err()
-            );
-            assert!(
-                MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32, layers).is_err()
-            );
+            assert!(MergeOutput::decode(&out, &grid, &layout, other, p as u32 + 1, last).is_err());
+            assert!(MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32, last).is_err());
             for cut in (0..input.len()).step_by(input.len() / 40 + 1) {
                 assert!(
                     merge::run(&input[..cut], &grid, &layout).is_err(),

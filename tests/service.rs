@@ -1855,9 +1855,10 @@ fn submit_synthetic(c: &Client, url: &str, settings: Value) -> String {
 }
 
 /// The coordinator killed (SIGKILL) in the middle of a result stream — while a pass is half
-/// uploaded, and just after a pass's last result, while it merges — resumes from its data
-/// folder without losing or double-counting anything: the image has the bits of the results
-/// merged in one process, and the sample count is exact.
+/// uploaded, just after a pass's last result, while it merges, and while the last pass merges
+/// (whose merges write no checkpoints) — resumes from its data folder without losing or
+/// double-counting anything: the image has the bits of the results merged in one process, and
+/// the sample count is exact.
 #[test]
 fn a_coordinator_killed_mid_stream_resumes_and_its_image_has_the_in_process_bits() {
     let dir = folder("synthkill");
@@ -1887,6 +1888,14 @@ fn a_coordinator_killed_mid_stream_resumes_and_its_image_has_the_in_process_bits
     // Two of the pass's four merge tasks (one band each), then a kill: the next coordinator
     // reads their groups back from the checkpoints.
     feed(&c, &url, &id, &layout, &|_, m| m >= 2);
+    server.kill9();
+    let (mut server, url) = serve(&data, &["--lease-seconds", "1"]);
+    std::thread::sleep(Duration::from_millis(1100));
+    // The first pass's other two merges, the last pass's results and two of its merges, then a
+    // kill: their images were only in the dead coordinator's memory, so they are merged again.
+    assert_eq!(feed(&c, &url, &id, &layout, &|_, m| m >= 4), per_pass);
+    let st = get_json(&c, &format!("{url}/v1/jobs/{id}"));
+    assert_eq!(st["state"], "running", "{st}");
     server.kill9();
     let (_server, url) = serve(&data, &["--lease-seconds", "1"]);
     std::thread::sleep(Duration::from_millis(1100));

@@ -2,7 +2,8 @@
 //! rows of tiles), reads the group's tile checkpoints and, in task order, every part of the
 //! pass's results that lands in the group, adds them with [`BandGroup`] (so the tiles get
 //! exactly the additions `Film::merge_task` makes: the in-process bits), and returns the tiles'
-//! new checkpoints and their images. The coordinator only moves bytes: it streams the input from
+//! new checkpoints and their images (on a job's last pass every layer's image and no checkpoint:
+//! nothing continues from them). The coordinator only moves bytes: it streams the input from
 //! its result log and checkpoint slots, checks the output and writes the checkpoints in place;
 //! the work that grows with the records (decoding, applying light-tracing records to the
 //! optimal systems, solving) runs on the workers and scales with them.
@@ -10,7 +11,7 @@
 //! ```text
 //! input (coordinator -> worker), streamed:
 //!   magic "OMISMRGI", version u32, bands b0 b1 u32, pass u32 (passes the tiles hold),
-//!   light paths after the pass u64, all layers u8, results n u32
+//!   light paths after the pass u64, last u8 (the job's last pass), results n u32
 //!   per tile of the bands, in tile order: present u8 (0: no checkpoint yet, pass 0),
 //!     [length u64, the tile checkpoint (wire::TileCheckpoint) holding `pass` passes]
 //!   per result, in task order: tile u32, own length u64, sections m u32, m x (band u32,
@@ -19,8 +20,9 @@
 //!     back (as the result log keeps them: the coordinator copies both straight from it)
 //! output (worker -> coordinator):
 //!   magic "OMISMRGO", version u32, bands b0 b1 u32, passes u32 (pass + 1), layers l u32
-//!   per tile: length u64, its checkpoint holding pass + 1 passes
-//!   per layer (beauty first, then FilmLayout::extra_layer_names), per tile: pixels x 3 f32
+//!   unless last, per tile: length u64, its checkpoint holding pass + 1 passes
+//!   per layer (beauty first; on the last pass then FilmLayout::extra_layer_names, l = 1
+//!     otherwise), per tile: pixels x 3 f32
 //! ```
 
 use super::bands::BandGroup;
@@ -33,7 +35,8 @@ use std::io::Read;
 
 const IN_MAGIC: &[u8; 8] = b"OMISMRGI";
 const OUT_MAGIC: &[u8; 8] = b"OMISMRGO";
-const VERSION: u32 = 1;
+/// 2: the last pass's output holds no checkpoints.
+const VERSION: u32 = 2;
 /// No part of a merge input (a checkpoint, a result's part) is longer.
 const MAX_PART: u64 = 1 << 31;
 
@@ -46,8 +49,9 @@ pub struct MergeHead {
     pub pass: u32,
     /// Light paths traced for the frame once the pass is merged (N_L of the optimal systems).
     pub light_paths: u64,
-    /// Return the image of every layer the job keeps (its last pass), not only the beauty.
-    pub all_layers: bool,
+    /// The job's last pass: return the image of every layer the job keeps, not only the
+    /// beauty, and no checkpoints (the job ends with this pass; its EXR is made from the images).
+    pub last: bool,
     /// Results that follow the tiles.
     pub results: u32,
 }
@@ -61,7 +65,7 @@ impl MergeHead {
             out.extend_from_slice(&v.to_le_bytes());
         }
         out.extend_from_slice(&self.light_paths.to_le_bytes());
-        out.push(self.all_layers as u8);
+        out.push(self.last as u8);
         out.extend_from_slice(&self.results.to_le_bytes());
         out
     }
@@ -154,7 +158,7 @@ impl<R: Read> Input<R> {
             bands,
             pass: self.u32("pass")?,
             light_paths: self.u64("light paths")?,
-            all_layers: self.u8("all layers")? != 0,
+            last: self.u8("last pass")? != 0,
             results: self.u32("result count")?,
         })
     }
@@ -271,7 +275,7 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
     }
     group.end_pass(head.light_paths, layout.kappa);
     let passes = head.pass + 1;
-    let layers = tile_images(&group.tiles, layout, head.light_paths, head.all_layers);
+    let layers = tile_images(&group.tiles, layout, head.light_paths, head.last);
     let mut out = Vec::new();
     out.extend_from_slice(OUT_MAGIC);
     for v in [
@@ -283,10 +287,12 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
     ] {
         out.extend_from_slice(&v.to_le_bytes());
     }
-    for tile in &group.tiles {
-        let ck = TileCheckpoint::encode_parts(tile, passes);
-        out.extend_from_slice(&(ck.len() as u64).to_le_bytes());
-        out.extend_from_slice(&ck);
+    if !head.last {
+        for tile in &group.tiles {
+            let ck = TileCheckpoint::encode_parts(tile, passes);
+            out.extend_from_slice(&(ck.len() as u64).to_le_bytes());
+            out.extend_from_slice(&ck);
+        }
     }
     for layer in &layers {
         for (_, img) in layer {
@@ -302,7 +308,8 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
 
 /// A merge task's output, checked against what the task asked for.
 pub struct MergeOutput {
-    /// Per tile of the group, in tile order: its encoded checkpoint (holding `passes`).
+    /// Per tile of the group, in tile order: its encoded checkpoint (holding `passes`); none
+    /// after the job's last pass.
     pub checkpoints: Vec<Vec<u8>>,
     /// Per layer (beauty first), per tile: the tile's image.
     pub layers: LayerImages,
@@ -310,16 +317,18 @@ pub struct MergeOutput {
 
 impl MergeOutput {
     /// Parses the output of the merge of `bands` into tiles that hold `passes` passes now, for a
-    /// frame tiled by `grid` whose films have `layout`, with `layer_count` layers. Every
-    /// checkpoint is decoded (its structure and checksum checked) before it is accepted.
+    /// frame tiled by `grid` whose films have `layout`; `last`: the job's last pass (every layer,
+    /// no checkpoints). Every checkpoint is decoded (its structure and checksum checked) before
+    /// it is accepted.
     pub fn decode(
         bytes: &[u8],
         grid: &TileGrid,
         layout: &FilmLayout,
         bands: std::ops::Range<u32>,
         passes: u32,
-        layer_count: usize,
+        last: bool,
     ) -> Result<MergeOutput, WireError> {
+        let layer_count = Self::layer_count(layout, last);
         let mut at = 0usize;
         let mut take = |n: usize| -> Result<&[u8], WireError> {
             if bytes.len() - at < n {
@@ -351,7 +360,7 @@ impl MergeOutput {
         }
         let tiles = grid.tiles_of_bands(bands.start as usize..bands.end as usize);
         let mut checkpoints = Vec::with_capacity(tiles.len());
-        for t in tiles.clone() {
+        for t in tiles.clone().filter(|_| !last) {
             let len = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
             let want = TileCheckpoint::encoded_len(grid.tile(t).pixels(), layout);
             if len != want {
@@ -394,5 +403,14 @@ impl MergeOutput {
             checkpoints,
             layers: out_layers,
         })
+    }
+
+    /// Layers a merge returns: the beauty, and after the job's last pass every other one.
+    pub fn layer_count(layout: &FilmLayout, last: bool) -> usize {
+        1 + if last {
+            layout.extra_layer_names().len()
+        } else {
+            0
+        }
     }
 }

@@ -227,18 +227,10 @@ fn light_paths(r: &Resolved, spp: u32) -> u64 {
 }
 
 /// Whether pass `pass` is the job's last (a job with a sample count): its merge returns every
-/// layer, and its outputs are the final EXR.
+/// layer and no checkpoints (the job ends with it and its tile files are removed), and its
+/// outputs are the final EXR.
 fn is_last(r: &Resolved, pass: u32) -> bool {
     r.spp.is_some() && r.pass_range(pass + 1).is_none()
-}
-
-/// The layers a merge of pass `pass` returns: the beauty, and on the last pass every other one.
-fn layer_count(r: &Resolved, pass: u32) -> usize {
-    if is_last(r, pass) {
-        1 + r.film_layout().extra_layer_names().len()
-    } else {
-        1
-    }
 }
 
 /// Queues the merge tasks of pass `pass`, whose render tasks are all done (called by
@@ -378,7 +370,7 @@ pub(crate) fn stream_input(
         bands: task.bands(),
         pass,
         light_paths: light_paths(r, spp_after(r, pass)),
-        all_layers: is_last(r, pass),
+        last: is_last(r, pass),
         results: inputs.results.iter().filter(|p| touches(p)).count() as u32,
     };
     let mut buf = head.encode();
@@ -508,7 +500,8 @@ pub(crate) enum Accepted {
 }
 
 /// Checks merge task `task`'s output `body` from `worker`, records the task done, writes the
-/// group's checkpoints into their slots and puts its images with the pass's.
+/// group's checkpoints into their slots (none on the job's last pass) and puts its images with
+/// the pass's.
 pub(crate) fn accept(
     app: &App,
     job: &JobRow,
@@ -531,7 +524,7 @@ pub(crate) fn accept(
         &layout,
         task.bands(),
         passes,
-        layer_count(&r, task.pass),
+        is_last(&r, task.pass),
     ) {
         Ok(o) => o,
         Err(e) => return Ok(Accepted::Invalid(e.to_string())),
@@ -662,8 +655,9 @@ fn images_of(
 
 /// Records pass `pass` once every merge task (`merges`) is done: the images of groups merged
 /// before a restart are read back from their checkpoints (a group whose slots do not hold the
-/// pass is queued again, and false returned), the checkpoints are made durable, the pass and its
-/// work counters recorded, and its outputs written (the final EXR after the last pass).
+/// pass is queued again, and false returned; on the job's last pass, whose merges write no
+/// checkpoints, every such group is), the checkpoints are made durable, the pass and its work
+/// counters recorded, and its outputs written (the final EXR after the last pass).
 pub(crate) fn finish_pass(
     app: &App,
     job: &JobRow,
@@ -683,6 +677,21 @@ pub(crate) fn finish_pass(
         .iter()
         .filter(|m| !images.merged.contains(&m.tile))
         .collect();
+    if last && !unseen.is_empty() {
+        // Their images were in the memory of a coordinator that stopped; their inputs (the
+        // pass's results, the previous pass's checkpoints) are kept until the pass is recorded.
+        tracing::warn!(
+            "job {} last pass {pass}: {} merge tasks done before a restart; merged again",
+            job.id,
+            unseen.len()
+        );
+        for m in unseen {
+            app.db().requeue(m.id).map_err(|e| e.to_string())?;
+        }
+        rt.images = Some(images);
+        app.work.notify_waiters();
+        return Ok(false);
+    }
     for m in unseen {
         let bands = m.bands().start as usize..m.bands().end as usize;
         let missing = std::sync::atomic::AtomicBool::new(false);
@@ -716,7 +725,9 @@ pub(crate) fn finish_pass(
         }
     };
     let spp = spp_after(&r, pass);
-    sync_tiles(app, &job.id).map_err(|e| format!("cannot sync the tile checkpoints: {e}"))?;
+    if !last {
+        sync_tiles(app, &job.id).map_err(|e| format!("cannot sync the tile checkpoints: {e}"))?;
+    }
     app.db()
         .pass_merged(&job.id, pass + 1, spp, &stats)
         .map_err(|e| e.to_string())?;
