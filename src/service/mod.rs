@@ -153,11 +153,14 @@ impl App {
     pub fn event(&self, job: &str, event: JobEvent) {
         let kind = event.kind();
         match self.db().add_event(job, kind, &event.data()) {
-            Ok(row) => {
-                let _ = self.events.send(row);
-            }
+            Ok(row) => self.publish(row),
             Err(e) => tracing::error!("cannot record event {kind} of job {job}: {e}"),
         }
+    }
+
+    /// Publishes a recorded event to SSE subscribers.
+    pub fn publish(&self, row: EventRow) {
+        let _ = self.events.send(row);
     }
 }
 

@@ -195,6 +195,15 @@ pub(crate) struct EventRow {
     pub at: f64,
 }
 
+/// What [`JobStore::complete`] recorded.
+#[derive(Clone, Debug)]
+pub(crate) struct Completed {
+    /// The event recorded with the task.
+    pub event: EventRow,
+    /// Whether render tasks of the task's pass are still queued or leased.
+    pub pass_open: bool,
+}
+
 /// The database of a coordinator.
 pub(crate) struct SqliteStore {
     conn: Connection,
@@ -349,6 +358,28 @@ fn cached_exec(conn: &Connection, sql: &str, p: impl rusqlite::Params) -> rusqli
     conn.prepare_cached(sql)?.execute(p)
 }
 
+/// Inserts an event of `job` (inside the caller's transaction, if any).
+fn insert_event(
+    conn: &Connection,
+    job: &str,
+    kind: EventKind,
+    data: &serde_json::Value,
+) -> rusqlite::Result<EventRow> {
+    let at = now();
+    cached_exec(
+        conn,
+        "INSERT INTO events (job_id, kind, data, at) VALUES (?1, ?2, ?3, ?4)",
+        params![job, kind, data.to_string(), at],
+    )?;
+    Ok(EventRow {
+        id: conn.last_insert_rowid(),
+        job_id: job.to_string(),
+        kind,
+        data: data.clone(),
+        at,
+    })
+}
+
 /// A store's error, whatever the engine.
 #[derive(Debug, thiserror::Error)]
 #[error("{0}")]
@@ -462,16 +493,18 @@ pub(crate) trait JobStore: Send {
     fn lease(&self, worker: &str, lease_s: f64) -> StoreResult<Option<TaskRow>>;
     /// Extends a lease; false when the task is no longer this worker's attempt.
     fn extend(&self, task_id: i64, attempt: u32, worker: &str, lease_s: f64) -> StoreResult<bool>;
-    /// Marks the task done if it is still this worker's current attempt, its result (`bytes`
-    /// uploaded) stored at `stored` of its pass's result log.
+    /// Marks render task `task` done if it is still this worker's current attempt, its result
+    /// (`bytes` uploaded) stored at `stored` of its pass's result log, and records `event`
+    /// (kind and data) of its job in the same transaction. None when the attempt was not
+    /// current (nothing recorded).
     fn complete(
         &self,
-        task_id: i64,
-        attempt: u32,
+        task: &TaskRow,
         worker: &str,
         bytes: usize,
         stored: std::ops::Range<u64>,
-    ) -> StoreResult<bool>;
+        event: (EventKind, &serde_json::Value),
+    ) -> StoreResult<Option<Completed>>;
     /// Records a failed attempt and requeues the task; returns the failures so far, or None when
     /// the attempt was not current.
     fn fail(
@@ -878,12 +911,13 @@ impl JobStore for SqliteStore {
     }
     fn complete(
         &self,
-        task_id: i64,
-        attempt: u32,
+        task: &TaskRow,
         worker: &str,
         bytes: usize,
         stored: std::ops::Range<u64>,
-    ) -> StoreResult<bool> {
+        event: (EventKind, &serde_json::Value),
+    ) -> StoreResult<Option<Completed>> {
+        let (task_id, attempt) = (task.id, task.attempt);
         let tx = self.conn.unchecked_transaction()?;
         let n = cached_exec(
             &tx,
@@ -911,8 +945,13 @@ impl JobStore for SqliteStore {
                 [worker],
             )?;
         }
+        if n != 1 {
+            return Ok(None);
+        }
+        let event = insert_event(&tx, &task.job_id, event.0, event.1)?;
+        let pass_open = self.pass_open(&task.job_id, task.pass)?;
         tx.commit()?;
-        Ok(n == 1)
+        Ok(Some(Completed { event, pass_open }))
     }
     fn fail(
         &self,
@@ -1033,19 +1072,7 @@ impl JobStore for SqliteStore {
         kind: EventKind,
         data: &serde_json::Value,
     ) -> StoreResult<EventRow> {
-        let at = now();
-        cached_exec(
-            &self.conn,
-            "INSERT INTO events (job_id, kind, data, at) VALUES (?1, ?2, ?3, ?4)",
-            params![job, kind, data.to_string(), at],
-        )?;
-        Ok(EventRow {
-            id: self.conn.last_insert_rowid(),
-            job_id: job.to_string(),
-            kind,
-            data: data.clone(),
-            at,
-        })
+        Ok(insert_event(&self.conn, job, kind, data)?)
     }
     fn events_after(&self, job: &str, after: i64) -> StoreResult<Vec<EventRow>> {
         let mut st = self.conn.prepare_cached(

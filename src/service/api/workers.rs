@@ -411,10 +411,17 @@ pub(crate) async fn upload_result(
             )));
         }
     };
-    let accepted = app
+    // The task, its tile_done event and whether it closed its pass: one transaction.
+    let event = JobEvent::TileDone(TileDoneEvent {
+        pass: task.pass,
+        tile: task.tile,
+        worker: worker.clone(),
+        bytes: n as u64,
+    });
+    let completed = app
         .db()
-        .complete(task.id, task.attempt, &worker, n, stored)?;
-    if !accepted {
+        .complete(&task, &worker, n, stored, (event.kind(), &event.data()))?;
+    let Some(completed) = completed else {
         // Its record stays in the log, which nothing points to; the log goes with its pass.
         return Err(refused(ApiError::field(
             StatusCode::CONFLICT,
@@ -424,22 +431,14 @@ pub(crate) async fn upload_result(
                 task.id, task.attempt
             ),
         )));
-    }
+    };
     Metrics::add(&app.metrics.results_accepted, 1);
     Metrics::add(&app.metrics.result_bytes, n as u64);
-    app.event(
-        &task.job_id,
-        JobEvent::TileDone(TileDoneEvent {
-            pass: task.pass,
-            tile: task.tile,
-            worker,
-            bytes: n as u64,
-        }),
-    );
+    app.publish(completed.event);
     // Only the result that closes its pass can start a merge: whoever completes a pass's last
     // task sees it closed (its own completion is committed before it looks), so the others
     // need not advance the job.
-    if !app.db().pass_open(&task.job_id, task.pass)? {
+    if !completed.pass_open {
         let a = app.clone();
         let id = task.job_id.clone();
         tokio::task::spawn_blocking(move || jobs::advance(&a, &id));
