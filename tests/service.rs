@@ -1925,6 +1925,41 @@ fn a_coordinator_killed_mid_stream_resumes_and_its_image_has_the_in_process_bits
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A job's last pass writes no checkpoints: its final EXR, written before the pass is recorded,
+/// stands for it. A coordinator that stops after recording the last pass and before marking the
+/// job done (here: the row set back to running, the tile files gone) finishes the job on restart
+/// with that EXR, the same bits, instead of assembling one from checkpoints that do not hold it.
+#[test]
+fn a_job_stopped_after_its_last_pass_finishes_on_restart_with_its_final_exr() {
+    let dir = folder("lastpass");
+    let data = dir.join("data");
+    let (w, h, spp, pass, tile) = (64u32, 48u32, 8u32, 4u32, 16u32);
+    let settings = synthetic_settings(w, h, spp, pass, tile, 1);
+    let layout = synthetic_layout(&settings);
+    let c = http();
+    let (mut server, url) = serve(&data, &[]);
+    let id = submit_synthetic(&c, &url, settings);
+    feed(&c, &url, &id, &layout, &|_, _| false);
+    wait_state(&c, &url, &id, |s| s["state"] == "done");
+    let before = download_exr(&c, &url, &id, &dir);
+    server.kill9();
+    {
+        let db = rusqlite::Connection::open(data.join("omis.sqlite")).expect("database");
+        let n = db
+            .execute("UPDATE jobs SET state = 'running' WHERE id = ?1", [&id])
+            .expect("update");
+        assert_eq!(n, 1);
+    }
+    let _ = std::fs::remove_dir_all(data.join("jobs").join(&id).join("tiles"));
+    let (_server, url) = serve(&data, &[]);
+    let st = wait_state(&c, &url, &id, |s| s["state"] != "running");
+    assert_eq!(st["state"], "done", "{st}");
+    assert_eq!(st["spp_done"], spp);
+    let after = download_exr(&c, &url, &id, &dir);
+    assert!(before.pixels == after.pixels, "the final EXR changed");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Peak resident memory (VmHWM) of process `pid`, in bytes.
 fn peak_rss(pid: u32) -> u64 {
     let text = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("/proc status");

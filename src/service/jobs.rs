@@ -254,7 +254,7 @@ fn finished_all(app: &App, job: &JobRow) -> Result<bool, String> {
 }
 
 fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
-    if !rt.final_written {
+    if !rt.final_written && !merge::final_in_exr(&rt.resolved, job.passes_done) {
         merge::write_final(app, job, rt)?;
         trim_memory();
     }
@@ -300,6 +300,10 @@ pub(crate) fn write_outputs(
         })
         .collect();
     exr_io::write_exr(&tmp, image, &named, &attrs)?;
+    // Durable before it replaces the last one: the final EXR stands for a job's last pass.
+    std::fs::File::open(&tmp)
+        .and_then(|f| f.sync_all())
+        .map_err(|e| format!("cannot sync {}: {e}", tmp.display()))?;
     std::fs::rename(&tmp, app.paths.output(&job.id, "image.exr")).map_err(|e| e.to_string())
 }
 
@@ -372,8 +376,11 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
         let rt = runtime(app, &job)?;
         let rt = rt.lock().unwrap_or_else(|e| e.into_inner());
         let now = app.db().job(id).map_err(|e| e.to_string())?;
-        if let Some(job) = now.filter(|j| j.passes_done > 0 && !rt.final_written)
-            && let Err(e) = merge::write_final(app, &job, &rt)
+        if let Some(job) = now.filter(|j| {
+            j.passes_done > 0
+                && !rt.final_written
+                && !merge::final_in_exr(&rt.resolved, j.passes_done)
+        }) && let Err(e) = merge::write_final(app, &job, &rt)
         {
             tracing::warn!(
                 "job {id}: cancelled; its EXR of {} passes: {e}",

@@ -233,6 +233,13 @@ fn is_last(r: &Resolved, pass: u32) -> bool {
     r.spp.is_some() && r.pass_range(pass + 1).is_none()
 }
 
+/// Whether a job of `passes_done` merged passes has merged its last pass: its final EXR was
+/// written before that pass was recorded, and no checkpoint holds that pass, so the EXR is not
+/// to be assembled from checkpoints again.
+pub(crate) fn final_in_exr(r: &Resolved, passes_done: u32) -> bool {
+    passes_done > 0 && is_last(r, passes_done - 1)
+}
+
 /// Queues the merge tasks of pass `pass`, whose render tasks are all done (called by
 /// `jobs::advance`). A result that cannot be read is rendered again first.
 pub(crate) fn begin(app: &App, job: &JobRow, rt: &mut Runtime, pass: u32) -> Result<(), String> {
@@ -656,8 +663,9 @@ fn images_of(
 /// Records pass `pass` once every merge task (`merges`) is done: the images of groups merged
 /// before a restart are read back from their checkpoints (a group whose slots do not hold the
 /// pass is queued again, and false returned; on the job's last pass, whose merges write no
-/// checkpoints, every such group is), the checkpoints are made durable, the pass and its work
-/// counters recorded, and its outputs written (the final EXR after the last pass).
+/// checkpoints, every such group is), the checkpoints are made durable (on the last pass: the
+/// final EXR, written before the pass is recorded), the pass and its work counters recorded, and
+/// its outputs written.
 pub(crate) fn finish_pass(
     app: &App,
     job: &JobRow,
@@ -725,7 +733,27 @@ pub(crate) fn finish_pass(
         }
     };
     let spp = spp_after(&r, pass);
-    if !last {
+    let mut frames = images.layers.into_iter();
+    let image = frames
+        .next()
+        .unwrap_or_else(|| Image::new(r.width as usize, r.height as usize));
+    if last {
+        // The final EXR stands in for the checkpoints this pass does not write: it is written
+        // (fsync'd) before the pass is recorded, so a job recorded with its last pass always has
+        // it (`final_in_exr`).
+        let layers: Vec<(String, Image)> = r
+            .film_layout()
+            .extra_layer_names()
+            .into_iter()
+            .zip(frames)
+            .collect();
+        let at_end = JobRow {
+            spp_done: spp,
+            ..job.clone()
+        };
+        jobs::write_outputs(app, &at_end, rt, &image, &layers, true)?;
+        rt.exr_written = std::time::Instant::now();
+    } else {
         sync_tiles(app, &job.id).map_err(|e| format!("cannot sync the tile checkpoints: {e}"))?;
     }
     app.db()
@@ -736,29 +764,18 @@ pub(crate) fn finish_pass(
     super::Metrics::add(&app.metrics.passes_merged, 1);
     super::Metrics::add(&app.metrics.merge_micros, t0.elapsed().as_micros() as u64);
 
-    // Outputs of the pass: preview, beauty EXR, error map, relMSE.
+    // Outputs of the pass: preview, beauty EXR, error map, relMSE (the last pass's are written).
     let job = app
         .db()
         .job(&job.id)
         .map_err(|e| e.to_string())?
         .ok_or("job vanished")?;
-    let mut frames = images.layers.into_iter();
-    let image = frames
-        .next()
-        .unwrap_or_else(|| Image::new(r.width as usize, r.height as usize));
-    let layers: Vec<(String, Image)> = if last {
-        r.film_layout()
-            .extra_layer_names()
-            .into_iter()
-            .zip(frames)
-            .collect()
-    } else {
-        Vec::new()
-    };
-    let exr = rt.exr_due(last, app.cfg.exr_interval_s);
-    jobs::write_outputs(app, &job, rt, &image, &layers, exr)?;
-    if exr {
-        rt.exr_written = std::time::Instant::now();
+    if !last {
+        let exr = rt.exr_due(false, app.cfg.exr_interval_s);
+        jobs::write_outputs(app, &job, rt, &image, &[], exr)?;
+        if exr {
+            rt.exr_written = std::time::Instant::now();
+        }
     }
     rt.final_written = last;
     let relmse = match &rt.reference {
