@@ -33,10 +33,10 @@ pub(crate) struct Runtime {
 }
 
 impl Runtime {
-    /// Whether a pass ending now rewrites image.exr: the last pass always, another when the
-    /// last rewrite (or the job's start here) is `interval_s` old.
-    pub fn exr_due(&self, last: bool, interval_s: f64) -> bool {
-        last || self.exr_written.elapsed().as_secs_f64() >= interval_s
+    /// Whether a pass before the last rewrites image.exr: when the last rewrite (or the job's
+    /// start here) is `interval_s` old. The last pass always writes it (`merge::finish_pass`).
+    pub fn exr_due(&self, interval_s: f64) -> bool {
+        self.exr_written.elapsed().as_secs_f64() >= interval_s
     }
 }
 

@@ -771,7 +771,7 @@ pub(crate) fn finish_pass(
         .map_err(|e| e.to_string())?
         .ok_or("job vanished")?;
     if !last {
-        let exr = rt.exr_due(false, app.cfg.exr_interval_s);
+        let exr = rt.exr_due(app.cfg.exr_interval_s);
         jobs::write_outputs(app, &job, rt, &image, &[], exr)?;
         if exr {
             rt.exr_written = std::time::Instant::now();
