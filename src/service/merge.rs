@@ -93,6 +93,21 @@ impl PassImages {
             }
         }
     }
+
+    /// The beauty and the other layers the images hold (none before the last pass), named.
+    fn into_named(self, r: &Resolved) -> (Image, Vec<(String, Image)>) {
+        let mut frames = self.layers.into_iter();
+        let image = frames
+            .next()
+            .unwrap_or_else(|| Image::new(r.width as usize, r.height as usize));
+        let layers = r
+            .film_layout()
+            .extra_layer_names()
+            .into_iter()
+            .zip(frames)
+            .collect();
+        (image, layers)
+    }
 }
 
 /// Appends byte range `range` of an open file to `buf`; returns where it begins in `buf`.
@@ -733,20 +748,11 @@ pub(crate) fn finish_pass(
         }
     };
     let spp = spp_after(&r, pass);
-    let mut frames = images.layers.into_iter();
-    let image = frames
-        .next()
-        .unwrap_or_else(|| Image::new(r.width as usize, r.height as usize));
+    let (image, layers) = images.into_named(&r);
     if last {
         // The final EXR stands in for the checkpoints this pass does not write: it is written
         // (fsync'd) before the pass is recorded, so a job recorded with its last pass always has
         // it (`final_in_exr`).
-        let layers: Vec<(String, Image)> = r
-            .film_layout()
-            .extra_layer_names()
-            .into_iter()
-            .zip(frames)
-            .collect();
         let at_end = JobRow {
             spp_done: spp,
             ..job.clone()
@@ -833,15 +839,6 @@ pub(crate) fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), S
         images_of(app, &job.id, r, bands, passes, true)?
             .ok_or_else(|| format!("a tile checkpoint holding {passes} passes is missing"))
     })?;
-    let mut frames = images.layers.into_iter();
-    let image = frames
-        .next()
-        .unwrap_or_else(|| Image::new(r.width as usize, r.height as usize));
-    let layers: Vec<(String, Image)> = r
-        .film_layout()
-        .extra_layer_names()
-        .into_iter()
-        .zip(frames)
-        .collect();
+    let (image, layers) = images.into_named(r);
     jobs::write_outputs(app, job, rt, &image, &layers, true)
 }
