@@ -144,6 +144,17 @@ fn wire_decoding_rejects_damaged_results() {
     );
 }
 
+/// The upload of tile 0 (samples 0..2, optimal MIS D_opt 3) of a 16x16 Cornell box in tiles of
+/// 8, laid out by band as a worker sends it: (grid, layout, bytes).
+fn banded_result() -> (omis::film::TileGrid, omis::film::FilmLayout, Vec<u8>) {
+    let scene = load("cornell-box.json", 16, 16);
+    let s = optimal(2, 3, 3);
+    let grid = omis::film::TileGrid::new(16, 16, 8);
+    let film = integrator::render_tile(&scene, &s, grid.tile(0), 0..2);
+    let bytes = omis::film::wire::encode_banded(film, 0..2, &grid);
+    (grid, s.film_layout(), bytes)
+}
+
 /// A result uploaded laid out by band is checked part by part before the coordinator stores it
 /// as it came: a flipped byte in any part, a section out of its band or of the frame, an own
 /// part that disagrees with the header are refused; a relabelled one (what the load generator
@@ -151,14 +162,9 @@ fn wire_decoding_rejects_damaged_results() {
 #[test]
 fn banded_uploads_are_checked_before_they_are_stored() {
     use omis::film::TileGrid;
-    use omis::film::wire::{BandedIndex, check_banded, encode_banded, relabel_banded};
-    let scene = load("cornell-box.json", 16, 16);
-    let s = optimal(2, 3, 3);
-    let layout = s.film_layout();
-    let grid = TileGrid::new(16, 16, 8);
+    use omis::film::wire::{BandedIndex, check_banded, relabel_banded};
+    let (grid, layout, bytes) = banded_result();
     let tile = grid.tile(0);
-    let film = integrator::render_tile(&scene, &s, tile, 0..2);
-    let bytes = encode_banded(film, 0..2, &grid);
     let index = check_banded(&bytes, &grid, &layout).expect("a worker's upload passes");
     assert_eq!((index.tile, index.samples.clone()), (tile, 0..2));
     assert!(index.sections.len() == 2, "light paths reach both bands");
@@ -196,14 +202,8 @@ fn banded_uploads_are_checked_before_they_are_stored() {
 /// sections damaged anywhere (a splat's or record's pixel step, a count, a value).
 #[test]
 fn checking_a_section_agrees_with_decoding_it() {
-    use omis::film::TileGrid;
-    use omis::film::wire::{BandedIndex, check_section, decode_section, encode_banded};
-    let scene = load("cornell-box.json", 16, 16);
-    let s = optimal(2, 3, 3);
-    let layout = s.film_layout();
-    let grid = TileGrid::new(16, 16, 8);
-    let film = integrator::render_tile(&scene, &s, grid.tile(0), 0..2);
-    let bytes = encode_banded(film, 0..2, &grid);
+    use omis::film::wire::{BandedIndex, check_section, decode_section};
+    let (grid, layout, bytes) = banded_result();
     let index = BandedIndex::read(&mut &bytes[..], bytes.len() as u64).expect("index");
     let mut rng = 0x9e37_79b9_7f4a_7c15u64;
     let mut next = move || {
