@@ -152,14 +152,21 @@ impl App {
     /// Records an event and publishes it to SSE subscribers.
     pub fn event(&self, job: &str, event: JobEvent) {
         let kind = event.kind();
-        match self.db().add_event(job, kind, &event.data()) {
-            Ok(row) => self.publish(row),
+        let db = self.db();
+        match db.add_event(job, kind, &event.data()) {
+            Ok(row) => self.publish(&db, row),
             Err(e) => tracing::error!("cannot record event {kind} of job {job}: {e}"),
         }
     }
 
-    /// Publishes a recorded event to SSE subscribers.
-    pub fn publish(&self, row: EventRow) {
+    /// Publishes a recorded event to SSE subscribers. It takes the store's lock, held since
+    /// the event was recorded: events then reach subscribers in the order of their ids, which
+    /// a stream relies on when it skips those it has sent (`e.id > last`).
+    pub fn publish(
+        &self,
+        _recorded_under: &std::sync::MutexGuard<'_, Box<dyn JobStore>>,
+        row: EventRow,
+    ) {
         let _ = self.events.send(row);
     }
 }

@@ -418,9 +418,14 @@ pub(crate) async fn upload_result(
         worker: worker.clone(),
         bytes: n as u64,
     });
-    let completed = app
-        .db()
-        .complete(&task, &worker, n, stored, (event.kind(), &event.data()))?;
+    let completed = {
+        let db = app.db();
+        let c = db.complete(&task, &worker, n, stored, (event.kind(), &event.data()))?;
+        if let Some(c) = &c {
+            app.publish(&db, c.event.clone());
+        }
+        c
+    };
     let Some(completed) = completed else {
         // Its record stays in the log, which nothing points to; the log goes with its pass.
         return Err(refused(ApiError::field(
@@ -434,7 +439,6 @@ pub(crate) async fn upload_result(
     };
     Metrics::add(&app.metrics.results_accepted, 1);
     Metrics::add(&app.metrics.result_bytes, n as u64);
-    app.publish(completed.event);
     // Only the result that closes its pass can start a merge: whoever completes a pass's last
     // task sees it closed (its own completion is committed before it looks), so the others
     // need not advance the job.
