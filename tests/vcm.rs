@@ -7,6 +7,7 @@ mod common;
 
 use common::{assert_agree, load, region};
 use omis::film::Image;
+use omis::integrator::vcm::VcmWeights;
 use omis::integrator::{IntegratorKind, RenderSettings};
 use omis::mis::MisKind;
 use omis::sampler::SamplerKind;
@@ -57,21 +58,66 @@ fn vcm_equals_the_analytic_furnace_with_a_large_radius() {
     // incident light is uniform, so a merge of any radius is unbiased (up to the sphere's
     // curvature within the disc): at r = 0.15 merging carries most of the deeper paths, and a
     // weight that did not sum to one with the connections' would show as a bias.
+    // Ershov et al.'s split moves weight between the merges at x_1 and x_2 and must keep the
+    // sum: with the same seeds its images differ from Georgiev's only by the weights, so their
+    // difference has a far smaller spread than either and checks that more tightly.
     let scene = load("furnace.json", 8, 8);
     for mis in [MisKind::Balance, MisKind::Power] {
         for max_depth in [1u32, 2, 5] {
             let expected: f64 = (0..=max_depth).map(|d| 0.5f64.powi(d as i32)).sum();
-            let s = RenderSettings {
-                radius: 0.15,
-                radius_alpha: 1.0,
-                ..settings(IntegratorKind::Vcm, mis, 8, max_depth)
-            };
-            let imgs = renders(&scene, &s, 16);
-            let (m, se) = region(&imgs, (0, 0, 8, 8), 1);
-            eprintln!("furnace {mis:?} depth {max_depth}: {m} vs {expected} (se {se})");
+            let images = [VcmWeights::Georgiev, VcmWeights::Ershov].map(|vcm_weights| {
+                let s = RenderSettings {
+                    radius: 0.15,
+                    radius_alpha: 1.0,
+                    vcm_weights,
+                    ..settings(IntegratorKind::Vcm, mis, 8, max_depth)
+                };
+                let imgs = renders(&scene, &s, 16);
+                let (m, se) = region(&imgs, (0, 0, 8, 8), 1);
+                let what = format!("{vcm_weights:?} {mis:?} depth {max_depth}");
+                eprintln!("furnace {what}: {m} vs {expected} (se {se})");
+                assert!(
+                    (m - expected).abs() <= 4.0 * se + 1e-4 * expected,
+                    "{what}: {m} vs {expected} (se {se})"
+                );
+                imgs
+            });
+            let diff: Vec<Image> = images[1]
+                .iter()
+                .zip(&images[0])
+                .map(|(e, g)| Image {
+                    pixels: e
+                        .pixels
+                        .iter()
+                        .zip(&g.pixels)
+                        .map(|(a, b)| *a - *b)
+                        .collect(),
+                    ..e.clone()
+                })
+                .collect();
+            let (m, se) = region(&diff, (0, 0, 8, 8), 1);
+            let moved = diff
+                .iter()
+                .flat_map(|d| d.pixels.iter().map(|p| p.y.abs() as f64))
+                .sum::<f64>()
+                / (diff.len() * 64) as f64;
+            eprintln!(
+                "furnace Ershov - Georgiev {mis:?} depth {max_depth}: {m} (se {se}, mean |difference| {moved})"
+            );
+            // The split keeps the pair's weight exactly only as r -> 0: each merge sees the
+            // pair's joint weight through its own vertices (the photon's or the camera's), which
+            // at r = 0.15 costs about -0.1 of the weight moved (measured: -0.0014 at depth 2,
+            // balance); a wrong split (without the (1 + rho), or w1 on the wrong side) was off
+            // by 0.8-0.95 of it, 20-30 standard errors.
             assert!(
-                (m - expected).abs() <= 4.0 * se + 1e-4 * expected,
-                "{mis:?} depth {max_depth}: {m} vs {expected} (se {se})"
+                m.abs() <= 4.0 * se + 0.25 * moved,
+                "Ershov - Georgiev {mis:?} depth {max_depth}: {m} (se {se}, moved {moved})"
+            );
+            // Depth 1 has no pair of merges to split; deeper paths do.
+            assert_eq!(
+                moved > 1e-3,
+                max_depth > 1,
+                "{mis:?} depth {max_depth}: {moved}"
             );
         }
     }
@@ -85,12 +131,16 @@ fn vcm_agrees_with_bdpt_on_the_cornell_boxes() {
         let scene = load(name, 24, 24);
         for mis in [MisKind::Balance, MisKind::Power] {
             let reference = renders(&scene, &settings(IntegratorKind::Bdpt, mis, 8, 5), 16);
-            let s = RenderSettings {
-                radius: 0.02,
-                ..settings(IntegratorKind::Vcm, mis, 8, 5)
-            };
-            let v = renders(&scene, &s, 16);
-            assert_agree(&format!("{name} {mis:?}: vcm vs bdpt"), &v, &reference, 3);
+            for vcm_weights in [VcmWeights::Georgiev, VcmWeights::Ershov] {
+                let s = RenderSettings {
+                    radius: 0.02,
+                    vcm_weights,
+                    ..settings(IntegratorKind::Vcm, mis, 8, 5)
+                };
+                let v = renders(&scene, &s, 16);
+                let what = format!("{name} {mis:?}: vcm {vcm_weights:?} vs bdpt");
+                assert_agree(&what, &v, &reference, 3);
+            }
         }
     }
 }
@@ -104,12 +154,24 @@ fn vcm_is_bit_identical_for_any_thread_count_and_tiling() {
             .sums()
             .clone()
     };
-    for mis in [MisKind::Balance, MisKind::Power] {
+    let runs = [
+        (MisKind::Balance, VcmWeights::Georgiev),
+        (MisKind::Power, VcmWeights::Georgiev),
+        (MisKind::Balance, VcmWeights::Ershov),
+    ];
+    let mut georgiev = None;
+    for (mis, vcm_weights) in runs {
         let mut s = settings(IntegratorKind::Vcm, mis, 4, 6);
         s.sampler = SamplerKind::Sobol;
         s.radius = 0.05;
+        s.vcm_weights = vcm_weights;
         let one = render(&scene, &s, 8, 1);
         assert_eq!(one, render(&scene, &s, 8, 3), "{mis:?}: 1 vs 3 threads");
+        match vcm_weights {
+            VcmWeights::Georgiev if mis == MisKind::Balance => georgiev = Some(one),
+            VcmWeights::Ershov => assert_ne!(georgiev.as_ref(), Some(&one), "Ershov's split"),
+            _ => {}
+        }
         // Every camera vertex merges with the same photons whatever its tile. (Light-tracing
         // splats are summed per task before they are merged, as in BDPT: the sums of other
         // tilings round differently.)
@@ -297,17 +359,20 @@ fn vcm_merge_bias_is_the_disc_average_and_shrinks_with_the_radius() {
 fn every_integrators_depth_layers_add_up_to_its_image() {
     use omis::integrator::bpm::BpmWeights;
     let scene = load("caustic-mirror.json", 24, 24);
+    let (georgiev, ershov) = (VcmWeights::Georgiev, VcmWeights::Ershov);
     let runs = [
-        (IntegratorKind::Pt, BpmWeights::Fixed),
-        (IntegratorKind::Bdpt, BpmWeights::Fixed),
-        (IntegratorKind::Vcm, BpmWeights::Fixed),
-        (IntegratorKind::Bpm, BpmWeights::Fixed),
-        (IntegratorKind::Bpm, BpmWeights::Optimal),
+        (IntegratorKind::Pt, BpmWeights::Fixed, georgiev),
+        (IntegratorKind::Bdpt, BpmWeights::Fixed, georgiev),
+        (IntegratorKind::Vcm, BpmWeights::Fixed, georgiev),
+        (IntegratorKind::Vcm, BpmWeights::Fixed, ershov),
+        (IntegratorKind::Bpm, BpmWeights::Fixed, georgiev),
+        (IntegratorKind::Bpm, BpmWeights::Optimal, georgiev),
     ];
-    for (integrator, bpm_weights) in runs {
+    for (integrator, bpm_weights, vcm_weights) in runs {
         let s = RenderSettings {
             radius: 0.05,
             bpm_weights,
+            vcm_weights,
             depth_layers: true,
             ..settings(integrator, MisKind::Balance, 4, 6)
         };
@@ -320,14 +385,17 @@ fn every_integrators_depth_layers_add_up_to_its_image() {
                 .fold(omis::geometry::Rgb::ZERO, |a, l| a + l.pixels[i]);
             assert!(
                 (sum - *p).abs().max_element() <= 1e-4 * (1.0 + p.max_element()),
-                "{integrator:?} {bpm_weights:?} pixel {i}: layers {sum} vs image {p}"
+                "{integrator:?} {bpm_weights:?} {vcm_weights:?} pixel {i}: layers {sum} vs image {p}"
             );
         }
         let lit = layers
             .iter()
             .filter(|l| l.pixels.iter().any(|p| p.max_element() > 0.0))
             .count();
-        assert!(lit >= 3, "{integrator:?} {bpm_weights:?}: {lit} depths lit");
+        assert!(
+            lit >= 3,
+            "{integrator:?} {bpm_weights:?} {vcm_weights:?}: {lit} depths lit"
+        );
     }
 }
 

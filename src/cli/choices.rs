@@ -3,6 +3,7 @@
 
 use crate::integrator::bpm::BpmWeights;
 use crate::integrator::path::DirectStrategy;
+use crate::integrator::vcm::VcmWeights;
 use crate::integrator::{IntegratorKind, Techniques};
 use crate::mis::MisKind;
 use crate::sampler::SamplerKind;
@@ -55,6 +56,18 @@ mirror! {
         /// Mix --bdd and --bdd + 1 with the optimal weights of Ershov et al. (CPT 2020, CEUR-WS vol. 2763)
         /// from a photon map frozen at the first iteration.
         Optimal,
+    }
+}
+
+mirror! {
+    /// `--vcm-weights`.
+    VcmWeightsArg => VcmWeights {
+        /// Every connection and merge by --mis balance or power (Georgiev et al., SIGGRAPH Asia 2012).
+        Georgiev,
+        /// As georgiev, but the joint share of the merges at the camera's first non-specular
+        /// vertex and at the path's next vertex is split by Ershov et al.'s optimal weight (CPT
+        /// 2020, CEUR-WS vol. 2763), from a photon map frozen at the first iteration.
+        Ershov,
     }
 }
 

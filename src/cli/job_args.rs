@@ -2,6 +2,7 @@
 
 use super::choices::{
     BpmWeightsArg, DirectArg, IntegratorArg, MisArg, OptimalDepthArg, SamplerArg, TechniquesArg,
+    VcmWeightsArg,
 };
 use crate::job::{self, FieldError, JobSettings};
 use clap::Args;
@@ -79,6 +80,10 @@ pub struct JobArgs {
     /// BPM: fixed --bdd, or --bdd and --bdd + 1 mixed by optimal weights.
     #[arg(long, value_enum, default_value_t = BpmWeightsArg::Optimal)]
     pub bpm_weights: BpmWeightsArg,
+    /// VCM: Georgiev et al.'s weights, or the merges at the first two camera-side vertices
+    /// split by Ershov et al.'s optimal weight.
+    #[arg(long, value_enum, default_value_t = VcmWeightsArg::Georgiev)]
+    pub vcm_weights: VcmWeightsArg,
 }
 
 impl JobArgs {
@@ -114,6 +119,7 @@ impl JobArgs {
             radius_alpha: self.radius_alpha,
             bdd: self.bdd,
             bpm_weights: self.bpm_weights.into(),
+            vcm_weights: self.vcm_weights.into(),
         };
         s.validate(&job::Limits::default()).map_err(flag_error)?;
         Ok(s)

@@ -213,6 +213,11 @@ impl StoredVertex {
         self.p
     }
 
+    /// Area density of this vertex from its predecessor in its subpath.
+    pub(crate) fn pdf_fwd(&self) -> f32 {
+        self.pdf_fwd
+    }
+
     /// The vertex again; `first` for y_0 (on the light), else a surface vertex.
     pub(crate) fn load(&self, scene: &Scene, first: bool) -> Vertex {
         let bsdf = if self.material == NO_MATERIAL {

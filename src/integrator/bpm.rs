@@ -12,7 +12,8 @@
 //! Mixed M / M + 1: paths with at least M + 1 non-specular vertices are also merged at the
 //! (M + 1)-th, weighted w1(v, u, x_M) there and 1 - w1 at x_M, where x_M is the camera's M-th
 //! non-specular vertex, u the direction from it toward the camera and v the direction toward
-//! the path's next vertex. The weights must be deterministic functions of the path, so a, A
+//! the path's next vertex (at x_M, the direction the merged photon arrived from, the one its
+//! BSDF is evaluated in; at x_{M+1}, the camera's own). The weights must be deterministic functions of the path, so a, A
 //! and B are sums over a photon map frozen once (iteration 0's, at radius r_0); the estimate
 //! uses the current iteration's photons. The closed form: w1 = W1 + A / ((1 - n_F B) a), with
 //! W1 = f~ / (n_F a), a = (f~ + b / L) / n_F + L, n_F = S N_F (S = pi r_0^2, N_F light
@@ -43,11 +44,11 @@ pub enum BpmWeights {
 }
 
 /// The optimal weights' sums at x_M (eqs. 11-12 over the frozen map).
-struct Mixing<'a> {
+pub(crate) struct Mixing<'a> {
     scene: &'a Scene,
     frozen: &'a PhotonMap,
     /// x_M and its BSDF.
-    p: Vec3,
+    pub(crate) p: Vec3,
     ng: Vec3,
     ns: Vec3,
     bsdf: Bsdf,
@@ -61,7 +62,8 @@ struct Mixing<'a> {
 }
 
 impl<'a> Mixing<'a> {
-    fn new(scene: &'a Scene, frozen: &'a PhotonMap, x: &bdpt::Vertex, wo: Vec3) -> Self {
+    /// The sums at x_M = `x`, `wo` (u) toward the camera.
+    pub(crate) fn new(scene: &'a Scene, frozen: &'a PhotonMap, x: &bdpt::Vertex, wo: Vec3) -> Self {
         let s = std::f64::consts::PI * (frozen.radius as f64).powi(2);
         let n_f = s * frozen.light_paths as f64;
         let per_flux = if frozen.flux > 0.0 {
@@ -86,8 +88,7 @@ impl<'a> Mixing<'a> {
         let mut qs: Vec<Photon> = Vec::new();
         frozen.query(m.p, |q| qs.push(*q));
         for q in &qs {
-            let v = (frozen.prev(q) - m.p).normalize_or_zero();
-            let (w1_0, _, f_t) = m.w1_parts(v);
+            let (w1_0, _, f_t) = m.w1_parts(q.wi);
             let e = luminance(q.beta) / frozen.flux.max(f64::MIN_POSITIVE);
             a_sum += w1_0 * f_t * e / n_f;
             nb += w1_0 * e;
@@ -131,7 +132,7 @@ impl<'a> Mixing<'a> {
     }
 
     /// w1 for direction `v` from x_M, in [0, 1].
-    fn w1(&self, v: Vec3) -> f64 {
+    pub(crate) fn w1(&self, v: Vec3) -> f64 {
         let (w, a, _) = self.w1_parts(v);
         let w1 = w + self.gamma / a;
         if w1.is_finite() {
@@ -207,9 +208,7 @@ pub fn pixel_sample(
             let w = if c == m + 1 {
                 w_next
             } else if c == m && !ph.caustic {
-                mixing.as_ref().map_or(1.0, |mx| {
-                    1.0 - mx.w1((map.prev(ph) - mx.p).normalize_or_zero())
-                })
+                mixing.as_ref().map_or(1.0, |mx| 1.0 - mx.w1(ph.wi))
             } else {
                 1.0
             };

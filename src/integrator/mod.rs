@@ -108,6 +108,9 @@ pub struct RenderSettings {
     /// BPM only: fixed BDD, or BDD and BDD + 1 mixed by the optimal weights.
     #[serde(default)]
     pub bpm_weights: bpm::BpmWeights,
+    /// VCM only: Georgiev et al.'s weights, or Ershov et al.'s split of the merges at x_1 / x_2.
+    #[serde(default)]
+    pub vcm_weights: vcm::VcmWeights,
 }
 
 fn default_bdd() -> u32 {
@@ -182,6 +185,7 @@ impl Default for RenderSettings {
             radius_alpha: vcm::DEFAULT_ALPHA,
             bdd: 1,
             bpm_weights: bpm::BpmWeights::Optimal,
+            vcm_weights: vcm::VcmWeights::Georgiev,
         }
     }
 }

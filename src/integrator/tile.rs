@@ -333,8 +333,12 @@ fn render_tile_vcm(
     let mut per_depth = vec![Rgb::ZERO; nd];
     let cam = &scene.camera;
     let bpm = settings.integrator == IntegratorKind::Bpm;
-    let frozen =
-        (bpm && settings.bpm_weights == BpmWeights::Optimal).then(|| cache.get(scene, settings, 0));
+    let frozen = if bpm {
+        settings.bpm_weights == BpmWeights::Optimal
+    } else {
+        settings.vcm_weights == vcm::VcmWeights::Ershov
+    }
+    .then(|| cache.get(scene, settings, 0));
     for i in samples {
         let map = cache.get(scene, settings, i);
         for y in tile.y0..tile.y1 {
@@ -390,6 +394,7 @@ fn render_tile_vcm(
                     max_depth,
                     &mut sampler,
                     &map,
+                    frozen.as_deref(),
                     &mut ws,
                     &mut sink,
                     &mut film.stats,

@@ -23,12 +23,14 @@
 
 use super::RenderSettings;
 use super::bdpt::{self, SampleSink, StoredVertex, Workspace};
+use super::bpm;
 use crate::film::RayStats;
 use crate::geometry::{Rgb, Vec3};
 use crate::material::Mode;
 use crate::mis::{self, MisKind};
 use crate::sampler::{Sampler, Stream};
 use crate::scene::Scene;
+use serde::{Deserialize, Serialize};
 use std::sync::{Arc, Mutex, OnceLock};
 
 /// Default initial radius, as a fraction of the scene's bounding-sphere radius (SmallVCM's
@@ -234,9 +236,22 @@ impl PhotonMap {
         &self.vertices[self.path_start[k] as usize..self.path_start[k + 1] as usize]
     }
 
-    /// y_{i-1} of photon `ph`: where its light came from.
-    pub(crate) fn prev(&self, ph: &Photon) -> Vec3 {
-        self.vertices[ph.vertex as usize - 1].position()
+    /// The density ratio pE_{i-1} / pL_i between merging photon `ph`'s path at y_{i-1} (one
+    /// vertex nearer the light) and merging it at y_i, as a merge at y_i sees it: `pdf_dir` is
+    /// the camera's solid-angle density there toward y_{i-1} (Georgiev et al. 2012: the two
+    /// merges differ only in which subpath made the vertex between them). 0 where no merge can
+    /// be made at y_{i-1}: it is the light, or specular.
+    pub(crate) fn merge_nearer_light(&self, scene: &Scene, ph: &Photon, pdf_dir: f32) -> f64 {
+        if ph.index < 2 {
+            return 0.0;
+        }
+        let y = &self.vertices[ph.vertex as usize];
+        let yp = self.vertices[ph.vertex as usize - 1].load(scene, false);
+        let (wi, d2) = bdpt::dir_to(y.position(), yp.position());
+        if yp.is_delta() || !(d2 > 0.0) || !(y.pdf_fwd() > 0.0) {
+            return 0.0;
+        }
+        (pdf_dir * yp.abs_cos_ng(wi) / d2) as f64 / y.pdf_fwd() as f64
     }
 
     /// Calls `f` for every photon within the radius of `p`, in a fixed order.
@@ -357,11 +372,53 @@ impl Workspace {
     }
 }
 
+/// How VCM weights its merges.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum VcmWeights {
+    /// Every connection and merge by the balance or power heuristic (Georgiev et al. 2012).
+    #[default]
+    Georgiev,
+    /// As `Georgiev`, except for the two merges of a path at the camera's first non-specular
+    /// vertex x_1 and at the path's next vertex x_2: their joint share is split between them by
+    /// the optimal w1 of Ershov et al. (CPT 2020, eq. 10), which accounts for their
+    /// correlation (both use the same photons), from the photon map frozen at iteration 0.
+    Ershov,
+}
+
+/// Ershov et al.'s split at the camera's first non-specular vertex x_1 (camera vertex `at`).
+struct Split<'a> {
+    at: usize,
+    mixing: bpm::Mixing<'a>,
+    /// w1 of the camera's own continuation x_1 -> x_2 (the share of the merges at x_2).
+    w_next: f64,
+}
+
+impl<'a> Split<'a> {
+    fn new(scene: &'a Scene, frozen: &'a PhotonMap, cam: &[bdpt::Vertex]) -> Option<Split<'a>> {
+        let at = (1..cam.len()).find(|&j| !cam[j].is_delta())?;
+        let x = &cam[at];
+        if x.is_black() {
+            return None;
+        }
+        let (wo, _) = bdpt::dir_to(x.position(), cam[at - 1].position());
+        let mixing = bpm::Mixing::new(scene, frozen, x, wo);
+        let w_next = cam.get(at + 1).map_or(0.0, |next| {
+            mixing.w1((next.position() - x.position()).normalize_or_zero())
+        });
+        Some(Split { at, mixing, w_next })
+    }
+}
+
 /// Merges every camera vertex of the prepared workspace (`bdpt::pixel_sample` with merging on)
-/// with the photons of `map`, and reports each merge to `sink` as a camera-side sample.
+/// with the photons of `map`, and reports each merge to `sink` as a camera-side sample. With
+/// `frozen`, the merges at x_1 and x_2 are weighted by [`VcmWeights::Ershov`].
+#[allow(clippy::too_many_arguments)]
 fn merge(
+    scene: &Scene,
     ws: &Workspace,
     map: &PhotonMap,
+    frozen: Option<&PhotonMap>,
     max_depth: u32,
     pixel: (u32, u32),
     sink: &mut dyn SampleSink,
@@ -372,6 +429,7 @@ fn merge(
     let eta_b = m(eta);
     let norm = (1.0 / (eta)) as f32;
     let cam = ws.camera_vertices();
+    let split = frozen.and_then(|f| Split::new(scene, f, cam));
     for j in 1..cam.len() {
         let t = j + 1;
         let (z, zp) = (&cam[j], &cam[j - 1]);
@@ -405,7 +463,22 @@ fn merge(
             };
             let camera = sum / (eta_b * m(pe_z));
             let total = 1.0 + light + camera;
-            let weight = if total.is_finite() { 1.0 / total } else { 0.0 };
+            let mut weight = if total.is_finite() { 1.0 / total } else { 0.0 };
+            // Ershov et al.: the pair's joint share W = w (1 + rho), rho the other merge's weight
+            // over this one's, split as (1 - w1) W at x_1 and w1 W at x_2. At x_1, w1 is taken
+            // in the photon's own direction, the one its BSDF is evaluated in: (1 - w1) then
+            // meets the same directions as w1 does where the camera samples them toward x_2.
+            if let Some(sp) = &split {
+                if j == sp.at {
+                    let rho = m(map.merge_nearer_light(scene, ph, pdf_fwd));
+                    if rho > 0.0 {
+                        weight *= (1.0 + rho) * (1.0 - sp.mixing.w1(ph.wi));
+                    }
+                } else if j == sp.at + 1 {
+                    let pl_zp = z.area_density(pdf_rev, zp) as f64;
+                    weight *= (1.0 + m(pl_zp / pe_z)) * sp.w_next;
+                }
+            }
             sink.sample(&bdpt::PathSample {
                 depth,
                 s: ph.index + 1,
@@ -420,7 +493,8 @@ fn merge(
 }
 
 /// Renders one pixel sample of VCM: BDPT's techniques weighted with merging, then the merges
-/// against `map` (the photons of this sample's iteration). `sampler` is the pixel sample's
+/// against `map` (the photons of this sample's iteration); `frozen` (iteration 0's map) for
+/// [`VcmWeights::Ershov`], else None. `sampler` is the pixel sample's
 /// camera stream; its light subpath is the one `map` kept for `pixel` (the one BDPT would trace
 /// from the light stream, the same bits).
 #[allow(clippy::too_many_arguments)]
@@ -430,6 +504,7 @@ pub fn pixel_sample(
     max_depth: u32,
     sampler: &mut Sampler,
     map: &PhotonMap,
+    frozen: Option<&PhotonMap>,
     ws: &mut Workspace,
     sink: &mut dyn SampleSink,
     stats: &mut RayStats,
@@ -438,7 +513,7 @@ pub fn pixel_sample(
     bdpt::pixel_camera_subpath(scene, pixel, sampler, max_depth, ws, stats);
     ws.load_light(scene, map.light_path(pixel));
     bdpt::connect_all(scene, pixel, max_depth, sampler, ws, sink, stats);
-    merge(ws, map, max_depth, pixel, sink);
+    merge(scene, ws, map, frozen, max_depth, pixel, sink);
 }
 
 /// A map built once by whichever task asks first.

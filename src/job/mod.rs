@@ -88,6 +88,9 @@ pub struct JobSettings {
     pub bdd: u32,
     /// BPM: fixed BDD or BDD / BDD + 1 mixed by the optimal weights.
     pub bpm_weights: integrator::bpm::BpmWeights,
+    /// VCM: Georgiev et al.'s weights, or with the merges at x_1 and x_2 split by Ershov et
+    /// al.'s optimal weight.
+    pub vcm_weights: integrator::vcm::VcmWeights,
 }
 
 /// Default samples of the first pass: the first preview after 16 spp.
@@ -142,6 +145,7 @@ impl Default for JobSettings {
             radius_alpha: integrator::vcm::DEFAULT_ALPHA as f64,
             bdd: 1,
             bpm_weights: integrator::bpm::BpmWeights::Optimal,
+            vcm_weights: integrator::vcm::VcmWeights::Georgiev,
         }
     }
 }
@@ -479,6 +483,7 @@ impl JobSettings {
             radius_alpha: self.radius_alpha as f32,
             bdd: self.bdd,
             bpm_weights: self.bpm_weights,
+            vcm_weights: self.vcm_weights,
         };
         let optimal_depth = (self.optimal_max_depth.is_none() && render.optimal_applies())
             .then(|| optimal_depth::choose(scene, &render, self.eps));
