@@ -124,6 +124,34 @@ fn vcm_equals_the_analytic_furnace_with_a_large_radius() {
 }
 
 #[test]
+fn vcm_and_bpm_with_roulette_equal_the_analytic_furnace() {
+    // Roulette's q (0.5 at every vertex here) enters the merge weights through the camera's
+    // density toward the photon's predecessor as well as through the stored subpaths.
+    let scene = load("furnace.json", 8, 8);
+    for (integrator, mis) in [
+        (IntegratorKind::Vcm, MisKind::Balance),
+        (IntegratorKind::Vcm, MisKind::Power),
+        (IntegratorKind::Bpm, MisKind::Balance),
+    ] {
+        let max_depth = 5;
+        let expected: f64 = (0..=max_depth).map(|d| 0.5f64.powi(d as i32)).sum();
+        let s = RenderSettings {
+            radius: 0.15,
+            radius_alpha: 1.0,
+            roulette: true,
+            ..settings(integrator, mis, 8, max_depth)
+        };
+        let imgs = renders(&scene, &s, 16);
+        let (m, se) = region(&imgs, (0, 0, 8, 8), 1);
+        eprintln!("furnace with roulette {integrator:?} {mis:?}: {m} vs {expected} (se {se})");
+        assert!(
+            (m - expected).abs() <= 4.0 * se + 1e-4 * expected,
+            "{integrator:?} {mis:?} with roulette: {m} vs {expected} (se {se})"
+        );
+    }
+}
+
+#[test]
 fn vcm_agrees_with_bdpt_on_the_cornell_boxes() {
     // A radius of 1% of the box's width: merging takes a visible share of the diffuse
     // interreflection, and its blur bias stays below the noise of 16 seeds of a 3 x 3 grid.

@@ -84,6 +84,11 @@ pub struct JobArgs {
     /// split by Ershov et al.'s optimal weight.
     #[arg(long, value_enum, default_value_t = VcmWeightsArg::Georgiev)]
     pub vcm_weights: VcmWeightsArg,
+    /// BDPT, VCM and BPM: subpaths also end by Russian roulette, each vertex continuing with its
+    /// BSDF's albedo estimate (as SmallVCM's do): shorter subpaths, more variance on paths only
+    /// one technique makes. Off by default.
+    #[arg(long)]
+    pub roulette: bool,
 }
 
 impl JobArgs {
@@ -120,6 +125,7 @@ impl JobArgs {
             bdd: self.bdd,
             bpm_weights: self.bpm_weights.into(),
             vcm_weights: self.vcm_weights.into(),
+            roulette: self.roulette,
         };
         s.validate(&job::Limits::default()).map_err(flag_error)?;
         Ok(s)

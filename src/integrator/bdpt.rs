@@ -23,12 +23,15 @@
 //! Densities are stored per vertex in area measure, in both directions (pbrt-v3 convention:
 //! `pdf_fwd` from the vertex's predecessor in its own subpath, `pdf_rev` from its successor).
 //!
-//! Subpaths end only where a BSDF is black or fails to sample, at an escape, or at the max
-//! depth: there is no Russian roulette, as in pbrt-v3's BDPT (Pharr, Jakob and Humphreys,
-//! "Physically Based Rendering", 3rd ed., §16.3). Roulette multiplies a surviving subpath's
-//! throughput by 1/q, and on paths that only one technique can make (caustics seen through
-//! glass or in a mirror) MIS cannot take that back: it made the glass-and-mirror Cornell box
-//! 1.2-1.4x noisier per sample, all of it in fireflies (BENCHMARKS.md, issue 13).
+//! By default subpaths end only where a BSDF is black or fails to sample, at an escape, or at
+//! the max depth: there is no Russian roulette, as in pbrt-v3's BDPT (Pharr, Jakob and
+//! Humphreys, "Physically Based Rendering", 3rd ed., §16.3). Roulette multiplies a surviving
+//! subpath's throughput by 1/q, and on paths that only one technique can make (caustics seen
+//! through glass or in a mirror) MIS cannot take that back: it made the glass-and-mirror Cornell
+//! box 1.2-1.4x noisier per sample, all of it in fireflies (BENCHMARKS.md, issue 13). With
+//! [`Workspace::set_roulette`] a walk continues from each vertex with probability q, its BSDF's
+//! albedo estimate, as in SmallVCM; q is a factor of every density sampled from the vertex, in
+//! both directions, so the MIS weights stay exact (Georgiev et al. 2012's implementation).
 
 use crate::camera::Camera;
 use crate::film::RayStats;
@@ -63,10 +66,14 @@ pub struct Vertex {
     /// Throughput up to and including this vertex's generation (f / p of the subpath so far).
     /// For a light vertex: 1 / (pmf * pdf_pos).
     beta: Rgb,
-    /// Area density of this vertex from its predecessor in its subpath (no RR factor).
+    /// Area density of this vertex from its predecessor in its subpath (with the predecessor's
+    /// continuation probability `q`).
     pdf_fwd: f32,
-    /// Area density of this vertex from its successor (no RR factor).
+    /// Area density of this vertex from its successor (with the successor's `q`).
     pdf_rev: f32,
+    /// Probability that a subpath continues from this vertex (Russian roulette; 1 without it
+    /// and at the endpoints): a factor of every density a walk from here samples.
+    q: f32,
     /// Specular (delta) BSDF: no connection can be made here.
     delta: bool,
     /// Point light: a delta in position, never hit.
@@ -92,6 +99,7 @@ impl Vertex {
             beta,
             pdf_fwd,
             pdf_rev: 0.0,
+            q: 1.0,
             delta: false,
             delta_pos: false,
             material: NO_MATERIAL,
@@ -109,6 +117,7 @@ impl Vertex {
             uv: self.uv,
             pdf_fwd: self.pdf_fwd,
             pdf_rev: self.pdf_rev,
+            q: self.q,
             material: self.material,
             light: self.light,
             delta_pos: self.delta_pos,
@@ -150,6 +159,11 @@ impl Vertex {
         self.delta
     }
 
+    /// Probability that a subpath continues from here (1 without roulette).
+    pub(crate) fn continuation(&self) -> f32 {
+        self.q
+    }
+
     /// Black BSDF (nothing scatters here).
     pub(crate) fn is_black(&self) -> bool {
         self.bsdf.is_black()
@@ -175,9 +189,18 @@ impl Vertex {
         self.delta_pos
     }
 
-    /// Converts a solid-angle density at `self` toward `next` into an area density at `next`.
+    /// Converts the solid-angle density with which a subpath continuing from `self` samples the
+    /// direction toward `next` into an area density at `next`, times `self.q` (the walk must
+    /// survive roulette here to sample it at all).
     #[inline]
     pub(crate) fn area_density(self, pdf_dir: f32, next: &Vertex) -> f32 {
+        self.q * self.nee_density(pdf_dir, next)
+    }
+
+    /// Converts a solid-angle density at `self` toward `next` into an area density at `next`,
+    /// without `self.q`: for a light point that next-event estimation from `self` picks.
+    #[inline]
+    pub(crate) fn nee_density(self, pdf_dir: f32, next: &Vertex) -> f32 {
         let d = next.p - self.p;
         let dist2 = d.length_squared();
         if !(dist2 > 0.0) {
@@ -202,6 +225,7 @@ pub(crate) struct StoredVertex {
     uv: Vec2,
     pdf_fwd: f32,
     pdf_rev: f32,
+    q: f32,
     material: u32,
     light: u32,
     delta_pos: bool,
@@ -240,6 +264,7 @@ impl StoredVertex {
             beta: self.beta,
             pdf_fwd: self.pdf_fwd,
             pdf_rev: self.pdf_rev,
+            q: self.q,
             delta: !first && bsdf.is_delta(),
             delta_pos: self.delta_pos,
             material: self.material,
@@ -304,6 +329,8 @@ pub struct Workspace {
     exponent: i32,
     /// Vertex merging's eta = N_L pi r^2 (0: no merging, plain BDPT): see `set_merging`.
     eta: f64,
+    /// Subpaths end by Russian roulette (`set_roulette`).
+    roulette: bool,
     /// The light vertex of the latest next-event sample (for tests of the weights).
     last_nee: Option<Vertex>,
 }
@@ -322,6 +349,7 @@ impl Default for Workspace {
             q1: 0.0,
             exponent: 1,
             eta: 0.0,
+            roulette: false,
             last_nee: None,
         }
     }
@@ -338,6 +366,7 @@ fn random_walk(
     mut via_delta: bool,
     sampler: &mut Sampler,
     mode: Mode,
+    roulette: bool,
     max_vertices: usize,
     path: &mut Vec<Vertex>,
     stats: &mut RayStats,
@@ -364,18 +393,26 @@ fn random_walk(
             beta,
             pdf_fwd: 0.0,
             pdf_rev: 0.0,
+            q: if roulette { bsdf.continuation() } else { 1.0 },
             delta: bsdf.is_delta(),
             delta_pos: false,
             material: hit.material,
             uv: hit.uv,
         };
+        // A specular event's density is a delta (1 here) times the roulette factor.
         v.pdf_fwd = if via_delta {
-            1.0
+            path[prev].q
         } else {
             path[prev].area_density(pdf_dir, &v)
         };
+        let q = v.q;
         path.push(v);
         if bsdf.is_black() {
+            break;
+        }
+        // Russian roulette with the vertex's albedo estimate, as SmallVCM's random walks do
+        // (Georgiev et al. 2012 fold q into both directions' densities).
+        if q < 1.0 && sampler.next_1d() >= q {
             break;
         }
         let wo = -ray.d;
@@ -387,11 +424,11 @@ fn random_walk(
         let cur = path.len() - 1;
         // Density of the previous vertex when this one samples toward it.
         path[prev].pdf_rev = if s.delta {
-            1.0
+            q
         } else {
             path[cur].area_density(s.pdf_rev, &path[prev])
         };
-        beta *= s.f * (s.wi.dot(hit.ns).abs() / s.pdf);
+        beta *= s.f * (s.wi.dot(hit.ns).abs() / (s.pdf * q));
         if beta == Rgb::ZERO {
             break;
         }
@@ -429,6 +466,7 @@ pub fn camera_subpath(
         false,
         sampler,
         Mode::Radiance,
+        ws.roulette,
         max_depth as usize + 2,
         &mut ws.cam,
         stats,
@@ -477,6 +515,7 @@ pub fn light_subpath(
         false,
         sampler,
         Mode::Importance,
+        ws.roulette,
         max_depth as usize + 1,
         &mut ws.light,
         stats,
@@ -607,6 +646,12 @@ impl Workspace {
     /// (Georgiev et al. 2012, eq. 11). 0, the default, is plain BDPT.
     pub fn set_merging(&mut self, eta: f64) {
         self.eta = eta;
+    }
+
+    /// Whether subpaths traced from now on end by Russian roulette (each vertex continues with
+    /// its BSDF's albedo estimate) besides the max depth.
+    pub fn set_roulette(&mut self, on: bool) {
+        self.roulette = on;
     }
 
     /// Forgets the camera subpath (a light subpath prepared alone).
@@ -1014,6 +1059,7 @@ fn hit_emitter(
     // The camera-side vertex treated as a light vertex: emission densities from the light side.
     let mut v0 = *z;
     v0.kind = Kind::Light;
+    v0.q = 1.0;
     v0.pdf_fwd = (pmf * pdf_pos as f64) as f32;
     let c = Connection {
         pe_y1: 0.0,
@@ -1022,7 +1068,7 @@ fn hit_emitter(
         pl_z2: v0.area_density(pdf_dir, zp),
         q1: if t >= 3 {
             let (wi, _) = dir_to(zp.p, z.p);
-            (pmf as f32) * zp.area_density(light.pdf_li(zp.p, wi), z)
+            (pmf as f32) * zp.nee_density(light.pdf_li(zp.p, wi), z)
         } else {
             0.0
         },
@@ -1094,7 +1140,7 @@ fn next_event(
         q1: if ls.delta {
             pmf
         } else {
-            z.area_density(pmf * ls.pdf, &v0)
+            z.nee_density(pmf * ls.pdf, &v0)
         },
     };
     ws.last_nee = Some(v0);
@@ -1167,7 +1213,7 @@ fn nee_density(scene: &Scene, v0: &Vertex, v1: &Vertex) -> f32 {
         return pmf;
     }
     let (wi, _) = dir_to(v1.p, v0.p);
-    v1.area_density(pmf * scene.lights[v0.light as usize].pdf_li(v1.p, wi), v0)
+    v1.nee_density(pmf * scene.lights[v0.light as usize].pdf_li(v1.p, wi), v0)
 }
 
 /// Technique (s >= 1, 1): connect y_{s-1} to the camera and report it for the pixel it lands in.

@@ -111,6 +111,10 @@ pub struct RenderSettings {
     /// VCM only: Georgiev et al.'s weights, or Ershov et al.'s split of the merges at x_1 / x_2.
     #[serde(default)]
     pub vcm_weights: vcm::VcmWeights,
+    /// BDPT, VCM and BPM: subpaths also end by Russian roulette (q = the BSDF's albedo
+    /// estimate at each vertex); the path tracer always uses its own.
+    #[serde(default)]
+    pub roulette: bool,
 }
 
 fn default_bdd() -> u32 {
@@ -186,6 +190,7 @@ impl Default for RenderSettings {
             bdd: 1,
             bpm_weights: bpm::BpmWeights::Optimal,
             vcm_weights: vcm::VcmWeights::Georgiev,
+            roulette: false,
         }
     }
 }

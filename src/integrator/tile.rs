@@ -185,6 +185,7 @@ pub fn render_tile_cached(
     }
     let mut film = TileFilm::new(tile, &settings.film_layout());
     let mut ws = bdpt::Workspace::default();
+    ws.set_roulette(settings.roulette);
     let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
     let nd = settings.depth_count();
     let mut per_depth = vec![Rgb::ZERO; nd];
@@ -328,6 +329,7 @@ fn render_tile_vcm(
     let layout = settings.film_layout();
     let mut film = TileFilm::new(tile, &layout);
     let mut ws = bdpt::Workspace::default();
+    ws.set_roulette(settings.roulette);
     let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
     let nd = settings.depth_count();
     let mut per_depth = vec![Rgb::ZERO; nd];

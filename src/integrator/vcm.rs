@@ -120,6 +120,7 @@ impl PhotonMap {
         let eta_b = mis::ratio_term(eta, b);
         let mut ws = Workspace::default();
         ws.set_merging(eta);
+        ws.set_roulette(settings.roulette);
         let mut stats = RayStats::default();
         let mut photons = Vec::new();
         let mut vertices = Vec::new();
@@ -447,6 +448,8 @@ fn merge(
             if f == Rgb::ZERO {
                 return;
             }
+            // The camera's density toward y_{i-1}, as its walk would sample it (roulette at z).
+            let pdf_fwd = pdf_fwd * z.continuation();
             let contribution = z.throughput() * f * ph.beta * norm;
             // Light side: m(1 / (eta pL_i)) S_i, S_i completed with pE_{i-1} from the camera's
             // direction.

@@ -91,6 +91,8 @@ pub struct JobSettings {
     /// VCM: Georgiev et al.'s weights, or with the merges at x_1 and x_2 split by Ershov et
     /// al.'s optimal weight.
     pub vcm_weights: integrator::vcm::VcmWeights,
+    /// BDPT, VCM, BPM: subpaths also end by Russian roulette.
+    pub roulette: bool,
 }
 
 /// Default samples of the first pass: the first preview after 16 spp.
@@ -146,6 +148,7 @@ impl Default for JobSettings {
             bdd: 1,
             bpm_weights: integrator::bpm::BpmWeights::Optimal,
             vcm_weights: integrator::vcm::VcmWeights::Georgiev,
+            roulette: false,
         }
     }
 }
@@ -484,6 +487,7 @@ impl JobSettings {
             bdd: self.bdd,
             bpm_weights: self.bpm_weights,
             vcm_weights: self.vcm_weights,
+            roulette: self.roulette,
         };
         let optimal_depth = (self.optimal_max_depth.is_none() && render.optimal_applies())
             .then(|| optimal_depth::choose(scene, &render, self.eps));

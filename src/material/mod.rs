@@ -276,6 +276,16 @@ impl Bsdf {
         self.lobe.is_delta()
     }
 
+    /// Continuation probability for Russian roulette: the lobe's albedo estimate, in [0, 1].
+    pub fn continuation(&self) -> f32 {
+        let a = self.lobe.albedo_estimate();
+        if a.is_finite() {
+            a.clamp(0.0, 1.0)
+        } else {
+            1.0
+        }
+    }
+
     /// True when the BSDF absorbs everything.
     pub fn is_black(&self) -> bool {
         self.lobe.is_black()
