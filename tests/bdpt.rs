@@ -120,7 +120,7 @@ fn roulette_keeps_bdpt_unbiased() {
             );
         }
     }
-    let other_seeds = |scene: &Scene, s: &RenderSettings| -> Vec<Image> {
+    let with_roulette = |scene: &Scene, s: &RenderSettings| -> Vec<Image> {
         (0..SEEDS)
             .map(|k| {
                 let s = RenderSettings {
@@ -134,11 +134,11 @@ fn roulette_keeps_bdpt_unbiased() {
     };
     let cornell = load("cornell-box.json", 24, 24);
     let reference = renders(&cornell, &pt(16, 5));
-    let rr = other_seeds(&cornell, &bdpt(MisKind::Balance, 4, 5));
+    let rr = with_roulette(&cornell, &bdpt(MisKind::Balance, 4, 5));
     assert_agree("Cornell box, BDPT with roulette vs PT", &rr, &reference, 3);
     let glass = load("glass-caustic.json", 32, 32);
     let plain = renders(&glass, &bdpt(MisKind::Balance, 8, 8));
-    let rr = other_seeds(&glass, &bdpt(MisKind::Balance, 8, 8));
+    let rr = with_roulette(&glass, &bdpt(MisKind::Balance, 8, 8));
     assert_agree(
         "glass caustic, BDPT with roulette vs without",
         &rr,

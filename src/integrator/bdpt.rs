@@ -107,7 +107,7 @@ impl Vertex {
         }
     }
 
-    /// The vertex without its BSDF (76 bytes instead of 176), for keeping many light subpaths.
+    /// The vertex without its BSDF (80 bytes instead of 180), for keeping many light subpaths.
     pub(crate) fn stored(&self) -> StoredVertex {
         StoredVertex {
             p: self.p,
@@ -194,13 +194,13 @@ impl Vertex {
     /// survive roulette here to sample it at all).
     #[inline]
     pub(crate) fn area_density(self, pdf_dir: f32, next: &Vertex) -> f32 {
-        self.q * self.nee_density(pdf_dir, next)
+        self.q * self.to_area(pdf_dir, next)
     }
 
     /// Converts a solid-angle density at `self` toward `next` into an area density at `next`,
     /// without `self.q`: for a light point that next-event estimation from `self` picks.
     #[inline]
-    pub(crate) fn nee_density(self, pdf_dir: f32, next: &Vertex) -> f32 {
+    pub(crate) fn to_area(self, pdf_dir: f32, next: &Vertex) -> f32 {
         let d = next.p - self.p;
         let dist2 = d.length_squared();
         if !(dist2 > 0.0) {
@@ -1068,7 +1068,7 @@ fn hit_emitter(
         pl_z2: v0.area_density(pdf_dir, zp),
         q1: if t >= 3 {
             let (wi, _) = dir_to(zp.p, z.p);
-            (pmf as f32) * zp.nee_density(light.pdf_li(zp.p, wi), z)
+            (pmf as f32) * zp.to_area(light.pdf_li(zp.p, wi), z)
         } else {
             0.0
         },
@@ -1140,7 +1140,7 @@ fn next_event(
         q1: if ls.delta {
             pmf
         } else {
-            z.nee_density(pmf * ls.pdf, &v0)
+            z.to_area(pmf * ls.pdf, &v0)
         },
     };
     ws.last_nee = Some(v0);
@@ -1213,7 +1213,7 @@ fn nee_density(scene: &Scene, v0: &Vertex, v1: &Vertex) -> f32 {
         return pmf;
     }
     let (wi, _) = dir_to(v1.p, v0.p);
-    v1.nee_density(pmf * scene.lights[v0.light as usize].pdf_li(v1.p, wi), v0)
+    v1.to_area(pmf * scene.lights[v0.light as usize].pdf_li(v1.p, wi), v0)
 }
 
 /// Technique (s >= 1, 1): connect y_{s-1} to the camera and report it for the pixel it lands in.

@@ -101,7 +101,7 @@ pub const DEFAULT_PASS_SIZE: u32 = 16;
 /// merges grow as O(log spp) rather than O(spp), and light-tracing records per task stay bounded.
 pub const DEFAULT_MAX_PASS_SIZE: u32 = 256;
 /// VCM and BPM: every process that renders a pass holds the photon map of each of its
-/// iterations at once (a map keeps the iteration's light subpaths and photons: 573 bytes per
+/// iterations at once (a map keeps the iteration's light subpaths and photons: 591 bytes per
 /// pixel on SmallVCM's scene 2 at depth 9, BENCHMARKS.md #15), so their passes are kept short
 /// enough that a pass's maps fit in this many bytes, at `PHOTON_MAP_BYTES_PER_PIXEL` a map.
 pub const PHOTON_PASS_BYTES: u64 = 4 << 30;
