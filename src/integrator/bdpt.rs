@@ -362,14 +362,13 @@ impl Default for Workspace {
 }
 
 /// Extends `path` by a random walk from `ray`. `pdf_dir` is the solid-angle density with which
-/// the last vertex of `path` sampled `ray.d` (`via_delta` when that was a specular event).
+/// the last vertex of `path` sampled `ray.d`.
 #[allow(clippy::too_many_arguments)]
 fn random_walk(
     scene: &Scene,
     mut ray: Ray,
     mut beta: Rgb,
     mut pdf_dir: f32,
-    mut via_delta: bool,
     sampler: &mut Sampler,
     mode: Mode,
     roulette: bool,
@@ -405,9 +404,7 @@ fn random_walk(
             material: hit.material,
             uv: hit.uv,
         };
-        // A specular event's solid-angle density is 1 both ways, converted to area like any
-        // other (module documentation).
-        v.pdf_fwd = path[prev].area_density(if via_delta { 1.0 } else { pdf_dir }, &v);
+        v.pdf_fwd = path[prev].area_density(pdf_dir, &v);
         let q = v.q;
         path.push(v);
         if bsdf.is_black() {
@@ -425,15 +422,20 @@ fn random_walk(
             break;
         };
         let cur = path.len() - 1;
-        // Density of the previous vertex when this one samples toward it.
-        path[prev].pdf_rev =
-            path[cur].area_density(if s.delta { 1.0 } else { s.pdf_rev }, &path[prev]);
+        // Density of the previous vertex when this one samples toward it. A specular event's
+        // solid-angle density is 1 both ways, converted to area like any other (module
+        // documentation).
+        let (pdf_fwd, pdf_rev) = if s.delta {
+            (1.0, 1.0)
+        } else {
+            (s.pdf, s.pdf_rev)
+        };
+        path[prev].pdf_rev = path[cur].area_density(pdf_rev, &path[prev]);
         beta *= s.f * (s.wi.dot(hit.ns).abs() / (s.pdf * q));
         if beta == Rgb::ZERO {
             break;
         }
-        pdf_dir = s.pdf;
-        via_delta = s.delta;
+        pdf_dir = pdf_fwd;
         ray = Scene::spawn_ray(hit.p, hit.ng, s.wi);
     }
 }
@@ -463,7 +465,6 @@ pub fn camera_subpath(
         ray,
         Rgb::ONE,
         pdf_dir,
-        false,
         sampler,
         Mode::Radiance,
         ws.roulette,
@@ -512,7 +513,6 @@ pub fn light_subpath(
         ray,
         beta,
         e.pdf_dir,
-        false,
         sampler,
         Mode::Importance,
         ws.roulette,
