@@ -26,7 +26,7 @@
 //! area like any other: |cos| / d^2 at the vertex it reaches. That is the limit of a glossy lobe
 //! whose width goes to 0 and the cosine Georgiev et al.'s dVC keeps at specular vertices.
 //! pbrt-v3 uses 1 for the area density itself; its weights still sum to 1 (unbiased), but they
-//! are not balance's, and they gave 1.07-1.12x the variance behind SmallVCM's mirror and glass
+//! are not balance's, and they gave 1.07-1.14x the variance behind SmallVCM's mirror and glass
 //! spheres (BENCHMARKS.md, issue 15).
 //!
 //! By default subpaths end only where a BSDF is black or fails to sample, at an escape, or at
