@@ -290,7 +290,11 @@ def main():
         log("two workers registered")
 
         # 2. A worker cut off from the network: its late result is refused, never merged.
-        s2 = dict(name="cutoff", size=128, spp=512, pass_size=16, tile_size=32, seed=11)
+        #    Tasks of 32 x 32 pixels x 128 spp: the worker spends its hold rendering, so the cut
+        #    almost never lands in the few milliseconds of an upload (a request cut mid-flight
+        #    ends only when the worker's TCP timeouts notice, about 10 s later, and a heartbeat
+        #    after the reconnection may then tell it the task is gone before the 409 path runs).
+        s2 = dict(name="cutoff", size=128, spp=512, pass_size=128, tile_size=32, seed=11)
         job2 = submit(st, a.omis, s2)
         refused0 = st.metric("omis_results_refused_total")
         expired0 = st.metric("omis_leases_expired_total")

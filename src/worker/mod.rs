@@ -487,8 +487,18 @@ impl Worker {
 pub(crate) async fn run(cfg: WorkerConfig) -> Result<()> {
     std::fs::create_dir_all(&cfg.cache)
         .with_context(|| format!("cannot create the cache folder {}", cfg.cache.display()))?;
+    // A connection cut mid-request (a network partition, a coordinator host lost) is noticed
+    // within seconds, not after the whole-request timeouts: idle connections are probed every
+    // 2 s after 5 s of silence, and unacknowledged data closes the connection after 10 s. A
+    // slow link that still acknowledges is not cut off.
     let http = reqwest::Client::builder()
         .connect_timeout(Duration::from_secs(5))
+        .tcp_keepalive(Duration::from_secs(5))
+        .tcp_keepalive_interval(Duration::from_secs(2))
+        .tcp_keepalive_retries(3);
+    #[cfg(target_os = "linux")]
+    let http = http.tcp_user_timeout(Duration::from_secs(10));
+    let http = http
         .build()
         .context("cannot create the HTTP client")?;
     let (drain, _) = watch::channel(false);
