@@ -91,8 +91,10 @@ pub struct JobSettings {
     /// VCM: Georgiev et al.'s weights, or with the merges at x_1 and x_2 split by Ershov et
     /// al.'s optimal weight.
     pub vcm_weights: integrator::vcm::VcmWeights,
-    /// BDPT, VCM, BPM: subpaths also end by Russian roulette.
-    pub roulette: bool,
+    /// BDPT, VCM, BPM: subpaths also end by Russian roulette. None (the default): on for VCM,
+    /// where it pays at equal time (BENCHMARKS.md #15, stop 28), off for BDPT and BPM.
+    #[serde(default)]
+    pub roulette: Option<bool>,
 }
 
 /// Default samples of the first pass: the first preview after 16 spp.
@@ -148,7 +150,7 @@ impl Default for JobSettings {
             bdd: 1,
             bpm_weights: integrator::bpm::BpmWeights::Optimal,
             vcm_weights: integrator::vcm::VcmWeights::Georgiev,
-            roulette: false,
+            roulette: None,
         }
     }
 }
@@ -255,6 +257,10 @@ impl Resolved {
                 "omis.techniques",
                 format!("{:?}", r.techniques).to_lowercase(),
             ));
+        }
+        if r.integrator != IntegratorKind::Pt {
+            let on = if r.roulette { "on" } else { "off" };
+            attributes.push(("omis.roulette", on.to_string()));
         }
         if let Some(d_opt) = self.optimal_max_depth() {
             attributes.push(("omis.optimal_max_depth", d_opt.to_string()));
@@ -487,7 +493,9 @@ impl JobSettings {
             bdd: self.bdd,
             bpm_weights: self.bpm_weights,
             vcm_weights: self.vcm_weights,
-            roulette: self.roulette,
+            roulette: self
+                .roulette
+                .unwrap_or(self.integrator == IntegratorKind::Vcm),
         };
         let optimal_depth = (self.optimal_max_depth.is_none() && render.optimal_applies())
             .then(|| optimal_depth::choose(scene, &render, self.eps));
@@ -549,6 +557,47 @@ mod tests {
                 .expect("resolves");
             assert_eq!(r.max_pass_size, pass, "{integrator:?}");
         }
+    }
+
+    #[test]
+    fn roulette_defaults_to_on_for_vcm_only_and_is_recorded_in_the_exr() {
+        let mut scene = crate::scene::Scene::load(std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/scenes/cornell-box.json"
+        )))
+        .expect("the Cornell box");
+        let cases = [
+            (IntegratorKind::Vcm, None, true),
+            (IntegratorKind::Vcm, Some(false), false),
+            (IntegratorKind::Bdpt, None, false),
+            (IntegratorKind::Bdpt, Some(true), true),
+            (IntegratorKind::Bpm, None, false),
+            (IntegratorKind::Pt, None, false),
+        ];
+        for (integrator, roulette, want) in cases {
+            let job = JobSettings {
+                resolution: Some([64, 64]),
+                spp: Some(4),
+                integrator,
+                roulette,
+                ..Default::default()
+            };
+            let r = job
+                .resolve(&mut scene, &Limits::default())
+                .expect("resolves");
+            assert_eq!(r.render.roulette, want, "{integrator:?} {roulette:?}");
+            let attribute = r
+                .exr_attributes("cornell-box", 4)
+                .into_iter()
+                .find(|(k, _)| *k == "omis.roulette");
+            let expected = (integrator != IntegratorKind::Pt)
+                .then(|| (if want { "on" } else { "off" }).to_string());
+            assert_eq!(attribute.map(|(_, v)| v), expected, "{integrator:?}");
+        }
+        // A job stored before the field was optional reads back as what it said.
+        let old: JobSettings =
+            serde_json::from_str(r#"{"integrator": "vcm", "roulette": false}"#).expect("parses");
+        assert_eq!(old.roulette, Some(false));
     }
 
     #[test]
