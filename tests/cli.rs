@@ -203,6 +203,21 @@ fn bad_input_exits_nonzero_with_one_line() {
         &omis(&["render", "scenes/furnace.json", "--spp", "0"]),
         "spp",
     );
+    assert_one_line_error(
+        &omis(&[
+            "render",
+            "scenes/furnace.json",
+            "--roulette",
+            "--no-roulette",
+        ]),
+        "--no-roulette",
+    );
+    assert_one_line_error(
+        &omis(&["render", "scenes/furnace.json", "--spp", "abc"]),
+        "--spp",
+    );
+    assert_one_line_error(&omis(&["render", "--bogus"]), "--bogus");
+    assert_one_line_error(&omis(&["render"]), "<SCENE>");
     let bad_scene = d.join("bad.json");
     std::fs::write(&bad_scene, "{\"camera\": 3}").expect("write");
     assert_one_line_error(&omis(&["render", s(&bad_scene)]), "camera");

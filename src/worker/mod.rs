@@ -498,9 +498,7 @@ pub(crate) async fn run(cfg: WorkerConfig) -> Result<()> {
         .tcp_keepalive_retries(3);
     #[cfg(target_os = "linux")]
     let http = http.tcp_user_timeout(Duration::from_secs(10));
-    let http = http
-        .build()
-        .context("cannot create the HTTP client")?;
+    let http = http.build().context("cannot create the HTTP client")?;
     let (drain, _) = watch::channel(false);
     let w = Arc::new(Worker {
         cfg: cfg.clone(),
