@@ -49,6 +49,7 @@ pub struct CompareArgs {
     pub optimal_max_depth: OptimalDepthArg,
     #[arg(long, default_value_t = crate::mis::DEFAULT_KAPPA)]
     pub kappa: f64,
+    /// Sample generator (`omis render` defaults to sobol; this to independent samples).
     #[arg(long, value_enum, default_value_t = SamplerArg::Independent)]
     pub sampler: SamplerArg,
     #[arg(long, default_value_t = 0.01)]
@@ -115,6 +116,24 @@ fn ser_method<S: serde::Serializer>(m: &Method, s: S) -> Result<S::Ok, S::Error>
     s.serialize_str(&m.name())
 }
 
+/// One render of a comparison, reduced to its errors and costs.
+struct Rendered {
+    relmse: f64,
+    relmse_trimmed: f64,
+    seconds: f64,
+    cpu: f64,
+    spp: u32,
+    bytes_per_pixel: usize,
+    /// Per depth: its relMSE against the reference's depth layer, or its image when the
+    /// reference has none (the point then takes the relative variance across seeds).
+    depths: Vec<DepthError>,
+}
+
+enum DepthError {
+    Against(f64),
+    Image(Image),
+}
+
 fn mean_sd(v: &[f64]) -> (f64, f64) {
     let n = v.len() as f64;
     let m = v.iter().sum::<f64>() / n;
@@ -129,7 +148,7 @@ fn mean_sd(v: &[f64]) -> (f64, f64) {
 /// Relative variance across renders of the same settings: mean over pixels and channels of
 /// var_k(I_k) / (mean_k(I_k)^2 + eps), the relMSE of an unbiased estimator when no reference
 /// exists.
-fn relative_variance(imgs: &[Image], eps: f64) -> f64 {
+fn relative_variance(imgs: &[&Image], eps: f64) -> f64 {
     let n = imgs.len() as f64;
     if imgs.len() < 2 {
         return f64::NAN;
@@ -231,69 +250,99 @@ pub fn run(a: CompareArgs) -> Result<()> {
         };
         base(method, spp, seed, d_opt)
     };
-    let eval = |method: Method, spp: u32, outs: Vec<(RenderOutput, f64)>| -> Result<Point> {
-        let mut rel = Vec::new();
-        let mut trimmed = Vec::new();
-        let mut secs = 0.0;
-        let mut cpu = 0.0;
-        let mut depth_imgs: Vec<Vec<Image>> = vec![Vec::new(); a.max_depth as usize + 1];
-        let mut depth_rel: Vec<Vec<f64>> = vec![Vec::new(); a.max_depth as usize + 1];
-        let bytes = outs[0].0.film.layout.bytes_per_pixel();
-        for (out, out_cpu) in &outs {
-            let img = out.image();
-            let e = metrics::compare(&img, &reference, a.eps).map_err(anyhow::Error::msg)?;
-            rel.push(e.relmse);
-            trimmed.push(e.relmse_trimmed);
-            secs += out.seconds;
-            cpu += out_cpu;
-            for (d, im) in out.film.depth_images().into_iter().enumerate() {
-                if let Some(Some(r)) = ref_depths.get(d) {
-                    depth_rel[d].push(
-                        metrics::compare(&im, r, a.eps)
-                            .map_err(anyhow::Error::msg)?
-                            .relmse,
-                    );
-                }
-                depth_imgs[d].push(im);
-            }
+    // One render reduced to what its point needs; the film is dropped here, so a comparison
+    // holds images, not every render's accumulators.
+    let summarize = |(out, cpu): (RenderOutput, f64)| -> Result<Rendered> {
+        let img = out.image();
+        let e = metrics::compare(&img, &reference, a.eps).map_err(anyhow::Error::msg)?;
+        let mut depths = Vec::new();
+        for (d, im) in out.film.depth_images().into_iter().enumerate() {
+            depths.push(match ref_depths.get(d) {
+                Some(Some(r)) => DepthError::Against(
+                    metrics::compare(&im, r, a.eps)
+                        .map_err(anyhow::Error::msg)?
+                        .relmse,
+                ),
+                _ => DepthError::Image(im),
+            });
         }
+        Ok(Rendered {
+            relmse: e.relmse,
+            relmse_trimmed: e.relmse_trimmed,
+            seconds: out.seconds,
+            cpu,
+            spp: out.spp,
+            bytes_per_pixel: out.film.layout.bytes_per_pixel(),
+            depths,
+        })
+    };
+    let eval = |method: Method, spp: u32, runs: Vec<Rendered>| -> Point {
+        let n = runs.len() as f64;
+        let rel: Vec<f64> = runs.iter().map(|r| r.relmse).collect();
+        let trimmed: Vec<f64> = runs.iter().map(|r| r.relmse_trimmed).collect();
         let (m, sd) = mean_sd(&rel);
         let per_depth = (0..=a.max_depth as usize)
             .map(|d| {
-                if depth_rel[d].is_empty() {
-                    relative_variance(&depth_imgs[d], a.eps)
+                let of_depth = runs.iter().filter_map(|r| r.depths.get(d));
+                let against: Vec<f64> = of_depth
+                    .clone()
+                    .filter_map(|e| match e {
+                        DepthError::Against(v) => Some(*v),
+                        DepthError::Image(_) => None,
+                    })
+                    .collect();
+                if against.is_empty() {
+                    let imgs: Vec<&Image> = of_depth
+                        .filter_map(|e| match e {
+                            DepthError::Image(im) => Some(im),
+                            DepthError::Against(_) => None,
+                        })
+                        .collect();
+                    relative_variance(&imgs, a.eps)
                 } else {
-                    mean_sd(&depth_rel[d]).0
+                    mean_sd(&against).0
                 }
             })
             .collect();
-        Ok(Point {
+        Point {
             method,
             spp,
             relmse: m,
             relmse_sd: sd,
             relmse_trimmed: mean_sd(&trimmed).0,
-            seconds: secs / outs.len() as f64,
-            cpu_seconds: cpu / outs.len() as f64,
-            bytes_per_pixel: bytes,
+            seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
+            cpu_seconds: runs.iter().map(|r| r.cpu).sum::<f64>() / n,
+            bytes_per_pixel: runs.first().map_or(0, |r| r.bytes_per_pixel),
             relmse_per_depth: per_depth,
-        })
+        }
     };
+    // Every method's renders of a seed run back to back, the first method rotating with the
+    // seed: a machine whose speed drifts during the comparison (other load, thermal limits)
+    // then slows every method alike, which matters most for the equal-time budgets.
+    let interleaved =
+        |render: &dyn Fn(Method, u64) -> (RenderOutput, f64)| -> Result<Vec<Vec<Rendered>>> {
+            let mut runs: Vec<Vec<Rendered>> = methods.iter().map(|_| Vec::new()).collect();
+            for seed in 0..a.seeds {
+                for k in 0..methods.len() {
+                    let m = (k + seed as usize) % methods.len();
+                    runs[m].push(summarize(render(methods[m], seed))?);
+                }
+            }
+            Ok(runs)
+        };
 
     let mut points = Vec::new();
     for &spp in &a.spp {
-        for &mis in &methods {
-            let outs = (0..a.seeds)
-                .map(|seed| {
-                    let s = settings(mis, spp, seed);
-                    let job = Resolved {
-                        max_pass_size: Some(MAX_PASS_SIZE),
-                        ..Resolved::fixed(&scene, &s, TILE_SIZE, 1)
-                    };
-                    timed_render(&pool, &job, &scene, false)
-                })
-                .collect();
-            let p = eval(mis, spp, outs)?;
+        let runs = interleaved(&|mis, seed| {
+            let s = settings(mis, spp, seed);
+            let job = Resolved {
+                max_pass_size: Some(MAX_PASS_SIZE),
+                ..Resolved::fixed(&scene, &s, TILE_SIZE, 1)
+            };
+            timed_render(&pool, &job, &scene, false)
+        })?;
+        for (&mis, runs) in methods.iter().zip(runs) {
+            let p = eval(mis, spp, runs);
             eprintln!(
                 "{:>8} {:>5} spp: relMSE {:.4e} +- {:.1e}  {:.2} s",
                 p.method.name(),
@@ -310,19 +359,17 @@ pub fn run(a: CompareArgs) -> Result<()> {
         if !(t > 0.0 && t.is_finite()) {
             bail!("--equal-time must be a positive number of seconds");
         }
-        for &mis in &methods {
-            let outs: Vec<_> = (0..a.seeds)
-                .map(|seed| {
-                    let s = settings(mis, 1, seed);
-                    let job = Resolved {
-                        max_pass_size: Some(MAX_TIMED_PASS_SIZE),
-                        ..Resolved::timed(&scene, &s, TILE_SIZE, 1, t)
-                    };
-                    timed_render(&pool, &job, &scene, a.cpu_time)
-                })
-                .collect();
-            let spp = outs.iter().map(|o| o.0.spp).min().unwrap_or(0);
-            let p = eval(mis, spp, outs)?;
+        let runs = interleaved(&|mis, seed| {
+            let s = settings(mis, 1, seed);
+            let job = Resolved {
+                max_pass_size: Some(MAX_TIMED_PASS_SIZE),
+                ..Resolved::timed(&scene, &s, TILE_SIZE, 1, t)
+            };
+            timed_render(&pool, &job, &scene, a.cpu_time)
+        })?;
+        for (&mis, runs) in methods.iter().zip(runs) {
+            let spp = runs.iter().map(|r| r.spp).min().unwrap_or(0);
+            let p = eval(mis, spp, runs);
             eprintln!(
                 "{:>8} equal {} time {t} s: {} spp, relMSE {:.4e}",
                 p.method.name(),
