@@ -128,11 +128,8 @@ impl JobArgs {
             bdd: self.bdd,
             bpm_weights: self.bpm_weights.into(),
             vcm_weights: self.vcm_weights.into(),
-            roulette: match (self.roulette, self.no_roulette) {
-                (true, _) => Some(true),
-                (_, true) => Some(false),
-                _ => None,
-            },
+            // The two flags conflict, so at most one is set.
+            roulette: (self.roulette || self.no_roulette).then_some(self.roulette),
         };
         s.validate(&job::Limits::default()).map_err(flag_error)?;
         Ok(s)

@@ -93,7 +93,6 @@ pub struct JobSettings {
     pub vcm_weights: integrator::vcm::VcmWeights,
     /// BDPT, VCM, BPM: subpaths also end by Russian roulette. None (the default): on for VCM,
     /// where it pays at equal time (BENCHMARKS.md #15, stop 28), off for BDPT and BPM.
-    #[serde(default)]
     pub roulette: Option<bool>,
 }
 
