@@ -24,6 +24,7 @@ library only; the host's release binary is the client (`omis submit`, `download`
 """
 
 import argparse
+import datetime
 import json
 import os
 import re
@@ -324,14 +325,34 @@ def main():
         wait_for("the task to be taken by the other worker", 60, lambda: any(
             t["id"] == task["id"] for x in st.api("GET", "/v1/workers")["workers"] if x["id"] != w["id"] for t in x["tasks"])
             or st.api("GET", f"/v1/jobs/{job2}")["passes_done"] > task["pass"], every=0.2)
-        # Reconnect just after a failed heartbeat: the next heartbeat (which would tell the worker
-        # that the task is no longer its own) is a quarter lease away, and the upload, which
-        # retries at most every 3 s, comes first.
-        beats = lambda: st.logs(cid, cut_at).count("heartbeat:")
-        n = beats()
-        wait_for("a failed heartbeat of the cut-off worker", a.lease, lambda: beats() > n, every=0.1)
+        # Reconnect at a moment when the upload's retry must come before the next heartbeat
+        # (which would tell the worker that the task is no longer its own, so that it drops the
+        # result instead of sending it). Cut off, each attempt of either hangs for the worker's
+        # 5 s connect timeout; the upload then sleeps 3 s (from its 5th failure on), the
+        # heartbeat a quarter lease (5 s). So just after a failed heartbeat that came at most 2 s
+        # after a failed upload, the upload's next attempt starts within 1-3 s, connected, and
+        # the heartbeat's in 5 s. The two cycles (8 s, 10 s) drift by 2 s a round, so such a
+        # moment comes within a few rounds.
+        stamp = re.compile(r"(\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{1,6})\d*Z")
+
+        def failures(text, what):
+            return [datetime.datetime.fromisoformat(m.group(1)) for line in text.splitlines()
+                    if what in line for m in [stamp.search(line)] if m]
+
+        seen = [len(failures(st.logs(cid, cut_at), "heartbeat:"))]
+
+        def moment():
+            text = st.logs(cid, cut_at)
+            beats, ups = failures(text, "heartbeat:"), failures(text, f"upload of task {task['id']}:")
+            if len(beats) == seen[0]:
+                return False
+            seen[0] = len(beats)
+            before = [u for u in ups if u <= beats[-1]]
+            return len(before) >= 5 and (beats[-1] - before[-1]).total_seconds() <= 2.0
+
+        wait_for("a failed heartbeat just after a failed upload", 120, moment, every=0.1)
         run(["docker", "network", "connect", net, cid], timeout=30)
-        log("reconnected after a failed heartbeat")
+        log("reconnected between a failed upload's retry and the next heartbeat")
         refusal = f"task {task['id']} (job {job2} pass {task['pass']} tile {task['tile']}) refused: HTTP 409"
 
         def refused():
