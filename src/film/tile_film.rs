@@ -161,10 +161,11 @@ impl LtRecords {
         self.pixels.is_empty()
     }
 
-    pub(crate) fn push(&mut self, pixel: u32, depth: u32, w: &[f32], c: [f32; 3]) {
+    /// Adds a record; its weights are kept as f32.
+    pub(crate) fn push(&mut self, pixel: u32, depth: u32, w: &[f64], c: [f32; 3]) {
         self.pixels.push(pixel);
         self.depths.push(depth as u8);
-        self.values.extend_from_slice(w);
+        self.values.extend(w.iter().map(|w| *w as f32));
         self.values.extend_from_slice(&c);
     }
 

@@ -29,6 +29,8 @@ struct FilmSink<'a> {
     /// The current pixel's per-depth sums, when kept.
     depths: Option<&'a mut [[f64; 3]]>,
     optimal: Option<&'a mut OptimalAccum>,
+    /// Depths 1 ..= d_opt are weighted optimally (0 without systems).
+    d_opt: u32,
     records: &'a mut LtRecords,
     /// Index of the current camera pixel in the tile.
     pixel: usize,
@@ -36,9 +38,12 @@ struct FilmSink<'a> {
     non_finite: u64,
 }
 
+/// Techniques of the systems whose light-tracing weights are rounded on the stack (D_opt <= 6).
+const INLINE_TECHNIQUES: usize = 8;
+
 impl FilmSink<'_> {
     fn d_opt(&self) -> u32 {
-        self.optimal.as_ref().map_or(0, |a| a.layout.d_opt)
+        self.d_opt
     }
 }
 
@@ -78,28 +83,33 @@ impl bdpt::SampleSink for FilmSink<'_> {
             if s.t == 1 {
                 // Light tracing: the same f32 values whichever tile the pixel belongs to, so that
                 // the image does not depend on the tiling.
-                let mut w32 = [0.0f32; 64];
-                for (d, w) in w32.iter_mut().zip(s.balance) {
-                    *d = *w as f32;
-                }
-                let n = s.balance.len();
                 let cw = [
                     (c.x as f64 * ws) as f32,
                     (c.y as f64 * ws) as f32,
                     (c.z as f64 * ws) as f32,
                 ];
-                let frame_pixel = s.pixel.1 * self.frame_width + s.pixel.0;
                 match self.tile.index_of(s.pixel.0, s.pixel.1) {
                     Some(i) => {
                         let acc = self.optimal.as_deref_mut().expect("optimal");
-                        let mut w = [0.0f64; 64];
-                        for (d, v) in w.iter_mut().zip(&w32[..n]) {
-                            *d = *v as f64;
+                        let rounded = |w: &f64| *w as f32 as f64;
+                        let c64 = cw.map(|v| v as f64);
+                        let n = s.balance.len();
+                        if n <= INLINE_TECHNIQUES {
+                            let mut w = [0.0f64; INLINE_TECHNIQUES];
+                            for (d, v) in w.iter_mut().zip(s.balance) {
+                                *d = rounded(v);
+                            }
+                            acc.add_sample(i, s.depth, &w[..n], c64);
+                        } else {
+                            let w: Vec<f64> = s.balance.iter().map(rounded).collect();
+                            acc.add_sample(i, s.depth, &w, c64);
                         }
-                        acc.add_sample(i, s.depth, &w[..n], cw.map(|v| v as f64));
                         acc.add_hit(i, s.depth);
                     }
-                    None => self.records.push(frame_pixel, s.depth, &w32[..n], cw),
+                    None => {
+                        let frame_pixel = s.pixel.1 * self.frame_width + s.pixel.0;
+                        self.records.push(frame_pixel, s.depth, s.balance, cw);
+                    }
                 }
             } else {
                 let pixel = self.pixel;
@@ -244,6 +254,7 @@ pub fn render_tile_cached(
                             )
                         };
                         let depths = (nd > 0).then(|| &mut film.depths[idx * nd..(idx + 1) * nd]);
+                        let d_opt = film.optimal.as_ref().map_or(0, |a| a.layout.d_opt);
                         let mut sink = FilmSink {
                             mis: settings.mis,
                             techniques: settings.techniques,
@@ -254,6 +265,7 @@ pub fn render_tile_cached(
                             layers,
                             depths,
                             optimal: film.optimal.as_mut(),
+                            d_opt,
                             records: &mut film.records,
                             pixel: idx,
                             non_finite: 0,
@@ -386,6 +398,7 @@ fn render_tile_vcm(
                     layers: None,
                     depths,
                     optimal: None,
+                    d_opt: 0,
                     records: &mut film.records,
                     pixel: idx,
                     non_finite: 0,
@@ -449,6 +462,7 @@ mod tests {
             splats: &mut splats,
             layers: None,
             depths: None,
+            d_opt: optimal.as_ref().map_or(0, |a| a.layout.d_opt),
             optimal: optimal.as_mut(),
             records: &mut records,
             pixel: 0,

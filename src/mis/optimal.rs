@@ -69,6 +69,45 @@ fn packed(n: usize, i: usize, j: usize) -> usize {
     i * (2 * n - i + 1) / 2 + (j - i)
 }
 
+/// A += W W^T, b += c W on one system of `N` techniques (see `add_outer_dyn`).
+#[inline(always)]
+fn add_outer<const N: usize>(blk: &mut [f64], w: &[f64], c: [f64; 3]) {
+    let (Some(w), Some(blk)) = (w.first_chunk::<N>(), blk.get_mut(..N * (N + 1) / 2 + 3 * N))
+    else {
+        return add_outer_dyn(blk, N, w, c);
+    };
+    let (a, b) = blk.split_at_mut(N * (N + 1) / 2);
+    let mut idx = 0;
+    for i in 0..N {
+        let wi = w[i];
+        for wj in &w[i..] {
+            a[idx] += wi * wj;
+            idx += 1;
+        }
+        for ch in 0..3 {
+            b[i * 3 + ch] += c[ch] * wi;
+        }
+    }
+}
+
+/// A += W W^T, b += c W on one system of `n` techniques: the packed upper triangle of A, then b.
+/// A technique of weight 0 adds +0 to its row, which leaves every value as it was (A's entries
+/// are sums of products of non-negative weights, so none is -0).
+fn add_outer_dyn(blk: &mut [f64], n: usize, w: &[f64], c: [f64; 3]) {
+    let (a, b) = blk.split_at_mut(n * (n + 1) / 2);
+    let mut idx = 0;
+    for i in 0..n {
+        let wi = w[i];
+        for wj in &w[i..n] {
+            a[idx] += wi * wj;
+            idx += 1;
+        }
+        for ch in 0..3 {
+            b[i * 3 + ch] += c[ch] * wi;
+        }
+    }
+}
+
 impl Layout {
     /// The layout of depths 1 ..= `d_opt` (clamped to [`MAX_OPTIMAL_DEPTH`]).
     pub fn new(d_opt: u32) -> Layout {
@@ -142,19 +181,15 @@ impl OptimalAccum {
         let n = d as usize + 2;
         debug_assert_eq!(w.len(), n);
         let blk = self.block(pixel, d);
-        let (a, b) = blk.split_at_mut(n * (n + 1) / 2);
-        for i in 0..n {
-            let wi = w[i];
-            if wi == 0.0 {
-                continue;
-            }
-            let row = packed(n, i, i);
-            for j in i..n {
-                a[row + j - i] += wi * w[j];
-            }
-            for ch in 0..3 {
-                b[i * 3 + ch] += c[ch] * wi;
-            }
+        // The depths a job weights optimally (D_opt <= 5 in practice) get a loop the compiler
+        // unrolls without bounds checks; every value receives the same one addition either way.
+        match n {
+            3 => add_outer::<3>(blk, w, c),
+            4 => add_outer::<4>(blk, w, c),
+            5 => add_outer::<5>(blk, w, c),
+            6 => add_outer::<6>(blk, w, c),
+            7 => add_outer::<7>(blk, w, c),
+            _ => add_outer_dyn(blk, n, w, c),
         }
     }
 
@@ -326,6 +361,42 @@ pub(crate) mod tests {
         acc.add_sample(0, 1, &[0.0, 0.5, 0.5], [4.0; 3]);
         acc.add_hit(0, 1);
         acc
+    }
+
+    #[test]
+    fn unrolled_updates_equal_the_definition_at_every_system_size() {
+        // Depths 1 ..= 8: the unrolled systems (N = 3 ..= 7) and the general loop (N >= 8) add
+        // exactly W_i W_j to A_ij (i <= j, packed) and C_c W_i to b, zeros included, bit for bit.
+        let dmax = 8;
+        let mut acc = OptimalAccum::new(Layout::new(dmax), 2);
+        let mut want = acc.data.clone();
+        let mut rng = crate::sampler::Pcg32::new(7, 1);
+        for k in 0..200 {
+            let pixel = k % 2;
+            let d = 1 + (k as u32 % dmax);
+            let n = d as usize + 2;
+            let mut w: Vec<f64> = (0..n).map(|_| rng.next_f64()).collect();
+            w[k % n] = 0.0;
+            let sum: f64 = w.iter().sum();
+            w.iter_mut().for_each(|x| *x /= sum);
+            let c = [rng.next_f64(), 2.0 * rng.next_f64(), 0.0];
+            acc.add_sample(pixel, d, &w, c);
+            let start = pixel * acc.layout.values_per_pixel() + acc.layout.offset(d);
+            for i in 0..n {
+                for j in i..n {
+                    want[start + packed(n, i, j)] += w[i] * w[j];
+                }
+                for (ch, cc) in c.iter().enumerate() {
+                    want[start + n * (n + 1) / 2 + i * 3 + ch] += cc * w[i];
+                }
+            }
+        }
+        assert!(
+            acc.data
+                .iter()
+                .zip(&want)
+                .all(|(a, b)| a.to_bits() == b.to_bits())
+        );
     }
 
     #[test]

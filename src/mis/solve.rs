@@ -20,9 +20,27 @@ pub fn solve_psd(
     rel_tol: f64,
     scratch: &mut Vec<f64>,
 ) -> usize {
+    // The work arrays live on the stack; the systems of D_opt <= 6 get small ones, so that a
+    // 3 x 3 solve does not zero kilobytes of arrays it never reads.
+    if n <= 8 {
+        solve_with::<8>(a, n, b, m, rel_tol, scratch)
+    } else {
+        solve_with::<64>(a, n, b, m, rel_tol, scratch)
+    }
+}
+
+/// `solve_psd` for systems of at most `CAP` unknowns.
+fn solve_with<const CAP: usize>(
+    a: &[f64],
+    n: usize,
+    b: &mut [f64],
+    m: usize,
+    rel_tol: f64,
+    scratch: &mut Vec<f64>,
+) -> usize {
     debug_assert_eq!(a.len(), n * n);
     debug_assert_eq!(b.len(), n * m);
-    let mut perm: [usize; 64] = [0; 64];
+    let mut perm: [usize; CAP] = [0; CAP];
     assert!(
         n <= perm.len(),
         "system of {n} techniques is larger than supported"
@@ -31,7 +49,7 @@ pub fn solve_psd(
         *p = i;
     }
     // D^-1/2, with 0 for unknowns whose diagonal is not positive and finite.
-    let mut scale = [0.0f64; 64];
+    let mut scale = [0.0f64; CAP];
     for (i, sc) in scale.iter_mut().enumerate().take(n) {
         let d = a[i * n + i];
         if d > 0.0 && d.is_finite() {
@@ -60,6 +78,8 @@ pub fn solve_psd(
     // The scaled diagonal is 1 (or 0): the tolerance is relative to 1.
     let tol = rel_tol;
     let mut rank = 0;
+    // Column k below the pivot (entries k + 1 .. n are written before they are read).
+    let mut col = [0.0f64; CAP];
     // Factor in place: after step k, rows/cols perm[..k] hold L (unit lower) and D on the diagonal.
     for k in 0..n {
         // Pivot: largest remaining diagonal.
@@ -77,7 +97,6 @@ pub fn solve_psd(
         perm.swap(k, best);
         let pk = perm[k];
         let d = l[pk * n + pk];
-        let mut col = [0.0f64; 64];
         for i in k + 1..n {
             col[i] = l[perm[i] * n + pk];
         }
@@ -101,7 +120,7 @@ pub fn solve_psd(
     }
     // Solve for each right-hand side: L y = P b, D z = y, L^T w = z, x = P^T w (unknowns past
     // the rank are 0).
-    let mut y = [0.0f64; 64];
+    let mut y = [0.0f64; CAP];
     for c in 0..m {
         for k in 0..rank {
             let pk = perm[k];
@@ -143,8 +162,14 @@ mod tests {
 
     #[test]
     fn solves_definite_systems() {
+        // Sizes on both sides of the small work arrays (8 unknowns).
+        for n in [1, 5, 8, 9, 20] {
+            solves_definite_system(n);
+        }
+    }
+
+    fn solves_definite_system(n: usize) {
         // A = M M^T + I for a fixed M.
-        let n = 5;
         let m: Vec<f64> = (0..n * n)
             .map(|k| ((k * 7 + 3) % 11) as f64 / 5.0 - 1.0)
             .collect();
@@ -155,13 +180,17 @@ mod tests {
                     + if i == j { 1.0 } else { 0.0 };
             }
         }
-        let x_true = [1.0, -2.0, 0.5, 3.0, 0.0];
+        let x_true: Vec<f64> = [1.0, -2.0, 0.5, 3.0, 0.0]
+            .into_iter()
+            .cycle()
+            .take(n)
+            .collect();
         let rhs = mul(&a, n, &x_true);
         let mut b = rhs.clone();
         let mut s = Vec::new();
         assert_eq!(solve_psd(&a, n, &mut b, 1, 1e-12, &mut s), n);
         for (x, t) in b.iter().zip(&x_true) {
-            assert!((x - t).abs() < 1e-9, "{b:?}");
+            assert!((x - t).abs() < 1e-9, "n = {n}: {b:?}");
         }
     }
 
