@@ -19,18 +19,20 @@
 //! good), so each candidate D gives a pixel value per replica; the variance across replicas, over
 //! (R^2 + eps) as in relMSE, is the candidate's error V(D) at `PILOT_SPP` samples.
 //!
-//! The cost: optimal MIS adds, per technique sample at depth d, one update of the depth's system
+//! The cost: optimal MIS adds, per technique sample at depth d, the vector of its balance
+//! weights (O(d) densities where balance needs O(1)) and one update of the depth's system
 //! (`block_len(d)` multiply-adds, Kondapaneni et al. 2019, Algorithm 1 lines 6-7) where balance
 //! adds one RGB value. Every sample adds W W^T with sum_i W_i = 1, so the entries of A sum to the
-//! samples it took: the pilot counts the updates exactly. Relative to the render's rays,
-//! time(D) / time(balance) = 1 + `COST_PER_UPDATE_VALUE` x (values updated per pixel sample) /
-//! (rays per pixel sample), with the constant measured (BENCHMARKS.md #14). At equal time the
+//! samples it took: the pilot counts those technique samples exactly. Relative to the render's
+//! rays, time(D) / time(balance) = 1 + `COST_PER_TECHNIQUE_SAMPLE` x (technique samples at
+//! depths <= D per pixel sample) / (rays per pixel sample), with the constant measured
+//! (BENCHMARKS.md #14). At equal time the
 //! error is V(D) x time(D); D = 0 (balance) is a candidate, and a deeper D is kept only when it
 //! beats the best shallower one by `MARGIN`.
 
 use crate::integrator::RenderSettings;
 use crate::mis::MisKind;
-use crate::mis::optimal::{OptimalAccum, block_len};
+use crate::mis::optimal::OptimalAccum;
 use crate::mis::progressive::Progressive;
 use crate::scene::Scene;
 use serde::{Deserialize, Serialize};
@@ -44,10 +46,12 @@ pub const PILOT_PIXELS: u32 = 48 * 48;
 pub const PILOT_REPLICAS: u32 = 4;
 /// Samples per pixel of each pilot render.
 pub const PILOT_SPP: u32 = 4;
-/// Time of one value of a system update, in rays traced. Calibrated in BENCHMARKS.md #14 from
-/// release renders at D_opt 0, 1, 3 and 5 (1 thread, 256x256, 8 spp, minimum of 3): 0.002 to
-/// 0.008 on three scenes at D_opt 5, where the overhead is largest and best measured.
-pub const COST_PER_UPDATE_VALUE: f64 = 0.005;
+/// Cost of one technique sample at an optimal depth (its balance vector and its system
+/// update), in rays traced. Fitted in BENCHMARKS.md #14 to instruction counts (callgrind) of
+/// release renders at D_opt 0, 1 and 2 on ten scenes: 0.17-0.19, the D_opt 1 and 2 overheads
+/// within 1.5 points. Instructions, not seconds: a count is exact where this machine's timings
+/// of a few per cent are not.
+pub const COST_PER_TECHNIQUE_SAMPLE: f64 = 0.18;
 /// A deeper D must lower the predicted error at equal time by this fraction.
 pub const MARGIN: f64 = 0.03;
 
@@ -133,8 +137,9 @@ struct Replica {
     rest: Vec<[f64; 3]>,
     /// Light subpaths of the render (N_L).
     light_paths: u64,
-    /// Values updated per pixel sample by depth d's systems, d = 1 ..= dmax (index d - 1).
-    updates: Vec<f64>,
+    /// Technique samples per pixel sample added to depth d's systems, d = 1 ..= dmax (index
+    /// d - 1).
+    technique_samples: Vec<f64>,
     /// Rays per pixel sample.
     rays: f64,
 }
@@ -152,16 +157,16 @@ fn replica(scene: &Scene, s: &RenderSettings, dmax: u32) -> Replica {
             std::array::from_fn(|c| (acc.sums.sum[i][c] + acc.splat[i][c]) / n)
         })
         .collect();
-    let mut updates = vec![0.0; dmax as usize];
+    let mut technique_samples = vec![0.0; dmax as usize];
     if let Some(o) = acc.optimal.as_ref() {
         for i in 0..pixels {
             for d in 1..=dmax {
-                updates[d as usize - 1] += o.samples_taken(i, d) * block_len(d) as f64;
+                technique_samples[d as usize - 1] += o.samples_taken(i, d);
             }
         }
     }
     let samples = out.stats.samples.max(1) as f64;
-    for u in &mut updates {
+    for u in &mut technique_samples {
         *u /= samples;
     }
     Replica {
@@ -169,7 +174,7 @@ fn replica(scene: &Scene, s: &RenderSettings, dmax: u32) -> Replica {
         counts: acc.sums.count,
         rest,
         light_paths,
-        updates,
+        technique_samples,
         rays: out.stats.rays() as f64 / samples,
     }
 }
@@ -284,10 +289,10 @@ pub fn choose(scene: &mut Scene, settings: &RenderSettings, eps: f64) -> DepthCh
     let mut time = vec![1.0; nd];
     let mut bytes = vec![0; nd];
     for cand in 1..nd {
-        let updates: f64 = (0..cand)
-            .map(|d| rendered.iter().map(|p| p.updates[d]).sum::<f64>() / k)
+        let technique_samples: f64 = (0..cand)
+            .map(|d| rendered.iter().map(|p| p.technique_samples[d]).sum::<f64>() / k)
             .sum();
-        time[cand] = 1.0 + COST_PER_UPDATE_VALUE * updates / rays.max(1.0);
+        time[cand] = 1.0 + COST_PER_TECHNIQUE_SAMPLE * technique_samples / rays.max(1.0);
         bytes[cand] = crate::mis::Layout::new(cand as u32).bytes_per_pixel();
     }
     choice.relmse = relmse.iter().map(|e| e / count).collect();
