@@ -53,9 +53,10 @@ pub struct JobArgs {
     /// Override the scene's resolution, e.g. 256x256 (the vertical field of view is kept).
     #[arg(long)]
     pub resolution: Option<String>,
-    /// Tile edge in pixels.
-    #[arg(long, default_value_t = job::DEFAULT_TILE_SIZE)]
-    pub tile_size: u32,
+    /// Tile edge in pixels [default: 64 where the frame has at least 256 such tiles (1024x1024
+    /// and up), else 32].
+    #[arg(long)]
+    pub tile_size: Option<u32>,
     /// Samples per pixel of the first pass (one task = one tile for one pass); each pass after
     /// it is twice as long, up to --max-pass-size.
     #[arg(long, default_value_t = job::DEFAULT_PASS_SIZE)]

@@ -70,8 +70,8 @@ pub struct JobSettings {
     pub strategies: bool,
     /// The image of each path depth as EXR layers `depth<d>`.
     pub depth_layers: bool,
-    /// Tile edge in pixels.
-    pub tile_size: u32,
+    /// Tile edge in pixels; None (the default): `auto_tile_size` of the frame.
+    pub tile_size: Option<u32>,
     /// Samples per pixel of the first pass (a task renders one tile for one pass). Each pass
     /// after it is twice as long as the one before, up to `max_pass_size`.
     pub pass_size: u32,
@@ -120,8 +120,26 @@ pub fn photon_passes(width: u32, height: u32, pass_size: u32, max_pass_size: u32
     (first, max_pass_size.max(first).min(limit))
 }
 
-/// Default tile edge.
+/// Tile edge of frames with fewer than `LARGE_TILE_MIN_TASKS` tiles of `LARGE_TILE_SIZE`.
 pub const DEFAULT_TILE_SIZE: u32 = 32;
+/// Tile edge of large frames: a task of 4x the pixels costs the coordinator about what a small
+/// one does (1080p path tracing: 26 % less coordinator CPU, BDPT: 10-18 % fewer bytes per
+/// sample; BENCHMARKS.md #12, stops 28 and 29).
+pub const LARGE_TILE_SIZE: u32 = 64;
+/// Tasks per pass a frame must have in tiles of `LARGE_TILE_SIZE` to get them (1024x1024 and
+/// up), so that a pass still keeps dozens of workers busy.
+pub const LARGE_TILE_MIN_TASKS: u64 = 256;
+
+/// The tile edge of a job that does not set one: `LARGE_TILE_SIZE` where the frame has at
+/// least `LARGE_TILE_MIN_TASKS` such tiles, `DEFAULT_TILE_SIZE` otherwise.
+pub fn auto_tile_size(width: u32, height: u32) -> u32 {
+    let large = LARGE_TILE_SIZE as u64;
+    if (width as u64).div_ceil(large) * (height as u64).div_ceil(large) >= LARGE_TILE_MIN_TASKS {
+        LARGE_TILE_SIZE
+    } else {
+        DEFAULT_TILE_SIZE
+    }
+}
 
 impl Default for JobSettings {
     fn default() -> Self {
@@ -140,7 +158,7 @@ impl Default for JobSettings {
             direct: DirectStrategy::Mis,
             strategies: false,
             depth_layers: false,
-            tile_size: DEFAULT_TILE_SIZE,
+            tile_size: None,
             pass_size: DEFAULT_PASS_SIZE,
             max_pass_size: DEFAULT_MAX_PASS_SIZE,
             eps: 0.01,
@@ -383,7 +401,9 @@ impl JobSettings {
                 format!("{} is outside (0, 1]", self.radius_alpha),
             ));
         }
-        if self.tile_size == 0 || self.tile_size > 4096 {
+        if let Some(t) = self.tile_size
+            && (t == 0 || t > 4096)
+        {
             return Err(FieldError::new("tile_size", "must be within 1 ..= 4096"));
         }
         if self.pass_size == 0 || self.pass_size > 1 << 16 {
@@ -399,7 +419,8 @@ impl JobSettings {
             return Err(FieldError::new("eps", "must be a finite number > 0"));
         }
         if let Some([w, h]) = self.resolution {
-            check_tiles(w, h, self.tile_size, limits)?;
+            let tile = self.tile_size.unwrap_or_else(|| auto_tile_size(w, h));
+            check_tiles(w, h, tile, limits)?;
         }
         Ok(())
     }
@@ -429,7 +450,10 @@ impl JobSettings {
                 ),
             ));
         }
-        check_tiles(width, height, self.tile_size, limits)?;
+        let tile_size = self
+            .tile_size
+            .unwrap_or_else(|| auto_tile_size(width, height));
+        check_tiles(width, height, tile_size, limits)?;
         if scene.stats.triangles > limits.max_triangles {
             return Err(FieldError::new(
                 "scene",
@@ -507,7 +531,7 @@ impl JobSettings {
             render,
             spp,
             time_budget_s: self.time_budget_s,
-            tile_size: self.tile_size,
+            tile_size,
             pass_size,
             max_pass_size: Some(max_pass_size),
             eps: self.eps,
@@ -597,6 +621,40 @@ mod tests {
         let old: JobSettings =
             serde_json::from_str(r#"{"integrator": "vcm", "roulette": false}"#).expect("parses");
         assert_eq!(old.roulette, Some(false));
+    }
+
+    #[test]
+    fn tiles_grow_with_the_frame_unless_set() {
+        assert_eq!(auto_tile_size(512, 512), DEFAULT_TILE_SIZE);
+        assert_eq!(auto_tile_size(1280, 720), DEFAULT_TILE_SIZE); // 240 large tiles
+        assert_eq!(auto_tile_size(1024, 1024), LARGE_TILE_SIZE); // 256
+        assert_eq!(auto_tile_size(1920, 1080), LARGE_TILE_SIZE); // 510
+        assert_eq!(auto_tile_size(0, 0), DEFAULT_TILE_SIZE);
+        // Resolved against the scene's frame; an explicit size wins, also where it is smaller.
+        let mut scene = crate::scene::Scene::load(std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/scenes/cornell-box.json"
+        )))
+        .expect("scene");
+        let l = Limits::default();
+        let at = |res: [u32; 2], tile: Option<u32>, scene: &mut crate::scene::Scene| {
+            JobSettings {
+                resolution: Some(res),
+                tile_size: tile,
+                integrator: IntegratorKind::Pt,
+                spp: Some(1),
+                ..Default::default()
+            }
+            .resolve(scene, &l)
+            .expect("resolves")
+            .tile_size
+        };
+        assert_eq!(at([1920, 1080], None, &mut scene), 64);
+        assert_eq!(at([640, 480], None, &mut scene), 32);
+        assert_eq!(at([1920, 1080], Some(16), &mut scene), 16);
+        // Stored settings from before the field was optional read back as what they said.
+        let old: JobSettings = serde_json::from_str(r#"{"tile_size": 32}"#).expect("parses");
+        assert_eq!(old.tile_size, Some(32));
     }
 
     #[test]
@@ -696,7 +754,7 @@ mod tests {
             ),
             (
                 JobSettings {
-                    tile_size: 0,
+                    tile_size: Some(0),
                     ..Default::default()
                 },
                 "tile_size",

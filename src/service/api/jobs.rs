@@ -99,8 +99,10 @@ fn create_job_blocking(app: &App, req: JobRequest) -> ApiResult<JobRow> {
 /// The status document of a job (GET /v1/jobs/{id}).
 fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
     let r = jobs::resolved_of(job).map_err(ApiError::internal)?;
-    let settings = serde_json::from_str(&job.settings)
+    let mut settings: crate::job::JobSettings = serde_json::from_str(&job.settings)
         .map_err(|e| ApiError::internal(format!("job {}: bad settings: {e}", job.id)))?;
+    // Filled in from what the job resolved to, like the rest of the settings.
+    settings.tile_size = Some(r.tile_size);
     let series = app.db().series(&job.id)?;
     let tiles = jobs::tile_count(&r);
     let active = job.state.is_active();

@@ -732,7 +732,7 @@ async function submitView(signal) {
         field('Max depth', num('max_depth', { min: 0, placeholder: 'scene / 5' })),
         field('Seed', num('seed', { min: 0, value: 0 })),
         field('Pass size (spp)', num('pass_size', { min: 1, value: 16 })),
-        field('Tile size (px)', num('tile_size', { min: 1, value: 32 }))),
+        field('Tile size (px)', num('tile_size', { min: 1, placeholder: 'auto' }))),
       h('details', { class: 'spaced' }, h('summary', {}, 'More settings'),
         h('div', { class: 'row spaced' },
           field('Sampler', h('select', { name: 'sampler', id: 'f-sampler' }, opt('sobol'), opt('stratified'), opt('independent'))),
@@ -791,10 +791,10 @@ async function submitView(signal) {
       const settings = {
         integrator: val('integrator'), mis: val('mis'), sampler: val('sampler'),
         direct: val('direct'), techniques: val('techniques'),
-        seed: int('seed') ?? 0, pass_size: int('pass_size') ?? 16, tile_size: int('tile_size') ?? 32,
+        seed: int('seed') ?? 0, pass_size: int('pass_size') ?? 16,
         depth_layers: fd.get('depth_layers') !== null, strategies: fd.get('strategies') !== null,
       };
-      for (const k of ['spp', 'time_budget_s', 'max_depth', 'optimal_max_depth', 'kappa', 'eps']) {
+      for (const k of ['spp', 'time_budget_s', 'max_depth', 'optimal_max_depth', 'kappa', 'eps', 'tile_size']) {
         if (int(k) !== undefined) settings[k] = int(k);
       }
       if (int('width') !== undefined || int('height') !== undefined) {
