@@ -48,9 +48,10 @@ pub const PILOT_REPLICAS: u32 = 4;
 pub const PILOT_SPP: u32 = 4;
 /// Cost of one technique sample at an optimal depth (its balance vector and its system
 /// update), in rays traced. Fitted in BENCHMARKS.md #14 to instruction counts (callgrind) of
-/// release renders at D_opt 0, 1 and 2 on ten scenes: 0.17-0.19, the D_opt 1 and 2 overheads
-/// within 1.5 points. Instructions, not seconds: a count is exact where this machine's timings
-/// of a few per cent are not.
+/// release renders at D_opt 0, 1 and 2 on ten scenes (0.17-0.19): the D_opt 1 overheads within
+/// 1.2 points, D_opt 2 within 2.4 but for Veach's two scenes (overestimated by up to 3.6).
+/// Instructions, not seconds: a count is exact where this machine's timings of a few per cent
+/// are not.
 pub const COST_PER_TECHNIQUE_SAMPLE: f64 = 0.18;
 /// A deeper D must lower the predicted error at equal time by this fraction.
 pub const MARGIN: f64 = 0.03;
