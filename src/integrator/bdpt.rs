@@ -1398,7 +1398,7 @@ mod tests {
     /// offset and position rounding change by percents: the sampled directions stored with the
     /// vertices and directions recomputed from positions then legitimately disagree. The offset
     /// (`offset_origin`: up to 256 ulps of a coordinate, 1/65536 near 0) turns an edge of length d
-    /// by up to offset / d, which changes a cosine cos by a relative offset / (d cos): a 5 cm
+    /// by up to offset / d, which changes a cosine cos by a relative offset / (d cos): a 10 cm
     /// edge at cos 0.05 five metres from the origin is 2.4 % off (Veach MIS, x = 6, y = 29, i = 3,
     /// seed = 22), so such edges are left out too.
     fn ill_conditioned(v: &[Vertex]) -> bool {
