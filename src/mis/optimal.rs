@@ -69,36 +69,18 @@ fn packed(n: usize, i: usize, j: usize) -> usize {
     i * (2 * n - i + 1) / 2 + (j - i)
 }
 
-/// A += W W^T, b += c W on one system of `N` techniques (see `add_outer_dyn`).
-#[inline(always)]
-fn add_outer<const N: usize>(blk: &mut [f64], w: &[f64], c: [f64; 3]) {
-    let (Some(w), Some(blk)) = (w.first_chunk::<N>(), blk.get_mut(..N * (N + 1) / 2 + 3 * N))
-    else {
-        return add_outer_dyn(blk, N, w, c);
-    };
-    let (a, b) = blk.split_at_mut(N * (N + 1) / 2);
-    let mut idx = 0;
-    for i in 0..N {
-        let wi = w[i];
-        for wj in &w[i..] {
-            a[idx] += wi * wj;
-            idx += 1;
-        }
-        for ch in 0..3 {
-            b[i * 3 + ch] += c[ch] * wi;
-        }
-    }
-}
-
 /// A += W W^T, b += c W on one system of `n` techniques: the packed upper triangle of A, then b.
-/// A technique of weight 0 adds +0 to its row, which leaves every value as it was (A's entries
-/// are sums of products of non-negative weights, so none is -0).
-fn add_outer_dyn(blk: &mut [f64], n: usize, w: &[f64], c: [f64; 3]) {
-    let (a, b) = blk.split_at_mut(n * (n + 1) / 2);
+/// Inlined into `add_sample`'s cases with a constant `n`, where the compiler unrolls it. A
+/// technique of weight 0 adds +0 to its row, which leaves every value as it was (A's entries are
+/// sums of products of non-negative weights, so none is -0).
+#[inline(always)]
+fn add_outer(blk: &mut [f64], n: usize, w: &[f64], c: [f64; 3]) {
+    let (a, b) = blk[..block_len(n as u32 - 2)].split_at_mut(n * (n + 1) / 2);
+    let w = &w[..n];
     let mut idx = 0;
     for i in 0..n {
         let wi = w[i];
-        for wj in &w[i..n] {
+        for wj in &w[i..] {
             a[idx] += wi * wj;
             idx += 1;
         }
@@ -184,12 +166,12 @@ impl OptimalAccum {
         // The depths a job weights optimally (D_opt <= 5 in practice) get a loop the compiler
         // unrolls without bounds checks; every value receives the same one addition either way.
         match n {
-            3 => add_outer::<3>(blk, w, c),
-            4 => add_outer::<4>(blk, w, c),
-            5 => add_outer::<5>(blk, w, c),
-            6 => add_outer::<6>(blk, w, c),
-            7 => add_outer::<7>(blk, w, c),
-            _ => add_outer_dyn(blk, n, w, c),
+            3 => add_outer(blk, 3, w, c),
+            4 => add_outer(blk, 4, w, c),
+            5 => add_outer(blk, 5, w, c),
+            6 => add_outer(blk, 6, w, c),
+            7 => add_outer(blk, 7, w, c),
+            _ => add_outer(blk, n, w, c),
         }
     }
 
