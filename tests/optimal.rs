@@ -4,7 +4,7 @@
 mod common;
 
 use common::load;
-use omis::film::{Film, Image, Tile, TileFilm};
+use omis::film::{Film, Image, LtRecords, Tile, TileFilm};
 use omis::integrator::{self, IntegratorKind, RenderSettings};
 use omis::job::{Resolved, make_tiles};
 use omis::mis::MisKind;
@@ -104,6 +104,78 @@ fn tiles_and_sample_ranges_merge_to_the_single_pass_image() {
     }
 }
 
+/// Light-tracing values leave a task as bfloat16: every splat that one sample made and every
+/// record value but the light-tracing weight is one (the integrator rounds them, `film::bf16`),
+/// so the wire ships 6 bytes of splat value where it shipped 12 and leaves that weight out;
+/// sums of several splats and values that are not bfloat16 travel as f32. Either way the result decodes to the same bits.
+#[test]
+fn light_tracing_values_travel_as_bfloat16_and_decode_to_the_same_bits() {
+    use omis::film::bf16;
+    let scene = load("cornell-box.json", 16, 16);
+    for (s, d_opt) in [(optimal(4, 3, 1), 1), (optimal(4, 3, 2), 2), {
+        let mut b = optimal(4, 3, 1);
+        b.mis = MisKind::Balance;
+        (b, 0)
+    }] {
+        let tile = Tile {
+            x0: 0,
+            y0: 0,
+            x1: 8,
+            y1: 8,
+        };
+        let layout = s.film_layout();
+        let mut film = integrator::render_tile(&scene, &s, tile, 0..4);
+        assert!(film.splats.len() > 20, "{} splats", film.splats.len());
+        let singles = film
+            .splats
+            .iter()
+            .filter(|p| p.value.iter().all(|v| bf16::exact(*v)))
+            .count();
+        assert!(singles > 10, "{singles} of {}", film.splats.len());
+        // A record's values are bfloat16, all but its light-tracing weight, which the others
+        // imply (balance weights sum to 1) and the wire leaves out.
+        let mut at = 0;
+        for &d in &film.records.depths {
+            let n = d as usize + 2;
+            let rec = &film.records.values[at..at + n + 3];
+            at += n + 3;
+            assert!(
+                rec[..n - 1]
+                    .iter()
+                    .chain(&rec[n..])
+                    .all(|v| bf16::exact(*v))
+            );
+            assert_eq!(rec[n - 1], LtRecords::implied_weight(&rec[..n - 1]));
+            let sum: f64 = rec[..n].iter().map(|w| *w as f64).sum();
+            assert!((sum - 1.0).abs() < 1e-6, "weights sum to {sum}");
+        }
+        assert_eq!(at, film.records.values.len());
+        assert_eq!(film.records.is_empty(), d_opt == 0);
+        let check = |film: &TileFilm| {
+            let bytes = film.encode(0..4);
+            let (back, _) = TileFilm::decode(&bytes, 16, 16, &layout).expect("decodes");
+            assert_eq!(back.splats, film.splats);
+            assert_eq!(back.records, film.records);
+            bytes.len()
+        };
+        let narrow = check(&film);
+        // Values that are not bfloat16 take 6 bytes more a splat; records then travel as f32,
+        // light-tracing weights included: 2 bytes more a value, 4 more a record.
+        for p in &mut film.splats {
+            p.value[0] = f32::from_bits(p.value[0].to_bits() | 1);
+        }
+        if let Some(v) = film.records.values.first_mut() {
+            *v = f32::from_bits(v.to_bits() | 1);
+        }
+        let wide = check(&film);
+        assert_eq!(
+            wide - narrow,
+            6 * singles + 2 * film.records.values.len() + 2 * film.records.len(),
+            "d_opt {d_opt}"
+        );
+    }
+}
+
 #[test]
 fn wire_decoding_rejects_damaged_results() {
     let scene = load("cornell-box.json", 16, 16);
@@ -142,6 +214,26 @@ fn wire_decoding_rejects_damaged_results() {
         TileFilm::decode(&bytes, 16, 16, &with_depths.film_layout()).is_err(),
         "depth layers missing"
     );
+    // The records close the result: value width u8, count u32, then the bfloat16 values, which
+    // leave out each record's light-tracing weight.
+    let r = &film.records;
+    assert!(!r.is_empty());
+    let m = r.values.len() - r.len();
+    let width_at = bytes.len() - 2 * m - 5;
+    assert_eq!(bytes[width_at], 2);
+    let err = |b: &[u8]| match TileFilm::decode(b, 16, 16, &layout) {
+        Ok(_) => panic!("a damaged record list was accepted"),
+        Err(e) => e.to_string(),
+    };
+    let mut bad = bytes.clone();
+    bad[width_at] = 3;
+    assert!(err(&bad).contains("record value width 3"), "{}", err(&bad));
+    // f32 values take twice the bytes, and every record has one value more.
+    bad[width_at] = 4;
+    assert!(err(&bad).contains("record values"), "{}", err(&bad));
+    let mut bad = bytes.clone();
+    bad[width_at + 1..width_at + 5].copy_from_slice(&(m as u32 - 1).to_le_bytes());
+    assert!(err(&bad).contains("expected"), "{}", err(&bad));
 }
 
 /// The upload of tile 0 (samples 0..2, optimal MIS D_opt 3) of a 16x16 Cornell box in tiles of

@@ -36,7 +36,7 @@ use std::io::Read;
 const IN_MAGIC: &[u8; 8] = b"OMISMRGI";
 const OUT_MAGIC: &[u8; 8] = b"OMISMRGO";
 /// 2: the last pass's output holds no checkpoints.
-const VERSION: u32 = 2;
+const VERSION: u32 = 3;
 /// No part of a merge input (a checkpoint, a result's part) is longer.
 const MAX_PART: u64 = 1 << 31;
 

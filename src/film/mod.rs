@@ -6,6 +6,7 @@
 //! knows nothing of how the samples were made.
 
 mod bands;
+pub mod bf16;
 pub mod exr_io;
 mod film_tile;
 mod frame;

@@ -161,11 +161,20 @@ impl LtRecords {
         self.pixels.is_empty()
     }
 
-    /// Adds a record; its weights are kept as f32.
-    pub(crate) fn push(&mut self, pixel: u32, depth: u32, w: &[f64], c: [f32; 3]) {
+    /// The light-tracing weight (the last of a record's d + 2) that the other `d + 1` weights
+    /// imply: balance weights sum to 1. The integrators set it so, after rounding the others to
+    /// bfloat16, and the wire leaves it out; being 1 minus unbiased estimates of the others, it
+    /// is an unbiased estimate of its own weight, and sum_i b_i = C W_s holds for every record.
+    #[inline]
+    pub fn implied_weight(others: &[f32]) -> f32 {
+        1.0 - others.iter().sum::<f32>()
+    }
+
+    /// Adds a record: its depth + 2 weights `w` and C W_s `c`.
+    pub(crate) fn push(&mut self, pixel: u32, depth: u32, w: &[f32], c: [f32; 3]) {
         self.pixels.push(pixel);
         self.depths.push(depth as u8);
-        self.values.extend(w.iter().map(|w| *w as f32));
+        self.values.extend_from_slice(w);
         self.values.extend_from_slice(&c);
     }
 

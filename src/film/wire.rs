@@ -7,25 +7,32 @@
 //! tile x0 y0 x1 y1 u32, samples s0 s1 u32
 //! stats closest shadow samples non_finite u64
 //! per tile pixel: count u32, sum 3 x f64, sum_sq 3 x f64
-//! splats: n u32, then n x (pixel step, [layer u8], [depth u8], value 3 x f32); layer and depth
-//! only when the job keeps strategy / depth layers
+//! splats: n u32, then n x (splat step, [layer u8], [depth u8], value); layer and depth only
+//! when the job keeps strategy / depth layers; the value 3 x bfloat16 (u16) when every channel
+//! is one (the integrators round light-tracing values so: `bf16`), else 3 x f32
 //! layers: n u32 (0 or pixels x 14), then n x 3 x f64
 //! depths: n u32 (0 or pixels x depth layers), then n x 3 x f64
 //! optimal: d_opt u32 (0 = none), then pixels x stride f64 (A, b), pixels x d_opt u32 (hits)
-//! records: n u32, pixels n x pixel step, depths n x u8, m u32, values m x f32
+//! records: n u32, pixels n x pixel step, depths n x u8 (none when d_opt is 1: all are 1),
+//! value width u8, m u32, values m x width: width 2 (bfloat16) when the integrators' rounding
+//! made every value one, without each record's light-tracing weight (the others imply it:
+//! `LtRecords::implied_weight`), else width 4, all values as f32
 //! pixel step: the difference to the previous pixel of the list (0 before the first), zigzag
 //! LEB128 (one or two bytes for the sorted lists `TileFilm::compact` makes)
+//! splat step: (difference to the previous pixel) x 2 + (1 if the value is f32), LEB128: splat
+//! lists are sorted by pixel
 //! ```
 //! All sums stay f64: the merged frame must equal a single-process render to 1e-6, and solving
 //! the optimal systems amplifies rounding.
 
+use super::bf16;
 use super::{
     FilmLayout, FilmTile, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile, TileFilm,
 };
 use crate::mis::OptimalAccum;
 
 const MAGIC: &[u8; 8] = b"OMISTILE";
-const VERSION: u32 = 4;
+const VERSION: u32 = 5;
 
 /// Which of a splat's keys the wire carries: its strategy layer and its depth only when the
 /// film keeps strategy / depth layers (otherwise both are u8::MAX after `TileFilm::compact`,
@@ -57,6 +64,12 @@ impl SplatKeys {
 #[error("invalid tile result: {0}")]
 pub struct WireError(pub String);
 
+/// Records of a film whose systems stop at depth 1 are all of depth 1: the wire leaves their
+/// depths out.
+fn depths_implied(d_opt: Option<u32>) -> bool {
+    d_opt == Some(1)
+}
+
 /// A little-endian writer into a byte vector.
 struct Writer {
     out: Vec<u8>,
@@ -87,7 +100,10 @@ impl Writer {
     /// A signed difference, zigzag-mapped, as unsigned LEB128 (1 to 5 bytes for 32-bit steps).
     fn step(&mut self, from: u32, to: u32) {
         let d = to as i64 - from as i64;
-        let mut z = ((d << 1) ^ (d >> 63)) as u64;
+        self.leb128(((d << 1) ^ (d >> 63)) as u64);
+    }
+    /// Unsigned LEB128: seven bits a byte, low bits first.
+    fn leb128(&mut self, mut z: u64) {
         loop {
             let byte = (z & 0x7f) as u8;
             z >>= 7;
@@ -115,13 +131,16 @@ impl Writer {
             }
         }
     }
-    /// A counted list of splats with delta-coded pixels; their layer and depth only where the
-    /// film keeps them (`keys`).
+    /// A counted list of splats, sorted by pixel (`TileFilm::compact`; routing keeps the
+    /// order), with delta-coded pixels; their layer and depth only where the film keeps them
+    /// (`keys`); each value as bfloat16 where it is one.
     fn splats(&mut self, splats: &[Splat], keys: SplatKeys) {
         self.u32(splats.len() as u32);
         let mut prev = 0;
         for s in splats {
-            self.step(prev, s.pixel);
+            assert!(s.pixel >= prev, "splats out of pixel order");
+            let wide = !s.value.iter().all(|v| bf16::exact(*v));
+            self.leb128(((s.pixel - prev) as u64) << 1 | wide as u64);
             prev = s.pixel;
             if keys.layer {
                 self.u8(s.layer);
@@ -130,22 +149,57 @@ impl Writer {
                 self.u8(s.depth);
             }
             for v in s.value {
-                self.f32(v);
+                if wide {
+                    self.f32(v);
+                } else {
+                    self.bytes(&bf16::bits(v).to_le_bytes());
+                }
             }
         }
     }
-    /// Optimal-MIS records: count, delta-coded pixels, depths, counted values.
-    fn records(&mut self, r: &LtRecords) {
+    /// Optimal-MIS records of a film with systems of depths 1 ..= `d_opt`: count, delta-coded
+    /// pixels, depths (implied where `d_opt` is 1), then the values: as bfloat16 without each
+    /// record's light-tracing weight where the integrators' rounding made them so, else all as
+    /// f32.
+    fn records(&mut self, r: &LtRecords, d_opt: Option<u32>) {
         self.u32(r.pixels.len() as u32);
         let mut prev = 0;
         for &p in &r.pixels {
             self.step(prev, p);
             prev = p;
         }
-        self.bytes(&r.depths);
-        self.u32(r.values.len() as u32);
-        for v in &r.values {
-            self.f32(*v);
+        if !depths_implied(d_opt) {
+            self.bytes(&r.depths);
+        }
+        let short = r.depths.iter().scan(0usize, |at, &d| {
+            let n = d as usize + 2;
+            let rec = &r.values[*at..*at + n + 3];
+            *at += n + 3;
+            Some(rec)
+        });
+        let compact = short.clone().all(|rec| {
+            let n = rec.len() - 3;
+            rec[n - 1].to_bits() == LtRecords::implied_weight(&rec[..n - 1]).to_bits()
+                && rec[..n - 1]
+                    .iter()
+                    .chain(&rec[n..])
+                    .all(|v| bf16::exact(*v))
+        });
+        if compact {
+            self.u8(2);
+            self.u32((r.values.len() - r.len()) as u32);
+            for rec in short {
+                let n = rec.len() - 3;
+                for v in rec[..n - 1].iter().chain(&rec[n..]) {
+                    self.bytes(&bf16::bits(*v).to_le_bytes());
+                }
+            }
+        } else {
+            self.u8(4);
+            self.u32(r.values.len() as u32);
+            for v in &r.values {
+                self.f32(*v);
+            }
         }
     }
     /// The optimal-MIS systems: d_opt (0 = none), the f64 values, the u32 hit counts.
@@ -276,6 +330,66 @@ impl Reader<'_> {
         }
         Ok(())
     }
+    /// A splat step (see the format) after pixel `from`: the pixel and whether its value is f32.
+    fn splat_step(&mut self, from: u32) -> Result<(u32, bool), WireError> {
+        let mut z = 0u64;
+        for k in 0..5 {
+            let Some(&byte) = self.b.get(self.at) else {
+                return Err(WireError(format!("truncated at byte {}", self.at)));
+            };
+            self.at += 1;
+            z |= ((byte & 0x7f) as u64) << (7 * k);
+            if byte & 0x80 == 0 {
+                let pixel = u32::try_from(from as u64 + (z >> 1)).map_err(|_| {
+                    WireError(format!(
+                        "splat step {} from {from} leaves the u32 range",
+                        z >> 1
+                    ))
+                })?;
+                return Ok((pixel, z & 1 == 1));
+            }
+        }
+        Err(WireError("splat step longer than 5 bytes".into()))
+    }
+    /// Checks `n` splats without decoding their values: every pixel in `pixels`, the list
+    /// within the payload. What the coordinator does for every splat it accepts, so one-byte
+    /// steps (most of a sorted list) take a short path.
+    fn check_splats(
+        &mut self,
+        n: usize,
+        keys_len: usize,
+        pixels: &std::ops::Range<u64>,
+    ) -> Result<(), WireError> {
+        let hi = pixels.end;
+        let mut prev = 0u64;
+        for _ in 0..n {
+            let (p, wide) = match self.b.get(self.at) {
+                Some(&byte) if byte < 0x80 => {
+                    self.at += 1;
+                    (prev + (byte >> 1) as u64, byte & 1 == 1)
+                }
+                _ => {
+                    let (p, wide) = self.splat_step(u32::try_from(prev).unwrap_or(u32::MAX))?;
+                    (p as u64, wide)
+                }
+            };
+            if p < pixels.start || p >= hi {
+                return Err(WireError(format!(
+                    "splat pixel {p} outside pixels {pixels:?}"
+                )));
+            }
+            prev = p;
+            self.at += keys_len + if wide { 12 } else { 6 };
+        }
+        if self.at > self.b.len() {
+            return Err(WireError(format!(
+                "splats: truncated at byte {} (wanted {} more)",
+                self.b.len(),
+                self.at - self.b.len()
+            )));
+        }
+        Ok(())
+    }
     /// A format's magic and version, or an error naming `what` was expected.
     fn header(&mut self, magic: &[u8; 8], version: u32, what: &str) -> Result<(), WireError> {
         if self.take(8)? != magic {
@@ -315,27 +429,38 @@ impl Reader<'_> {
         keys: SplatKeys,
         mut out: Option<&mut Vec<Splat>>,
     ) -> Result<(), WireError> {
-        let n = self.count(13, "splats")?;
+        let n = self.count(7, "splats")?;
+        let keys_len = keys.layer as usize + keys.depth as usize;
         let Some(o) = out.as_deref_mut() else {
-            let stride = 12 + keys.layer as usize + keys.depth as usize;
-            return self.check_pixels(n, stride, &pixels, "splat");
+            return self.check_splats(n, keys_len, &pixels);
         };
         o.reserve(n);
         let mut prev = 0;
         for _ in 0..n {
-            let pixel = self.pixel(&mut prev, &pixels, "splat")?;
+            let (pixel, wide) = self.splat_step(prev)?;
+            if !pixels.contains(&(pixel as u64)) {
+                return Err(WireError(format!(
+                    "splat pixel {pixel} outside pixels {pixels:?}"
+                )));
+            }
+            prev = pixel;
             let layer = if keys.layer { self.u8()? } else { u8::MAX };
             let depth = if keys.depth { self.u8()? } else { u8::MAX };
-            let v = self.take(12)?;
-            if let Some(o) = out.as_deref_mut() {
+            let value = if wide {
+                let v = self.take(12)?;
                 let f = |k: usize| f32::from_le_bytes(v[k..k + 4].try_into().expect("4 bytes"));
-                o.push(Splat {
-                    pixel,
-                    layer,
-                    depth,
-                    value: [f(0), f(4), f(8)],
-                });
-            }
+                [f(0), f(4), f(8)]
+            } else {
+                let v = self.take(6)?;
+                let f = |k: usize| bf16::value(u16::from_le_bytes([v[k], v[k + 1]]));
+                [f(0), f(2), f(4)]
+            };
+            o.push(Splat {
+                pixel,
+                layer,
+                depth,
+                value,
+            });
         }
         Ok(())
     }
@@ -367,29 +492,60 @@ impl Reader<'_> {
                 }
             }
         }
-        let mut need = 0usize;
-        for &dd in self.take(n)? {
-            if dd == 0 || Some(dd as u32) > d_opt {
-                return Err(WireError(format!(
-                    "record depth {dd} outside 1..={d_opt:?}"
-                )));
+        if depths_implied(d_opt) {
+            if let Some(o) = out.as_deref_mut() {
+                o.depths.resize(o.depths.len() + n, 1);
             }
-            need += dd as usize + 2 + 3;
+        } else {
+            for &dd in self.take(n)? {
+                if dd == 0 || Some(dd as u32) > d_opt {
+                    return Err(WireError(format!(
+                        "record depth {dd} outside 1..={d_opt:?}"
+                    )));
+                }
+            }
+            if let Some(o) = out.as_deref_mut() {
+                o.depths.extend_from_slice(&self.b[self.at - n..self.at]);
+            }
         }
-        if let Some(o) = out.as_deref_mut() {
-            o.depths.extend_from_slice(&self.b[self.at - n..self.at]);
-        }
-        let m = self.count(4, "record values")?;
+        let depths = &self.b[self.at - if depths_implied(d_opt) { 0 } else { n }..self.at];
+        let weights: usize = if depths_implied(d_opt) {
+            n * 3
+        } else {
+            depths.iter().map(|&d| d as usize + 2).sum()
+        };
+        let width = self.u8()? as usize;
+        // bfloat16 values leave out each record's light-tracing weight.
+        let need = match width {
+            2 => weights - n + 3 * n,
+            4 => weights + 3 * n,
+            _ => return Err(WireError(format!("record value width {width}, not 2 or 4"))),
+        };
+        let m = self.count(width, "record values")?;
         if m != need {
             return Err(WireError(format!("{m} record values, expected {need}")));
         }
-        let values = self.take(4 * m)?;
-        if let Some(o) = out {
+        let values = self.take(width * m)?;
+        let Some(o) = out else { return Ok(()) };
+        if width == 4 {
             o.values.extend(
                 values
                     .chunks_exact(4)
                     .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes"))),
             );
+            return Ok(());
+        }
+        let mut vals = values
+            .chunks_exact(2)
+            .map(|c| bf16::value(u16::from_le_bytes([c[0], c[1]])));
+        o.values.reserve(weights + 3 * n);
+        let first = o.depths.len() - n;
+        for k in first..o.depths.len() {
+            let others = o.depths[k] as usize + 1;
+            let start = o.values.len();
+            o.values.extend(vals.by_ref().take(others));
+            o.values.push(LtRecords::implied_weight(&o.values[start..]));
+            o.values.extend(vals.by_ref().take(3));
         }
         Ok(())
     }
@@ -450,7 +606,7 @@ impl TileFilm {
         w.rgb_list(&self.layers);
         w.rgb_list(&self.depths);
         w.optimal(self.optimal.as_ref());
-        w.records(&self.records);
+        w.records(&self.records, self.optimal.as_ref().map(|o| o.layout.d_opt));
         w.out
     }
 
@@ -740,7 +896,7 @@ impl TileCheckpoint {
 }
 
 const BAND_MAGIC: &[u8; 8] = b"OMISBAND";
-const BAND_VERSION: u32 = 3;
+const BAND_VERSION: u32 = 4;
 /// Bytes before a banded result's section table.
 const BAND_HEAD: usize = 8 + 4 + 16 + 8 + 32 + 8 + 4 + 4;
 /// Bytes of one entry of the section table.
@@ -890,6 +1046,7 @@ pub fn encode_banded(
 ) -> Vec<u8> {
     let bands = film.route_bands(grid);
     let keys = SplatKeys::of_film(&film);
+    let d_opt = film.optimal.as_ref().map(|o| o.layout.d_opt);
     film.splats = Vec::new();
     film.records = LtRecords::default();
     let own = film.encode(samples.clone());
@@ -898,7 +1055,7 @@ pub fn encode_banded(
         .map(|(b, routed)| {
             let mut w = Writer::new(Vec::new());
             w.splats(&routed.splats, keys);
-            w.records(&routed.records);
+            w.records(&routed.records, d_opt);
             (b, w.out)
         })
         .collect();

@@ -4,13 +4,14 @@
 use super::bpm::{self, BpmWeights};
 use super::vcm::{self, PhotonCache};
 use super::{IntegratorKind, RenderSettings, Techniques, bdpt, path};
+use crate::film::bf16;
 use crate::film::{
     FilmLayout, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile, TileFilm,
     strategy_layer,
 };
 use crate::geometry::{Rgb, Vec2};
 use crate::mis::{MisKind, OptimalAccum};
-use crate::sampler::{Sampler, Stream};
+use crate::sampler::{Sampler, Stream, hash_words, mix64};
 use crate::scene::Scene;
 use std::ops::Range;
 
@@ -36,6 +37,65 @@ struct FilmSink<'a> {
     pixel: usize,
     /// Samples whose contribution or weights were NaN or infinite.
     non_finite: u64,
+    /// The rounding of the current pixel sample's light-tracing values.
+    rounding: LtRounding,
+}
+
+/// Light-tracing values leave a task as bfloat16 (`film::bf16`: 6 bytes a splat instead of 12):
+/// each is rounded stochastically, unbiased, with random bits from hash(seed, x, y, i) of the
+/// pixel sample that made it and its technique's s (a pixel sample makes one light-tracing
+/// sample per s), so a value's rounding depends on that sample alone: not on the tile, the
+/// thread, whether the value lands in its own tile, or which other samples were kept (optimal
+/// MIS keeps zero-contribution ones). The rounding adds at most 2^-16 of a value's square to its
+/// variance, against the O(1) relative variance of a light-tracing sample (BENCHMARKS.md #12,
+/// stop 30).
+struct LtRounding {
+    key: u64,
+}
+
+impl LtRounding {
+    /// Tells these random bits from the sampler's streams (`Stream`: 0 and 1).
+    const STREAM: u64 = 2;
+
+    fn new(seed: u64, x: u32, y: u32, i: u32) -> LtRounding {
+        LtRounding {
+            key: hash_words(&[seed, x as u64, y as u64, Self::STREAM, i as u64]),
+        }
+    }
+
+    /// The random bits of the light-tracing sample of technique (s, 1).
+    fn technique(&self, s: u32) -> RoundingBits {
+        RoundingBits {
+            key: mix64(self.key ^ (s as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15)),
+            counter: 0,
+            bits: 0,
+            left: 0,
+        }
+    }
+}
+
+/// 16 random bits at a time for `bf16::round`: four from each hash of (key, counter).
+struct RoundingBits {
+    key: u64,
+    counter: u64,
+    bits: u64,
+    left: u32,
+}
+
+impl RoundingBits {
+    /// `v` rounded to bfloat16 with the next 16 random bits.
+    #[inline]
+    fn round(&mut self, v: f32) -> f32 {
+        if self.left == 0 {
+            self.counter += 1;
+            self.bits = mix64(self.key.wrapping_add(self.counter));
+            self.left = 4;
+        }
+        let r = self.bits as u16;
+        self.bits >>= 16;
+        self.left -= 1;
+        bf16::round(v, r)
+    }
 }
 
 /// Techniques of the systems whose light-tracing weights are rounded on the stack (D_opt <= 6).
@@ -81,34 +141,46 @@ impl bdpt::SampleSink for FilmSink<'_> {
         if s.depth >= 1 && s.depth <= self.d_opt() {
             let ws = s.balance[s.s as usize];
             if s.t == 1 {
-                // Light tracing: the same f32 values whichever tile the pixel belongs to, so that
-                // the image does not depend on the tiling.
-                let cw = [
-                    (c.x as f64 * ws) as f32,
-                    (c.y as f64 * ws) as f32,
-                    (c.z as f64 * ws) as f32,
-                ];
+                // Light tracing: the same rounded values whichever tile the pixel belongs to,
+                // so that the image does not depend on the tiling.
+                // The weighted contribution as the balance heuristic's splat computes it, rounded
+                // with the same random bits, then the weights but the light-tracing one, which
+                // the others imply (`LtRecords::implied_weight`: the wire leaves it out).
+                let mut bits = self.rounding.technique(s.s);
+                let v = c * ws as f32;
+                let cw = v.to_array().map(|v| bits.round(v));
+                let n = s.balance.len();
+                let mut small = [0.0f32; INLINE_TECHNIQUES];
+                let mut large = Vec::new();
+                let w: &mut [f32] = if n <= INLINE_TECHNIQUES {
+                    &mut small[..n]
+                } else {
+                    large.resize(n, 0.0);
+                    &mut large
+                };
+                for (d, v) in w[..n - 1].iter_mut().zip(s.balance) {
+                    *d = bits.round(*v as f32);
+                }
+                w[n - 1] = LtRecords::implied_weight(&w[..n - 1]);
                 match self.tile.index_of(s.pixel.0, s.pixel.1) {
                     Some(i) => {
                         let acc = self.optimal.as_deref_mut().expect("optimal");
-                        let rounded = |w: &f64| *w as f32 as f64;
                         let c64 = cw.map(|v| v as f64);
-                        let n = s.balance.len();
                         if n <= INLINE_TECHNIQUES {
-                            let mut w = [0.0f64; INLINE_TECHNIQUES];
-                            for (d, v) in w.iter_mut().zip(s.balance) {
-                                *d = rounded(v);
+                            let mut w64 = [0.0f64; INLINE_TECHNIQUES];
+                            for (d, v) in w64.iter_mut().zip(w.iter()) {
+                                *d = *v as f64;
                             }
-                            acc.add_sample(i, s.depth, &w[..n], c64);
+                            acc.add_sample(i, s.depth, &w64[..n], c64);
                         } else {
-                            let w: Vec<f64> = s.balance.iter().map(rounded).collect();
-                            acc.add_sample(i, s.depth, &w, c64);
+                            let w64: Vec<f64> = w.iter().map(|v| *v as f64).collect();
+                            acc.add_sample(i, s.depth, &w64, c64);
                         }
                         acc.add_hit(i, s.depth);
                     }
                     None => {
                         let frame_pixel = s.pixel.1 * self.frame_width + s.pixel.0;
-                        self.records.push(frame_pixel, s.depth, s.balance, cw);
+                        self.records.push(frame_pixel, s.depth, w, cw);
                     }
                 }
             } else {
@@ -135,11 +207,12 @@ impl bdpt::SampleSink for FilmSink<'_> {
         let v = c * w as f32;
         let layer = strategy_layer(s.depth, s.s);
         if s.t == 1 {
+            let mut bits = self.rounding.technique(s.s);
             self.splats.push(Splat {
                 pixel: s.pixel.1 * self.frame_width + s.pixel.0,
                 layer: layer.map_or(u8::MAX, |l| l as u8),
                 depth: s.depth as u8,
-                value: v.to_array(),
+                value: v.to_array().map(|v| bits.round(v)),
             });
         } else {
             self.value += v;
@@ -269,6 +342,7 @@ pub fn render_tile_cached(
                             records: &mut film.records,
                             pixel: idx,
                             non_finite: 0,
+                            rounding: LtRounding::new(settings.seed, x, y, i),
                         };
                         bdpt::pixel_sample(
                             scene,
@@ -402,6 +476,7 @@ fn render_tile_vcm(
                     records: &mut film.records,
                     pixel: idx,
                     non_finite: 0,
+                    rounding: LtRounding::new(settings.seed, x, y, i),
                 };
                 vcm::pixel_sample(
                     scene,
@@ -467,6 +542,7 @@ mod tests {
             records: &mut records,
             pixel: 0,
             non_finite: 0,
+            rounding: LtRounding::new(1, 0, 0, 0),
         };
         let w = [0.2, 0.5, 0.3];
         let nan_w = [0.2, f64::NAN, 0.3];
