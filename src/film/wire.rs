@@ -427,11 +427,11 @@ impl Reader<'_> {
         &mut self,
         pixels: std::ops::Range<u64>,
         keys: SplatKeys,
-        mut out: Option<&mut Vec<Splat>>,
+        out: Option<&mut Vec<Splat>>,
     ) -> Result<(), WireError> {
         let n = self.count(7, "splats")?;
         let keys_len = keys.layer as usize + keys.depth as usize;
-        let Some(o) = out.as_deref_mut() else {
+        let Some(o) = out else {
             return self.check_splats(n, keys_len, &pixels);
         };
         o.reserve(n);
