@@ -255,8 +255,9 @@ impl Reader<'_> {
             self.take(8)?.try_into().expect("8 bytes"),
         ))
     }
-    /// The pixel `step` (see the format) after pixel `from`: a pixel index of the u32 range.
-    fn step(&mut self, from: u32) -> Result<u32, WireError> {
+    /// Unsigned LEB128 of at most 5 bytes (a 32-bit step and one flag bit); `what` names it in
+    /// the error.
+    fn leb128(&mut self, what: &str) -> Result<u64, WireError> {
         let mut z = 0u64;
         for k in 0..5 {
             // Indexed directly: the hot loop of checking and decoding splats and records.
@@ -266,13 +267,17 @@ impl Reader<'_> {
             self.at += 1;
             z |= ((byte & 0x7f) as u64) << (7 * k);
             if byte & 0x80 == 0 {
-                let d = (z >> 1) as i64 ^ -((z & 1) as i64);
-                return u32::try_from(from as i64 + d).map_err(|_| {
-                    WireError(format!("pixel step {d} from {from} leaves the u32 range"))
-                });
+                return Ok(z);
             }
         }
-        Err(WireError("pixel step longer than 5 bytes".into()))
+        Err(WireError(format!("{what} longer than 5 bytes")))
+    }
+    /// The pixel `step` (see the format) after pixel `from`: a pixel index of the u32 range.
+    fn step(&mut self, from: u32) -> Result<u32, WireError> {
+        let z = self.leb128("pixel step")?;
+        let d = (z >> 1) as i64 ^ -((z & 1) as i64);
+        u32::try_from(from as i64 + d)
+            .map_err(|_| WireError(format!("pixel step {d} from {from} leaves the u32 range")))
     }
     /// The next pixel of a delta-coded list after `prev` (which becomes it); it must lie in
     /// `pixels` (`what` names the list's items in the error).
@@ -293,8 +298,8 @@ impl Reader<'_> {
     }
     /// Checks `n` list entries of a pixel step and `stride` bytes (skipped) without decoding
     /// them: every pixel in `pixels`, the list within the payload. What the coordinator does
-    /// for every splat and record it accepts, so one-byte steps (most of a sorted list) take a
-    /// short path; the others go through `step`.
+    /// for every record it accepts (`check_splats` for splats), so one-byte steps (most of a
+    /// sorted list) take a short path; the others go through `step`.
     fn check_pixels(
         &mut self,
         n: usize,
@@ -332,24 +337,14 @@ impl Reader<'_> {
     }
     /// A splat step (see the format) after pixel `from`: the pixel and whether its value is f32.
     fn splat_step(&mut self, from: u32) -> Result<(u32, bool), WireError> {
-        let mut z = 0u64;
-        for k in 0..5 {
-            let Some(&byte) = self.b.get(self.at) else {
-                return Err(WireError(format!("truncated at byte {}", self.at)));
-            };
-            self.at += 1;
-            z |= ((byte & 0x7f) as u64) << (7 * k);
-            if byte & 0x80 == 0 {
-                let pixel = u32::try_from(from as u64 + (z >> 1)).map_err(|_| {
-                    WireError(format!(
-                        "splat step {} from {from} leaves the u32 range",
-                        z >> 1
-                    ))
-                })?;
-                return Ok((pixel, z & 1 == 1));
-            }
-        }
-        Err(WireError("splat step longer than 5 bytes".into()))
+        let z = self.leb128("splat step")?;
+        let pixel = u32::try_from(from as u64 + (z >> 1)).map_err(|_| {
+            WireError(format!(
+                "splat step {} from {from} leaves the u32 range",
+                z >> 1
+            ))
+        })?;
+        Ok((pixel, z & 1 == 1))
     }
     /// Checks `n` splats without decoding their values: every pixel in `pixels`, the list
     /// within the payload. What the coordinator does for every splat it accepts, so one-byte
