@@ -1,13 +1,21 @@
 //! What the coordinator does to every byte it accepts: `wire::check_banded` on real results of
 //! a 1080p optimal-MIS job (Cornell box, BDPT, D_opt 1, first pass of 16 spp), rendered here
-//! from 24 tiles spread over the frame. `cargo bench --bench check_uploads` prints its
-//! throughput (BENCHMARKS.md #12).
+//! from 24 tiles spread over the frame; and what a worker does to make them
+//! (`wire::encode_banded`, which packs every part). `cargo bench --bench check_uploads` prints
+//! both throughputs, in bytes uploaded (BENCHMARKS.md #12).
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use omis::job::{JobSettings, Limits};
 use omis::scene::Scene;
 
-fn results() -> (Vec<Vec<u8>>, omis::film::TileGrid, omis::film::FilmLayout) {
+type Results = (
+    Vec<omis::film::TileFilm>,
+    Vec<Vec<u8>>,
+    omis::film::TileGrid,
+    omis::film::FilmLayout,
+);
+
+fn results() -> Results {
     let settings: JobSettings = serde_json::from_value(serde_json::json!({
         "resolution": [1920, 1080], "spp": 48, "integrator": "bdpt", "mis": "optimal",
         "optimal_max_depth": 1, "seed": 1
@@ -20,18 +28,21 @@ fn results() -> (Vec<Vec<u8>>, omis::film::TileGrid, omis::film::FilmLayout) {
         .expect("resolve");
     let grid = r.grid();
     let tiles = grid.tiles();
-    let bytes = (0..24)
+    let films: Vec<_> = (0..24)
         .map(|k| {
             let t = tiles[k * tiles.len() / 24];
-            let film = omis::integrator::render_tile(&scene, &r.render, t, 0..16);
-            omis::film::wire::encode_banded(film, 0..16, &grid)
+            omis::integrator::render_tile(&scene, &r.render, t, 0..16)
         })
         .collect();
-    (bytes, grid, r.film_layout())
+    let bytes = films
+        .iter()
+        .map(|f| omis::film::wire::encode_banded(f.clone(), 0..16, &grid))
+        .collect();
+    (films, bytes, grid, r.film_layout())
 }
 
 fn check_uploads(c: &mut Criterion) {
-    let (results, grid, layout) = results();
+    let (films, results, grid, layout) = results();
     let total: usize = results.iter().map(Vec::len).sum();
     let mut g = c.benchmark_group("coordinator");
     g.throughput(Throughput::Bytes(total as u64));
@@ -39,7 +50,14 @@ fn check_uploads(c: &mut Criterion) {
     g.bench_function("check_banded, 24 results of a 1080p optimal job", |b| {
         b.iter(|| {
             for r in &results {
-                omis::film::wire::check_banded(r, &grid, &layout).expect("valid");
+                omis::film::wire::check_banded(r, &grid, &layout, u64::MAX).expect("valid");
+            }
+        })
+    });
+    g.bench_function("encode_banded (a worker), the same 24 results", |b| {
+        b.iter(|| {
+            for f in &films {
+                std::hint::black_box(omis::film::wire::encode_banded(f.clone(), 0..16, &grid));
             }
         })
     });

@@ -257,7 +257,7 @@ fn banded_uploads_are_checked_before_they_are_stored() {
     use omis::film::wire::{BandedIndex, check_banded, relabel_banded};
     let (grid, layout, bytes) = banded_result();
     let tile = grid.tile(0);
-    let index = check_banded(&bytes, &grid, &layout).expect("a worker's upload passes");
+    let index = check_banded(&bytes, &grid, &layout, ANY).expect("a worker's upload passes");
     assert_eq!((index.tile, index.samples.clone()), (tile, 0..2));
     assert!(index.sections.len() == 2, "light paths reach both bands");
     // Any flipped byte of any part is found (header and table, own part, each section).
@@ -274,24 +274,50 @@ fn banded_uploads_are_checked_before_they_are_stored() {
     for r in parts {
         let mut bad = bytes.clone();
         bad[(r.start + r.end) / 2] ^= 0x08;
-        assert!(check_banded(&bad, &grid, &layout).is_err(), "part {r:?}");
+        assert!(
+            check_banded(&bad, &grid, &layout, ANY).is_err(),
+            "part {r:?}"
+        );
     }
     // Another frame: the sections' pixels leave their bands (or the bands the frame).
-    assert!(check_banded(&bytes, &TileGrid::new(16, 8, 8), &layout).is_err());
-    assert!(check_banded(&bytes, &TileGrid::new(16, 16, 16), &layout).is_err());
-    assert!(check_banded(&bytes[..bytes.len() - 1], &grid, &layout).is_err());
+    assert!(check_banded(&bytes, &TileGrid::new(16, 8, 8), &layout, ANY).is_err());
+    assert!(check_banded(&bytes, &TileGrid::new(16, 16, 16), &layout, ANY).is_err());
+    assert!(check_banded(&bytes[..bytes.len() - 1], &grid, &layout, ANY).is_err());
     // Relabelled as tile 3, samples 4..6: checked as that task's result, parts unchanged.
     let moved = relabel_banded(&bytes, grid.tile(3), 4..6).expect("relabel");
-    let again = check_banded(&moved, &grid, &layout).expect("the relabelled upload passes");
+    let again = check_banded(&moved, &grid, &layout, ANY).expect("the relabelled upload passes");
     assert_eq!((again.tile, again.samples.clone()), (grid.tile(3), 4..6));
-    assert_eq!(again.sections, index.sections);
+    let bands = |i: &BandedIndex, b: &[u8]| -> Vec<(u32, Vec<u8>)> {
+        i.sections
+            .iter()
+            .map(|(k, r)| (*k, b[r.start as usize..r.end as usize].to_vec()))
+            .collect()
+    };
+    assert_eq!(bands(&again, &moved), bands(&index, &bytes));
     let read = BandedIndex::read(&mut &moved[..], moved.len() as u64).expect("index");
     assert_eq!(read, again);
+    // Parts travel packed: what they inflate to is bounded by the caller, before anything is
+    // inflated (a small upload must not become a large allocation).
+    let raw: usize = std::iter::once(&index.own)
+        .chain(index.sections.iter().map(|(_, r)| r))
+        .map(|r| omis::film::pack::raw_len(&bytes[r.start as usize..r.end as usize]).expect("head"))
+        .sum();
+    assert!(
+        raw > bytes.len(),
+        "the parts are compressed ({raw} raw, {} packed)",
+        bytes.len()
+    );
+    assert!(check_banded(&bytes, &grid, &layout, raw as u64).is_ok());
+    let err = check_banded(&bytes, &grid, &layout, raw as u64 - 1).expect_err("over the bound");
+    assert!(err.to_string().contains("inflates"), "{err}");
 }
+
+/// No bound on what a test's upload inflates to.
+const ANY: u64 = u64::MAX;
 
 /// The coordinator checks sections without decoding them (`check_section`'s short path over
 /// the pixel steps); whatever it accepts or refuses, decoding accepts or refuses alike, for
-/// sections damaged anywhere (a splat's or record's pixel step, a count, a value).
+/// (unpacked) sections damaged anywhere (a splat's or record's pixel step, a count, a value).
 #[test]
 fn checking_a_section_agrees_with_decoding_it() {
     use omis::film::wire::{BandedIndex, check_section, decode_section};
@@ -306,7 +332,8 @@ fn checking_a_section_agrees_with_decoding_it() {
     };
     let (mut refused, mut tried) = (0, 0);
     for (band, r) in &index.sections {
-        let section = &bytes[r.start as usize..r.end as usize];
+        let packed = &bytes[r.start as usize..r.end as usize];
+        let section = &omis::film::pack::unpack_vec(packed, usize::MAX).expect("unpacks")[..];
         assert!(check_section(section, *band as usize, &grid, &layout).is_ok());
         for _ in 0..1500 {
             let mut bad = section.to_vec();
@@ -721,7 +748,9 @@ fn band_group_merge_case(mis: MisKind) {
                         assert_eq!(index.tile, tiles[u]);
                         let own = group.holds(u).then(|| {
                             let part = &bytes[index.own.start as usize..index.own.end as usize];
-                            TileFilm::decode(part, w, h, &layout).expect("own").0
+                            wire::unpack_own(part, usize::MAX, w, h, &layout)
+                                .expect("own")
+                                .0
                         });
                         let sections: Vec<_> = index
                             .sections
@@ -732,7 +761,8 @@ fn band_group_merge_case(mis: MisKind) {
                                 let b = *b as usize;
                                 (
                                     b,
-                                    wire::decode_section(part, b, &grid, &layout).expect("section"),
+                                    wire::unpack_section(part, usize::MAX, b, &grid, &layout)
+                                        .expect("section"),
                                 )
                             })
                             .collect();

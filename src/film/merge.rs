@@ -17,7 +17,7 @@
 //!   per result, in task order: tile u32, own length u64, sections m u32, m x (band u32,
 //!     length u64), then the own part (the result without its splats and records; empty
 //!     unless its tile is in the group), then the m sections (wire::decode_section) back to
-//!     back (as the result log keeps them: the coordinator copies both straight from it)
+//!     back, each part packed (film::pack) (as the result log keeps them: the coordinator copies both straight from it)
 //! output (worker -> coordinator):
 //!   magic "OMISMRGO", version u32, bands b0 b1 u32, passes u32 (pass + 1), layers l u32
 //!   unless last, per tile: length u64, its checkpoint holding pass + 1 passes
@@ -28,15 +28,15 @@
 use super::bands::BandGroup;
 use super::film_tile::TileGrid;
 use super::layers::FilmLayout;
-use super::wire::{TileCheckpoint, WireError, decode_section};
-use super::{FilmTile, Image, Tile, TileFilm};
+use super::wire::{TileCheckpoint, WireError, unpack_own, unpack_section};
+use super::{FilmTile, Image, Tile};
 use crate::geometry::Rgb;
 use std::io::Read;
 
 const IN_MAGIC: &[u8; 8] = b"OMISMRGI";
 const OUT_MAGIC: &[u8; 8] = b"OMISMRGO";
-/// 2: the last pass's output holds no checkpoints.
-const VERSION: u32 = 3;
+/// 3: the last pass's output holds no checkpoints. 4: the results' parts are packed.
+const VERSION: u32 = 4;
 /// No part of a merge input (a checkpoint, a result's part) is longer.
 const MAX_PART: u64 = 1 << 31;
 
@@ -255,7 +255,7 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
                 )));
             }
             let bytes = r.part(own_len, "own part")?;
-            let (film, _) = TileFilm::decode(&bytes, grid.width, grid.height, layout)?;
+            let (film, _) = unpack_own(&bytes, MAX_PART as usize, grid.width, grid.height, layout)?;
             if film.tile != grid.tile(t) {
                 return Err(WireError(format!(
                     "merge input: own part of tile {:?} for tile {t}",
@@ -269,7 +269,8 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
         let mut sections = Vec::with_capacity(m);
         for (b, len) in heads {
             let bytes = r.part(len, "section")?;
-            sections.push((b, decode_section(&bytes, b, grid, layout)?));
+            let routed = unpack_section(&bytes, MAX_PART as usize, b, grid, layout)?;
+            sections.push((b, routed));
         }
         group.add_task(grid, t, own.as_ref(), &sections);
     }

@@ -13,6 +13,7 @@ mod frame;
 pub mod layers;
 pub mod merge;
 pub mod metrics;
+pub mod pack;
 pub mod plot;
 pub mod png;
 mod tile;

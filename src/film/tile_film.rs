@@ -50,6 +50,7 @@ pub struct Splat {
 }
 
 /// What a tile task produces: camera-side sums of its own pixels, splats anywhere.
+#[derive(Clone)]
 pub struct TileFilm {
     /// The tile's pixel rectangle in the frame.
     pub tile: Tile,

@@ -25,10 +25,10 @@
 //! All sums stay f64: the merged frame must equal a single-process render to 1e-6, and solving
 //! the optimal systems amplifies rounding.
 
-use super::bf16;
 use super::{
     FilmLayout, FilmTile, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile, TileFilm,
 };
+use super::{bf16, pack};
 use crate::mis::OptimalAccum;
 
 const MAGIC: &[u8; 8] = b"OMISTILE";
@@ -891,7 +891,8 @@ impl TileCheckpoint {
 }
 
 const BAND_MAGIC: &[u8; 8] = b"OMISBAND";
-const BAND_VERSION: u32 = 4;
+/// 5: parts packed (`pack`).
+const BAND_VERSION: u32 = 5;
 /// Bytes before a banded result's section table.
 const BAND_HEAD: usize = 8 + 4 + 16 + 8 + 32 + 8 + 4 + 4;
 /// Bytes of one entry of the section table.
@@ -905,8 +906,9 @@ const BAND_ENTRY: usize = 4 + 8 + 4;
 /// magic "OMISBAND", version u32, tile x0 y0 x1 y1 u32, samples s0 s1 u32, stats 4 x u64
 /// own length u64, own CRC-32 u32, sections n u32, then n x (band u32, length u64, CRC-32 u32),
 /// in band order, then the CRC-32 of the header and table, u32
-/// own part: the tile result (OMISTILE) without its splats and records
-/// per section: splats, then records (the tile result's lists) that land in its band
+/// own part: the tile result (OMISTILE) without its splats and records, packed (`pack`)
+/// per section: splats, then records (the tile result's lists) that land in its band, packed
+/// lengths and checksums are of the packed parts, as stored
 /// ```
 #[derive(Clone, Debug, PartialEq)]
 pub struct BandedIndex {
@@ -1033,7 +1035,8 @@ fn check_crc(bytes: &[u8], want: u32, what: &str) -> Result<(), WireError> {
     Ok(())
 }
 
-/// Lays a decoded, validated task result out for band-wise merging (see `BandedIndex`).
+/// Lays a decoded, validated task result out for band-wise merging (see `BandedIndex`), each
+/// part packed (`pack`).
 pub fn encode_banded(
     mut film: TileFilm,
     samples: std::ops::Range<u32>,
@@ -1044,38 +1047,49 @@ pub fn encode_banded(
     let d_opt = film.optimal.as_ref().map(|o| o.layout.d_opt);
     film.splats = Vec::new();
     film.records = LtRecords::default();
-    let own = film.encode(samples.clone());
-    let sections: Vec<(usize, Vec<u8>)> = bands
+    let own = pack::pack(&film.encode(samples.clone()));
+    let sections: Vec<(u32, Vec<u8>)> = bands
         .into_iter()
         .map(|(b, routed)| {
             let mut w = Writer::new(Vec::new());
             w.splats(&routed.splats, keys);
             w.records(&routed.records, d_opt);
-            (b, w.out)
+            (b as u32, pack::pack(&w.out))
         })
         .collect();
+    let sections: Vec<(u32, &[u8])> = sections.iter().map(|(b, s)| (*b, &s[..])).collect();
+    assemble(film.tile, samples, &film.stats, &own, &sections)
+}
+
+/// A banded result of `tile`, `samples` and `stats` from its packed parts (`BandedIndex`).
+fn assemble(
+    t: Tile,
+    samples: std::ops::Range<u32>,
+    stats: &RayStats,
+    own: &[u8],
+    sections: &[(u32, &[u8])],
+) -> Vec<u8> {
     let body: usize = own.len() + sections.iter().map(|(_, s)| s.len()).sum::<usize>();
     let table = sections.len() * BAND_ENTRY + 4;
     let mut w = Writer::new(Vec::with_capacity(BAND_HEAD + table + body));
     w.bytes(BAND_MAGIC);
     w.u32(BAND_VERSION);
-    let t = &film.tile;
     for v in [t.x0, t.y0, t.x1, t.y1, samples.start, samples.end] {
         w.u32(v);
     }
-    w.stats(&film.stats);
+    w.stats(stats);
     w.u64(own.len() as u64);
-    w.u32(crc32fast::hash(&own));
+    w.u32(crc32fast::hash(own));
     w.u32(sections.len() as u32);
-    for (b, s) in &sections {
-        w.u32(*b as u32);
+    for (b, s) in sections {
+        w.u32(*b);
         w.u64(s.len() as u64);
         w.u32(crc32fast::hash(s));
     }
     let head_crc = crc32fast::hash(&w.out);
     w.u32(head_crc);
-    w.bytes(&own);
-    for (_, s) in &sections {
+    w.bytes(own);
+    for (_, s) in sections {
         w.bytes(s);
     }
     w.out
@@ -1084,18 +1098,31 @@ pub fn encode_banded(
 /// Checks a banded result as a worker uploads it (`encode_banded`), for a frame tiled by `grid`
 /// whose films have `layout`: its header and section table, every part's checksum, the own part
 /// (a tile result without splats or records, with the header's tile, samples and counters) and
-/// every section (its band one of the frame's, everything in it landing there). Returns the
-/// index, its ranges relative to the start of `bytes`.
+/// every section (its band one of the frame's, everything in it landing there). Its parts may
+/// inflate to at most `max_raw` bytes together. Returns the index, its ranges relative to the
+/// start of `bytes`.
 pub fn check_banded(
     bytes: &[u8],
     grid: &super::TileGrid,
     layout: &FilmLayout,
+    max_raw: u64,
 ) -> Result<BandedIndex, WireError> {
     let index = BandedIndex::read(&mut &bytes[..], bytes.len() as u64)?;
     let part = |r: &std::ops::Range<u64>| &bytes[r.start as usize..r.end as usize];
+    let mut budget = usize::try_from(max_raw).unwrap_or(usize::MAX);
+    let mut spend = |p: &[u8]| -> Result<usize, WireError> {
+        let n = pack::raw_len(p)?;
+        budget = budget.checked_sub(n).ok_or_else(|| {
+            WireError(format!(
+                "banded result inflates to more than the {max_raw} bytes allowed"
+            ))
+        })?;
+        Ok(n)
+    };
     let own = part(&index.own);
     index.check_own(own)?;
-    let (film, samples) = TileFilm::decode(own, grid.width, grid.height, layout)?;
+    let n = spend(own)?;
+    let (film, samples) = unpack_own(own, n, grid.width, grid.height, layout)?;
     if film.tile != index.tile || samples != index.samples || film.stats != index.stats {
         return Err(WireError(format!(
             "own part of tile {:?} samples {samples:?} under a header of tile {:?} samples {:?}",
@@ -1114,22 +1141,26 @@ pub fn check_banded(
                 grid.rows()
             )));
         }
-        index.check_section(k, part(r))?;
-        check_section(part(r), *b as usize, grid, layout)?;
+        let s = part(r);
+        index.check_section(k, s)?;
+        let n = spend(s)?;
+        pack::unpack(s, n, |raw| check_section(raw, *b as usize, grid, layout))?;
     }
     Ok(index)
 }
 
 /// A banded result with its tile and sample range changed to `tile` and `samples` (in the
-/// header and the own part, checksums made again): what a load generator replays as another
-/// task's result. `bytes` must be a banded result (`encode_banded`).
+/// header and the own part, which is packed again; the sections are kept as they are): what a
+/// load generator replays as another task's result. `bytes` must be a banded result
+/// (`encode_banded`).
 pub fn relabel_banded(
     bytes: &[u8],
     tile: Tile,
     samples: std::ops::Range<u32>,
 ) -> Result<Vec<u8>, WireError> {
     let index = BandedIndex::read(&mut &bytes[..], bytes.len() as u64)?;
-    let mut b = bytes.to_vec();
+    let part = |r: &std::ops::Range<u64>| &bytes[r.start as usize..r.end as usize];
+    let mut own = pack::unpack_vec(part(&index.own), usize::MAX)?;
     let fields = [
         tile.x0,
         tile.y0,
@@ -1138,23 +1169,25 @@ pub fn relabel_banded(
         samples.start,
         samples.end,
     ];
-    // Both headers hold the tile and the samples at bytes 12 .. 36 (after magic and version).
-    for base in [0, index.own.start as usize] {
-        for (k, v) in fields.iter().enumerate() {
-            let at = base + 12 + 4 * k;
-            b[at..at + 4].copy_from_slice(&v.to_le_bytes());
-        }
+    // The own part holds the tile and the samples at bytes 12 .. 36 (after magic and version).
+    if own.len() < 36 {
+        return Err(WireError(format!("own part of {} bytes", own.len())));
     }
-    let own_crc = crc32fast::hash(&b[index.own.start as usize..index.own.end as usize]);
-    b[BAND_HEAD - 8..BAND_HEAD - 4].copy_from_slice(&own_crc.to_le_bytes());
-    let table_end = BAND_HEAD + index.sections.len() * BAND_ENTRY;
-    let head_crc = crc32fast::hash(&b[..table_end]);
-    b[table_end..table_end + 4].copy_from_slice(&head_crc.to_le_bytes());
-    Ok(b)
+    for (k, v) in fields.iter().enumerate() {
+        own[12 + 4 * k..16 + 4 * k].copy_from_slice(&v.to_le_bytes());
+    }
+    let sections: Vec<(u32, &[u8])> = index.sections.iter().map(|(b, r)| (*b, part(r))).collect();
+    Ok(assemble(
+        tile,
+        samples,
+        &index.stats,
+        &pack::pack(&own),
+        &sections,
+    ))
 }
 
-/// Checks the section of `band` of a banded result as `decode_section` would parse it, without
-/// keeping anything (its values are skipped).
+/// Checks the section of `band` of a banded result (its raw bytes, unpacked) as
+/// `decode_section` would parse it, without keeping anything (its values are skipped).
 pub fn check_section(
     bytes: &[u8],
     band: usize,
@@ -1164,7 +1197,7 @@ pub fn check_section(
     section(bytes, band, grid, layout, None)
 }
 
-/// Parses the section of `band` (its bytes) of a banded result for `grid`, whose films have
+/// Parses the section of `band` (its raw bytes, unpacked) of a banded result for `grid`, whose films have
 /// `layout`: everything must land in the band.
 pub fn decode_section(
     bytes: &[u8],
@@ -1175,6 +1208,32 @@ pub fn decode_section(
     let mut routed = super::Routed::default();
     section(bytes, band, grid, layout, Some(&mut routed))?;
     Ok(routed)
+}
+
+/// The own part of a banded result as stored (packed, at most `max_raw` bytes inflated),
+/// decoded for a frame of `width` x `height` pixels whose films have `layout`.
+pub fn unpack_own(
+    part: &[u8],
+    max_raw: usize,
+    width: u32,
+    height: u32,
+    layout: &FilmLayout,
+) -> Result<(TileFilm, std::ops::Range<u32>), WireError> {
+    pack::unpack(part, max_raw, |raw| {
+        TileFilm::decode(raw, width, height, layout)
+    })
+}
+
+/// The section of `band` of a banded result as stored (packed, at most `max_raw` bytes
+/// inflated), decoded (`decode_section`).
+pub fn unpack_section(
+    part: &[u8],
+    max_raw: usize,
+    band: usize,
+    grid: &super::TileGrid,
+    layout: &FilmLayout,
+) -> Result<super::Routed, WireError> {
+    pack::unpack(part, max_raw, |raw| decode_section(raw, band, grid, layout))
 }
 
 /// Reads a section into `out`, or only checks it when `out` is None.

@@ -382,7 +382,8 @@ pub(crate) async fn upload_result(
         let tile = jobs::tile_rect(&r, t.tile);
         // Uploaded laid out by band (`wire::encode_banded`), as the result log keeps it, so
         // that a merge task reads each band's part alone: checked, then stored as it came.
-        let index = match wire::check_banded(&body[..], &r.grid(), &layout) {
+        let index = match wire::check_banded(&body[..], &r.grid(), &layout, a.cfg.max_upload_bytes)
+        {
             Err(e) => return Ok(Err(e.to_string())),
             Ok(x) => x,
         };
