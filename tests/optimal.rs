@@ -926,7 +926,7 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
             );
             for (k, t) in group_tiles.clone().enumerate() {
                 if !last {
-                    checkpoints[t] = Some(got.checkpoints[k].clone());
+                    checkpoints[t] = Some(got.checkpoints[k].to_vec());
                 }
                 let (tile, img) = &got.layers[0][k];
                 for y in 0..tile.height() {

@@ -308,30 +308,30 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
 }
 
 /// A merge task's output, checked against what the task asked for.
-pub struct MergeOutput {
-    /// Per tile of the group, in tile order: its encoded checkpoint (holding `passes`); none
-    /// after the job's last pass.
-    pub checkpoints: Vec<Vec<u8>>,
+pub struct MergeOutput<'a> {
+    /// Per tile of the group, in tile order: its encoded checkpoint (holding `passes`), where
+    /// it lies in the output; none after the job's last pass.
+    pub checkpoints: Vec<&'a [u8]>,
     /// Per layer (beauty first), per tile: the tile's image.
     pub layers: LayerImages,
 }
 
-impl MergeOutput {
+impl<'a> MergeOutput<'a> {
     /// Parses the output of the merge of `bands` into tiles that hold `passes` passes now, for a
     /// frame tiled by `grid` whose films have `layout`; `last`: the job's last pass (every layer,
     /// no checkpoints). Every checkpoint is decoded (its structure and checksum checked) before
     /// it is accepted.
     pub fn decode(
-        bytes: &[u8],
+        bytes: &'a [u8],
         grid: &TileGrid,
         layout: &FilmLayout,
         bands: std::ops::Range<u32>,
         passes: u32,
         last: bool,
-    ) -> Result<MergeOutput, WireError> {
+    ) -> Result<MergeOutput<'a>, WireError> {
         let layer_count = Self::layer_count(layout, last);
         let mut at = 0usize;
-        let mut take = |n: usize| -> Result<&[u8], WireError> {
+        let mut take = |n: usize| -> Result<&'a [u8], WireError> {
             if bytes.len() - at < n {
                 return Err(WireError(format!(
                     "merge output truncated at byte {at} (wanted {n} more)"
@@ -377,7 +377,7 @@ impl MergeOutput {
                     decoded.passes
                 )));
             }
-            checkpoints.push(ck.to_vec());
+            checkpoints.push(ck);
         }
         let mut out_layers = Vec::with_capacity(layer_count);
         for _ in 0..layer_count {

@@ -119,8 +119,16 @@ fn read_into(
     use std::io::{Read, Seek, SeekFrom};
     f.seek(SeekFrom::Start(range.start))?;
     let at = buf.len();
-    buf.resize(at + (range.end - range.start) as usize, 0);
-    f.read_exact(&mut buf[at..])?;
+    let len = range.end - range.start;
+    // Into the spare capacity, not zeroed first (`read_to_end` reads into it as it is).
+    buf.reserve(len as usize);
+    let got = f.by_ref().take(len).read_to_end(buf)?;
+    if got as u64 != len {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::UnexpectedEof,
+            format!("{got} of {len} bytes at {}", range.start),
+        ));
+    }
     Ok(at)
 }
 

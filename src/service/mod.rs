@@ -62,6 +62,8 @@ pub(crate) struct Config {
 
 /// Bytes of free upload and merge-input buffers the coordinator keeps for reuse.
 const KEPT_BUFFER_BYTES: usize = 128 << 20;
+/// Merge outputs read and accepted at once (`App::merge_bodies`).
+const MERGE_BODIES: usize = 2;
 
 /// Default of `Config::exr_interval_s`.
 pub const DEFAULT_EXR_INTERVAL_S: f64 = 30.0;
@@ -129,6 +131,11 @@ pub(crate) struct App {
     /// Uploaded results decoded and stored at once: their working memory stays bounded
     /// however many workers upload together.
     pub result_slots: tokio::sync::Semaphore,
+    /// Merge outputs read and accepted at once: each holds up to 1/16 of a frame's accumulators
+    /// (`merge::merge_groups`), so a pass's outputs arriving together would otherwise hold the
+    /// whole frame in this process; two at a time also lets their buffers be reused
+    /// (`buffers`) instead of faulted in afresh.
+    pub merge_bodies: tokio::sync::Semaphore,
     /// Held while a result is appended to its pass's result log (one append at a time).
     pub result_log: Mutex<()>,
     /// Reused buffers for uploads and merge inputs (`buffers`).
@@ -248,6 +255,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
         result_slots: tokio::sync::Semaphore::new(
             std::thread::available_parallelism().map_or(2, |n| n.get().max(2)),
         ),
+        merge_bodies: tokio::sync::Semaphore::new(MERGE_BODIES),
         result_log: Mutex::new(()),
         buffers: Arc::new(buffers::Buffers::new(KEPT_BUFFER_BYTES)),
     });

@@ -358,6 +358,19 @@ pub(crate) async fn upload_result(
         Metrics::add(&app.metrics.results_refused, 1);
         e
     };
+    // A merge output is large: read only a few at once (`App::merge_bodies`). Only the task's
+    // kind is looked at here; everything else is judged once the body is read.
+    let merge = matches!(app.db().task(task_id), Ok(Some(t)) if t.kind == TaskKind::Merge);
+    let _permit = if merge {
+        Some(
+            app.merge_bodies
+                .acquire()
+                .await
+                .map_err(ApiError::internal)?,
+        )
+    } else {
+        None
+    };
     // Read whole before it is judged (as an extractor would): a client refused while it is
     // still sending would see its connection cut rather than the answer.
     let body = read_upload(&app, body).await.map_err(refused)?;
