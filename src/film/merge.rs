@@ -17,7 +17,8 @@
 //!   per result, in task order: tile u32, own length u64, sections m u32, m x (band u32,
 //!     length u64), then the own part (the result without its splats and records; empty
 //!     unless its tile is in the group), then the m sections (wire::decode_section) back to
-//!     back, each part packed (film::pack) (as the result log keeps them: the coordinator copies both straight from it)
+//!     back, each part packed (film::pack), as the result log keeps them: the coordinator
+//!     copies both straight from it
 //! output (worker -> coordinator):
 //!   magic "OMISMRGO", version u32, bands b0 b1 u32, passes u32 (pass + 1), layers l u32
 //!   unless last, per tile: length u64, its checkpoint holding pass + 1 passes

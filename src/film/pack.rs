@@ -1,6 +1,6 @@
 //! The parts of a banded task result (`wire::encode_banded`) travel and rest compressed.
 //!
-//! A part is `method u8 (0 stored, 1 zstd), raw length u32, payload`: the payload is the raw
+//! A part is `method u8 (0 stored, 1 zstd), raw length u64, payload`: the payload is the raw
 //! bytes (method 0, where compression would not make them shorter) or one zstd frame of them
 //! (method 1, level 1: Collet and Kucherawy, "Zstandard Compression and the 'application/zstd'
 //! Media Type", RFC 8878). The raw length comes first so that a reader bounds what it allocates
@@ -14,8 +14,8 @@
 use super::wire::WireError;
 use std::cell::RefCell;
 
-/// zstd's level: 1 compresses at ~450 MB/s and inflates at ~1 GB/s on one core of the 2-core
-/// machine; higher levels shrink these parts by a few per cent more at half the speed.
+/// zstd's level: on a pass's result log (`zstd -b1 -e3`, 2-core machine) level 1 compresses
+/// to 64 % at ~460 MB/s and inflates at ~1.1 GB/s; level 3 to 58 % at ~200 MB/s.
 const LEVEL: i32 = 1;
 const STORED: u8 = 0;
 const ZSTD: u8 = 1;

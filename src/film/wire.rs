@@ -1197,8 +1197,8 @@ pub fn check_section(
     section(bytes, band, grid, layout, None)
 }
 
-/// Parses the section of `band` (its raw bytes, unpacked) of a banded result for `grid`, whose films have
-/// `layout`: everything must land in the band.
+/// Parses the section of `band` (its raw bytes, unpacked) of a banded result for `grid`,
+/// whose films have `layout`: everything must land in the band.
 pub fn decode_section(
     bytes: &[u8],
     band: usize,
