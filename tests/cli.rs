@@ -133,25 +133,12 @@ fn render_writes_exr_png_and_a_json_summary() {
     assert!(map.exists());
 }
 
+/// EXRs written through the service (their blocks compressed by the last pass's merge tasks):
+/// ZIP blocks of 16 lines with the default tiles, of one line with 8-pixel tiles. OpenEXR's own
+/// tools read both, every pixel.
 #[test]
 fn exr_opens_in_openexr_tools() {
     let d = folder("openexr");
-    let exr = d.join("f.exr");
-    let out = omis(&[
-        "render",
-        "scenes/furnace.json",
-        "--spp",
-        "4",
-        "--resolution",
-        "20x10",
-        "--out",
-        s(&exr),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     let tool = Command::new("exrmaketiled").arg("-h").output();
     if tool.is_err() {
         assert!(
@@ -161,31 +148,54 @@ fn exr_opens_in_openexr_tools() {
         eprintln!("skipped: OpenEXR's tools (Debian package openexr) are not installed");
         return;
     }
-    let header = Command::new("exrheader")
-        .arg(&exr)
-        .output()
-        .expect("exrheader");
-    assert!(
-        header.status.success(),
-        "{}",
-        String::from_utf8_lossy(&header.stderr)
-    );
-    let text = String::from_utf8_lossy(&header.stdout);
-    assert!(
-        text.contains("variance.R") && text.contains("omis.spp"),
-        "{text}"
-    );
-    // OpenEXR reads every pixel and rewrites them tiled; we read its file back: same image.
-    let tiled = d.join("tiled.exr");
-    let t = Command::new("exrmaketiled")
-        .arg(&exr)
-        .arg(&tiled)
-        .output()
-        .expect("exrmaketiled");
-    assert!(t.status.success(), "{}", String::from_utf8_lossy(&t.stderr));
-    let a = omis::film::exr_io::read_exr(&exr).expect("ours");
-    let b = omis::film::exr_io::read_exr(&tiled).expect("OpenEXR's");
-    assert_eq!(a, b);
+    for (tile, compression) in [
+        ("32", "zip, multi-scanline blocks"),
+        ("8", "zip, individual scanlines"),
+    ] {
+        let exr = d.join(format!("f{tile}.exr"));
+        let out = omis(&[
+            "render",
+            "scenes/furnace.json",
+            "--spp",
+            "4",
+            "--resolution",
+            "20x40",
+            "--tile-size",
+            tile,
+            "--out",
+            s(&exr),
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let header = Command::new("exrheader")
+            .arg(&exr)
+            .output()
+            .expect("exrheader");
+        assert!(
+            header.status.success(),
+            "{}",
+            String::from_utf8_lossy(&header.stderr)
+        );
+        let text = String::from_utf8_lossy(&header.stdout);
+        assert!(
+            text.contains("variance.R") && text.contains("omis.spp") && text.contains(compression),
+            "{text}"
+        );
+        // OpenEXR reads every pixel and rewrites them tiled; we read its file back: same image.
+        let tiled = d.join(format!("tiled{tile}.exr"));
+        let t = Command::new("exrmaketiled")
+            .arg(&exr)
+            .arg(&tiled)
+            .output()
+            .expect("exrmaketiled");
+        assert!(t.status.success(), "{}", String::from_utf8_lossy(&t.stderr));
+        let a = omis::film::exr_io::read_exr_layers(&exr).expect("ours");
+        let b = omis::film::exr_io::read_exr_layers(&tiled).expect("OpenEXR's");
+        assert_eq!(a, b);
+    }
 }
 
 #[test]

@@ -846,8 +846,10 @@ fn damaged_results_are_refused(
 
 /// A merge task as a worker runs it (`film::merge::run`): fed the pass's banded results and the
 /// previous pass's checkpoints, pass after pass and group by group, its outputs have the bits of
-/// the in-process merge (images and checkpoints that the next pass continues from); an input cut
-/// anywhere is refused with an error, never a panic or a partial output.
+/// the in-process merge (beauties and checkpoints that the next pass continues from; on the
+/// last pass the final EXR's blocks, every layer, in ZIP blocks of 16 lines or of one where
+/// rows of tiles split them); an input cut anywhere is refused with an error, never a panic or
+/// a partial output, and so is an output with a damaged block.
 #[test]
 fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input() {
     use omis::film::merge::{self, MergeHead, MergeOutput};
@@ -857,94 +859,130 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
     let scene = load("cornell-box-small-light.json", w, h);
     let mut s = optimal(4, 5, 2);
     s.mis = MisKind::OptimalProgressive;
+    s.depth_layers = true;
     let layout = s.film_layout();
-    let grid = TileGrid::new(w, h, 8);
-    let tiles = grid.tiles();
-    let groups = band_groups(&grid, &layout, 1);
-    let mut film = Film::new(w, h, &layout);
-    // Per tile: its latest checkpoint (None before the first pass).
-    let mut checkpoints: Vec<Option<Vec<u8>>> = vec![None; tiles.len()];
-    for (p, range) in [0..2u32, 2..4].into_iter().enumerate() {
-        let stored: Vec<Vec<u8>> = tiles
-            .iter()
-            .map(|t| {
-                let r = integrator::render_tile(&scene, &s, *t, range.clone());
-                film.merge_task(&r);
-                wire::encode_banded(r, range.clone(), &grid)
-            })
-            .collect();
-        film.end_pass();
-        let want = film.image();
-        let last = p == 1;
-        for bands in &groups {
-            let b = bands.start as u32..bands.end as u32;
-            let group_tiles = grid.tiles_of_bands(bands.clone());
-            let mut input = MergeHead {
-                bands: b.clone(),
-                pass: p as u32,
-                light_paths: (w * h * range.end) as u64,
-                last,
-                results: stored.len() as u32,
-            }
-            .encode();
-            for t in group_tiles.clone() {
-                let ck = checkpoints[t].as_ref();
-                input.extend(merge::tile_entry(ck.map(|c| c.len() as u64)));
-                input.extend(ck.into_iter().flatten());
-            }
-            for (u, bytes) in stored.iter().enumerate() {
-                let index = BandedIndex::read(&mut &bytes[..], bytes.len() as u64).expect("index");
-                let own = if group_tiles.contains(&u) {
-                    &bytes[index.own.start as usize..index.own.end as usize]
-                } else {
-                    &[][..]
-                };
-                let inside: Vec<_> = index
-                    .sections
-                    .iter()
-                    .filter(|(band, _)| bands.contains(&(*band as usize)))
-                    .collect();
-                let heads: Vec<(u32, u64)> =
-                    inside.iter().map(|(b, r)| (*b, r.end - r.start)).collect();
-                input.extend(merge::result_entry(u as u32, own.len() as u64, &heads));
-                input.extend_from_slice(own);
-                for (_, r) in inside {
-                    input.extend_from_slice(&bytes[r.start as usize..r.end as usize]);
+    for tile_size in [8, 16] {
+        let grid = TileGrid::new(w, h, tile_size);
+        let exr = merge::exr_layout(&grid, &layout).expect("layout");
+        let tiles = grid.tiles();
+        let groups = band_groups(&grid, &layout, 1);
+        let mut film = Film::new(w, h, &layout);
+        // Per tile: its latest checkpoint (None before the first pass).
+        let mut checkpoints: Vec<Option<Vec<u8>>> = vec![None; tiles.len()];
+        for (p, range) in [0..2u32, 2..4].into_iter().enumerate() {
+            let stored: Vec<Vec<u8>> = tiles
+                .iter()
+                .map(|t| {
+                    let r = integrator::render_tile(&scene, &s, *t, range.clone());
+                    film.merge_task(&r);
+                    wire::encode_banded(r, range.clone(), &grid)
+                })
+                .collect();
+            film.end_pass();
+            // Every layer the EXR holds, beauty first.
+            let want: Vec<Image> = std::iter::once(film.image())
+                .chain(film.extra_layers().into_iter().map(|(_, i)| i))
+                .collect();
+            assert!(want.len() > 2, "beauty, variance and depth layers");
+            let last = p == 1;
+            for bands in &groups {
+                let b = bands.start as u32..bands.end as u32;
+                let group_tiles = grid.tiles_of_bands(bands.clone());
+                let mut input = MergeHead {
+                    bands: b.clone(),
+                    pass: p as u32,
+                    light_paths: (w * h * range.end) as u64,
+                    last,
+                    results: stored.len() as u32,
                 }
-            }
-            let out = merge::run(&input[..], &grid, &layout).expect("merge");
-            let got = MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32 + 1, last)
-                .expect("the output checks");
-            // The last pass returns every layer and no checkpoint (nothing continues from it).
-            assert_eq!(got.layers.len(), MergeOutput::layer_count(&layout, last));
-            assert_eq!(
-                got.checkpoints.len(),
-                if last { 0 } else { group_tiles.len() }
-            );
-            assert!(
-                MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32 + 1, !last).is_err()
-            );
-            for (k, t) in group_tiles.clone().enumerate() {
-                if !last {
-                    checkpoints[t] = Some(got.checkpoints[k].to_vec());
+                .encode();
+                for t in group_tiles.clone() {
+                    let ck = checkpoints[t].as_ref();
+                    input.extend(merge::tile_entry(ck.map(|c| c.len() as u64)));
+                    input.extend(ck.into_iter().flatten());
                 }
-                let (tile, img) = &got.layers[0][k];
-                for y in 0..tile.height() {
-                    for x in 0..tile.width() {
-                        let px = want.get(tile.x0 as usize + x, tile.y0 as usize + y);
-                        assert_eq!(img.get(x, y), px, "pass {p} tile {t} pixel ({x}, {y})");
+                for (u, bytes) in stored.iter().enumerate() {
+                    let index =
+                        BandedIndex::read(&mut &bytes[..], bytes.len() as u64).expect("index");
+                    let own = if group_tiles.contains(&u) {
+                        &bytes[index.own.start as usize..index.own.end as usize]
+                    } else {
+                        &[][..]
+                    };
+                    let inside: Vec<_> = index
+                        .sections
+                        .iter()
+                        .filter(|(band, _)| bands.contains(&(*band as usize)))
+                        .collect();
+                    let heads: Vec<(u32, u64)> =
+                        inside.iter().map(|(b, r)| (*b, r.end - r.start)).collect();
+                    input.extend(merge::result_entry(u as u32, own.len() as u64, &heads));
+                    input.extend_from_slice(own);
+                    for (_, r) in inside {
+                        input.extend_from_slice(&bytes[r.start as usize..r.end as usize]);
                     }
                 }
-            }
-            // Another task's bands or passes: refused.
-            let other = b.start + 1..b.end + 1;
-            assert!(MergeOutput::decode(&out, &grid, &layout, other, p as u32 + 1, last).is_err());
-            assert!(MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32, last).is_err());
-            for cut in (0..input.len()).step_by(input.len() / 40 + 1) {
-                assert!(
-                    merge::run(&input[..cut], &grid, &layout).is_err(),
-                    "cut at {cut}"
-                );
+                let out = merge::run(&input[..], &grid, &layout).expect("merge");
+                let decode = |bytes: &[u8], b: std::ops::Range<u32>, passes: u32, last: bool| {
+                    MergeOutput::decode(bytes, &grid, &layout, b, passes, last).is_ok()
+                };
+                let got = MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32 + 1, last)
+                    .expect("the output checks");
+                assert!(!decode(&out, b.clone(), p as u32 + 1, !last));
+                // The beauty: per tile, or the group's rows (read from its EXR blocks).
+                for (tile, img) in &got.beauty {
+                    for y in 0..tile.height() {
+                        for x in 0..tile.width() {
+                            let px = want[0].get(tile.x0 as usize + x, tile.y0 as usize + y);
+                            assert_eq!(img.get(x, y), px, "pass {p} {tile:?} pixel ({x}, {y})");
+                        }
+                    }
+                }
+                if last {
+                    // No checkpoint (nothing continues from it); the EXR's blocks of the
+                    // group's rows, every layer with the in-process bits.
+                    assert!(got.checkpoints.is_empty());
+                    let rows = grid.band_rows(bands.clone());
+                    assert_eq!(got.beauty.len(), 1);
+                    assert_eq!(
+                        got.first_block..got.first_block + got.blocks.len(),
+                        exr.blocks_of(rows).expect("aligned")
+                    );
+                    for (k, bytes) in got.blocks.iter().enumerate() {
+                        let blk = got.first_block + k;
+                        let samples = exr.decompress_block(blk, bytes).expect("a block");
+                        for (l, img) in want.iter().enumerate() {
+                            for y in exr.block_rows(blk) {
+                                let mut line = vec![Default::default(); w as usize];
+                                exr.read_row(&samples, l, y, &mut line);
+                                assert_eq!(line[..], img.pixels[y * w as usize..][..w as usize]);
+                            }
+                        }
+                    }
+                    // A damaged block is refused when the output is checked.
+                    let first_len = 8 + 5 * 4 + 4;
+                    for at in [first_len + 2, out.len() - 3] {
+                        let mut bad = out.clone();
+                        bad[at] ^= 0x5a;
+                        assert!(!decode(&bad, b.clone(), p as u32 + 1, last), "byte {at}");
+                    }
+                } else {
+                    assert_eq!(got.checkpoints.len(), group_tiles.len());
+                    assert_eq!(got.beauty.len(), group_tiles.len());
+                    for (k, t) in group_tiles.clone().enumerate() {
+                        checkpoints[t] = Some(got.checkpoints[k].to_vec());
+                    }
+                }
+                // Another task's bands or passes: refused.
+                let other = b.start + 1..b.end + 1;
+                assert!(!decode(&out, other, p as u32 + 1, last));
+                assert!(!decode(&out, b.clone(), p as u32, last));
+                for cut in (0..input.len()).step_by(input.len() / 40 + 1) {
+                    assert!(
+                        merge::run(&input[..cut], &grid, &layout).is_err(),
+                        "cut at {cut}"
+                    );
+                }
             }
         }
     }

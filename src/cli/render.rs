@@ -144,7 +144,11 @@ fn in_process(a: &RenderArgs, scene: &Scene, r: &Resolved, out: &Path) -> Result
         .unwrap_or_default();
     let image = output
         .film
-        .write_exr(out, &r.exr_attributes(&scene_name, spp))
+        .write_exr(
+            out,
+            &r.exr_attributes(&scene_name, spp),
+            exr_io::block_lines(r.tile_size),
+        )
         .map_err(anyhow::Error::msg)?;
     if let Some(p) = &a.png {
         png::write_png(p, &image, 0.0).map_err(anyhow::Error::msg)?;

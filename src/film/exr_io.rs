@@ -3,13 +3,21 @@
 //! A render is written as one EXR part whose channels are `R, G, B` (the beauty layer) plus
 //! `<layer>.R, <layer>.G, <layer>.B` for every extra named layer: the dotted naming that
 //! OpenEXR, Nuke and Blender read as a multi-layer image.
+//!
+//! Its scan lines are ZIP-compressed in blocks ([`ExrLayout`]): 16 lines a block, or one where
+//! the frame's rows of tiles are not a multiple of 16 lines high, so that every row of tiles
+//! begins a block. A block is compressed, checked and stored on its own, so the render
+//! service's merge tasks compress the rows they merged and the coordinator only checks their
+//! blocks (inflating, which costs a fraction of deflating) and writes them into the file.
 
 use super::Image;
 use crate::geometry::Rgb;
-use exr::prelude::{
-    AnyChannel, AnyChannels, AttributeValue, Encoding, FlatSamples, Layer, LayerAttributes, Text,
-    WritableImage, read_all_flat_layers_from_file,
-};
+use exr::block::chunk::{Chunk, CompressedBlock, CompressedScanLineBlock};
+use exr::block::writer::ChunksWriter;
+use exr::meta::attribute::{AttributeValue, ChannelDescription, IntegerBounds, SampleType, Text};
+use exr::meta::header::{Header, LayerAttributes};
+use exr::prelude::{Compression, LineOrder, SmallVec, read_all_flat_layers_from_file};
+use rayon::prelude::*;
 use std::path::Path;
 
 /// A named RGB layer; the empty name is the beauty layer.
@@ -20,60 +28,282 @@ pub struct NamedLayer<'a> {
     pub image: &'a Image,
 }
 
-/// Writes `beauty` plus `extra` layers (all the same size) as 32-bit float channels, ZIP
-/// compressed, with `attributes` stored as string header attributes.
+/// Scan lines per ZIP block of the EXR of a frame cut into tiles of `tile_size` pixels: 16
+/// (OpenEXR's ZIP), or 1 (ZIPS) where rows of tiles would split a 16-line block.
+pub fn block_lines(tile_size: u32) -> usize {
+    if tile_size.is_multiple_of(16) { 16 } else { 1 }
+}
+
+/// How a render's EXR is laid out: its size, its layers (the beauty, then the extra ones), the
+/// channels in the file's (sorted) order and its blocks of scan lines.
+#[derive(Clone, Debug)]
+pub struct ExrLayout {
+    width: usize,
+    height: usize,
+    lines: usize,
+    header: Header,
+    /// Per channel in file order: (layer, component R G B = 0 1 2).
+    order: Vec<(usize, usize)>,
+}
+
+/// A decompressed block: the native-endian f32 samples of its lines, channel by channel within
+/// each line (OpenEXR's scan-line block layout).
+pub struct Block {
+    first_line: usize,
+    samples: Vec<u8>,
+}
+
+impl ExrLayout {
+    /// A `width` x `height` frame with the beauty and the `extra` layers (in that order), in
+    /// blocks of `lines` (1 or 16) scan lines.
+    pub fn new(
+        width: usize,
+        height: usize,
+        extra: &[String],
+        lines: usize,
+    ) -> Result<ExrLayout, String> {
+        if width == 0 || height == 0 {
+            return Err(format!("an EXR of {width}x{height} pixels"));
+        }
+        let compression = match lines {
+            1 => Compression::ZIP1,
+            16 => Compression::ZIP16,
+            _ => return Err(format!("ZIP blocks of {lines} lines")),
+        };
+        let mut named: Vec<(String, (usize, usize))> = Vec::new();
+        for (l, name) in std::iter::once("")
+            .chain(extra.iter().map(String::as_str))
+            .enumerate()
+        {
+            if l > 0 && (name.is_empty() || !name.chars().all(|c| c.is_ascii_graphic())) {
+                return Err(format!("invalid layer name '{name}'"));
+            }
+            for (c, comp) in ["R", "G", "B"].iter().enumerate() {
+                let full = if name.is_empty() {
+                    comp.to_string()
+                } else {
+                    format!("{name}.{comp}")
+                };
+                named.push((full, (l, c)));
+            }
+        }
+        // OpenEXR stores channels sorted by name.
+        named.sort_by(|a, b| a.0.as_bytes().cmp(b.0.as_bytes()));
+        if named.windows(2).any(|w| w[0].0 == w[1].0) {
+            return Err("two layers of the same name".into());
+        }
+        let channels: SmallVec<[ChannelDescription; 5]> = named
+            .iter()
+            .map(|(n, _)| ChannelDescription::named(Text::from(n.as_str()), SampleType::F32))
+            .collect();
+        let header = Header::new(Text::from("omis"), (width, height), channels).with_encoding(
+            compression,
+            exr::meta::BlockDescription::ScanLines,
+            LineOrder::Increasing,
+        );
+        Ok(ExrLayout {
+            width,
+            height,
+            lines,
+            header,
+            order: named.into_iter().map(|(_, o)| o).collect(),
+        })
+    }
+
+    /// Blocks of the frame, top to bottom.
+    pub fn blocks(&self) -> usize {
+        self.height.div_ceil(self.lines)
+    }
+
+    /// The scan lines of block `b`.
+    pub fn block_rows(&self, b: usize) -> std::ops::Range<usize> {
+        b * self.lines..((b + 1) * self.lines).min(self.height)
+    }
+
+    /// The blocks that hold exactly the scan lines `rows`, or why none do.
+    pub fn blocks_of(
+        &self,
+        rows: std::ops::Range<usize>,
+    ) -> Result<std::ops::Range<usize>, String> {
+        let aligned = |y: usize| y.is_multiple_of(self.lines) || y == self.height;
+        if rows.start >= rows.end
+            || rows.end > self.height
+            || !aligned(rows.start)
+            || !aligned(rows.end)
+        {
+            return Err(format!(
+                "lines {rows:?} of a {}-line frame are not whole blocks of {} lines",
+                self.height, self.lines
+            ));
+        }
+        Ok(rows.start / self.lines..rows.end.div_ceil(self.lines))
+    }
+
+    /// The most bytes a block can take: its samples uncompressed (OpenEXR stores a block whose
+    /// compression would not make it shorter as it is).
+    pub fn max_block_bytes(&self) -> usize {
+        self.lines * self.width * self.order.len() * 4
+    }
+
+    /// Block `b` compressed, from `row(layer, y)`: the `width` pixels of line `y` of `layer`
+    /// (0: the beauty, then the extra layers in the order given to `new`).
+    pub fn compress_block<'a>(
+        &self,
+        b: usize,
+        row: impl Fn(usize, usize) -> &'a [Rgb],
+    ) -> Result<Vec<u8>, String> {
+        let rows = self.block_rows(b);
+        let mut samples = Vec::with_capacity(rows.len() * self.width * self.order.len() * 4);
+        for y in rows.clone() {
+            for &(l, c) in &self.order {
+                let line = row(l, y);
+                if line.len() != self.width {
+                    return Err(format!("line {y} of layer {l} has {} pixels", line.len()));
+                }
+                for p in line {
+                    samples.extend_from_slice(&p[c].to_ne_bytes());
+                }
+            }
+        }
+        self.header
+            .compression
+            .compress_image_section_to_le(&self.header, samples, self.bounds(&rows))
+            .map_err(|e| format!("cannot compress EXR block {b}: {e}"))
+    }
+
+    /// Decompresses block `b` from `bytes`, checking that they are one: a ZIP stream (or the
+    /// samples stored as they are) that inflates to exactly the block's samples.
+    pub fn decompress_block(&self, b: usize, bytes: &[u8]) -> Result<Block, String> {
+        if b >= self.blocks() {
+            return Err(format!("EXR block {b} of {}", self.blocks()));
+        }
+        if bytes.len() > self.max_block_bytes() {
+            return Err(format!(
+                "EXR block {b} of {} bytes; at most {} fit",
+                bytes.len(),
+                self.max_block_bytes()
+            ));
+        }
+        let rows = self.block_rows(b);
+        let samples = self
+            .header
+            .compression
+            .decompress_image_section_from_le(
+                &self.header,
+                bytes.to_vec(),
+                self.bounds(&rows),
+                true,
+            )
+            .map_err(|e| format!("EXR block {b}: {e}"))?;
+        Ok(Block {
+            first_line: rows.start,
+            samples,
+        })
+    }
+
+    /// Line `y` of `layer` of a decompressed block, into `out` (`width` pixels).
+    pub fn read_row(&self, block: &Block, layer: usize, y: usize, out: &mut [Rgb]) {
+        let w = self.width;
+        let line = (y - block.first_line) * self.order.len();
+        for (ch, &(l, c)) in self.order.iter().enumerate() {
+            if l != layer {
+                continue;
+            }
+            let at = (line + ch) * w * 4;
+            for (p, v) in out
+                .iter_mut()
+                .zip(block.samples[at..at + w * 4].chunks_exact(4))
+            {
+                p[c] = f32::from_ne_bytes(v.try_into().expect("4 bytes"));
+            }
+        }
+    }
+
+    /// Writes the EXR file from its compressed blocks (every one, in order), with `attributes`
+    /// as string attributes of its header.
+    pub fn write(
+        &self,
+        path: &Path,
+        attributes: &[(&str, String)],
+        blocks: &[impl AsRef<[u8]>],
+    ) -> Result<(), String> {
+        if blocks.len() != self.blocks() {
+            return Err(format!("{} blocks of {}", blocks.len(), self.blocks()));
+        }
+        let mut attrs = LayerAttributes::named("omis");
+        for (k, v) in attributes {
+            attrs
+                .other
+                .insert(Text::from(*k), AttributeValue::Text(Text::from(v.as_str())));
+        }
+        let header = self.header.clone().with_attributes(attrs);
+        let failed = |e: exr::error::Error| format!("{}: cannot write EXR: {e}", path.display());
+        let file = std::fs::File::create(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        exr::block::write(
+            std::io::BufWriter::with_capacity(1 << 20, file),
+            SmallVec::from_elem(header, 1),
+            true,
+            |_, writer| {
+                for (b, bytes) in blocks.iter().enumerate() {
+                    let chunk = Chunk {
+                        layer_index: 0,
+                        compressed_block: CompressedBlock::ScanLine(CompressedScanLineBlock {
+                            y_coordinate: (b * self.lines) as i32,
+                            compressed_pixels_le: bytes.as_ref().to_vec(),
+                        }),
+                    };
+                    writer.write_chunk(b, chunk)?;
+                }
+                Ok(())
+            },
+        )
+        .map_err(failed)
+    }
+
+    fn bounds(&self, rows: &std::ops::Range<usize>) -> IntegerBounds {
+        IntegerBounds::new((0, rows.start as i32), (self.width, rows.len()))
+    }
+}
+
+/// Writes `beauty` plus `extra` layers (all the same size) as 32-bit float channels in ZIP
+/// blocks of 16 scan lines, with `attributes` stored as string header attributes.
 pub fn write_exr(
     path: &Path,
     beauty: &Image,
     extra: &[NamedLayer],
     attributes: &[(&str, String)],
 ) -> Result<(), String> {
-    let (w, h) = (beauty.width, beauty.height);
-    let mut channels: Vec<AnyChannel<FlatSamples>> = Vec::new();
-    let mut push = |prefix: &str, img: &Image| -> Result<(), String> {
-        if img.width != w || img.height != h {
-            return Err(format!(
-                "layer '{prefix}' is {}x{}, beauty is {w}x{h}",
-                img.width, img.height
-            ));
-        }
-        for (c, name) in ["R", "G", "B"].iter().enumerate() {
-            let data: Vec<f32> = img.pixels.iter().map(|p| p[c]).collect();
-            let full = if prefix.is_empty() {
-                name.to_string()
-            } else {
-                format!("{prefix}.{name}")
-            };
-            channels.push(AnyChannel::new(full.as_str(), FlatSamples::F32(data)));
-        }
-        Ok(())
-    };
-    push("", beauty)?;
-    for l in extra {
-        if l.name.is_empty() || l.name.contains(|c: char| c.is_control()) {
-            return Err(format!("invalid layer name '{}'", l.name));
-        }
-        push(&l.name, l.image)?;
-    }
-    let mut attrs = LayerAttributes::named("omis");
-    for (k, v) in attributes {
-        attrs
-            .other
-            .insert(Text::from(*k), AttributeValue::Text(Text::from(v.as_str())));
-    }
-    let layer = Layer::new(
-        (w, h),
-        attrs,
-        Encoding::SMALL_LOSSLESS,
-        AnyChannels::sort(channels.into()),
-    );
-    Image_::from_layer(layer)
-        .write()
-        .to_file(path)
-        .map_err(|e| format!("{}: cannot write EXR: {e}", path.display()))
+    write_exr_in_blocks(path, beauty, extra, attributes, 16)
 }
 
-type Image_<L> = exr::image::Image<L>;
+/// `write_exr` in ZIP blocks of `lines` scan lines (`block_lines`), compressed on rayon's
+/// threads.
+pub fn write_exr_in_blocks(
+    path: &Path,
+    beauty: &Image,
+    extra: &[NamedLayer],
+    attributes: &[(&str, String)],
+    lines: usize,
+) -> Result<(), String> {
+    let (w, h) = (beauty.width, beauty.height);
+    let mut images = vec![beauty];
+    for l in extra {
+        if l.image.width != w || l.image.height != h {
+            return Err(format!(
+                "layer '{}' is {}x{}, beauty is {w}x{h}",
+                l.name, l.image.width, l.image.height
+            ));
+        }
+        images.push(l.image);
+    }
+    let names: Vec<String> = extra.iter().map(|l| l.name.clone()).collect();
+    let layout = ExrLayout::new(w, h, &names, lines)?;
+    let blocks = (0..layout.blocks())
+        .into_par_iter()
+        .map(|b| layout.compress_block(b, |l, y| &images[l].pixels[y * w..(y + 1) * w]))
+        .collect::<Result<Vec<_>, _>>()?;
+    layout.write(path, attributes, &blocks)
+}
 
 /// Reads the layers of an EXR file: the beauty (`R, G, B` or `Y`) and every `<name>.R/G/B` group.
 /// Returns (layer name, image) pairs; the beauty layer has the empty name.
@@ -151,6 +381,121 @@ pub fn read_exr(path: &Path) -> Result<Image, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A frame of `w` x `h` whose pixels differ everywhere (layer `l` scaled by l + 1).
+    fn ramp(w: usize, h: usize, l: usize) -> Image {
+        let mut img = Image::new(w, h);
+        for (i, p) in img.pixels.iter_mut().enumerate() {
+            let v = (i as f32 * 0.37).sin() * (l + 1) as f32;
+            *p = Rgb::new(v, v * 0.5 + i as f32, -v);
+        }
+        img
+    }
+
+    #[test]
+    fn blocks_compressed_one_at_a_time_make_the_file_and_read_back() {
+        let dir = std::env::temp_dir().join(format!("omis-exr-blocks-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (w, h) = (13, 37);
+        let names = ["variance".to_string(), "depth1".to_string()];
+        let images: Vec<Image> = (0..3).map(|l| ramp(w, h, l)).collect();
+        for lines in [1, 16] {
+            let layout = ExrLayout::new(w, h, &names, lines).unwrap();
+            assert_eq!(layout.blocks(), h.div_ceil(lines));
+            assert_eq!(layout.block_rows(layout.blocks() - 1).end, h);
+            // Blocks made out of order, as merge tasks return them; each reads back its lines.
+            let mut blocks = vec![Vec::new(); layout.blocks()];
+            for b in (0..layout.blocks()).rev() {
+                blocks[b] = layout
+                    .compress_block(b, |l, y| &images[l].pixels[y * w..(y + 1) * w])
+                    .unwrap();
+                assert!(blocks[b].len() <= layout.max_block_bytes());
+                let samples = layout.decompress_block(b, &blocks[b]).unwrap();
+                for y in layout.block_rows(b) {
+                    for (l, img) in images.iter().enumerate() {
+                        let mut line = vec![Rgb::ZERO; w];
+                        layout.read_row(&samples, l, y, &mut line);
+                        assert_eq!(line[..], img.pixels[y * w..(y + 1) * w]);
+                    }
+                }
+            }
+            let path = dir.join(format!("b{lines}.exr"));
+            layout
+                .write(&path, &[("omis.spp", "2".into())], &blocks)
+                .unwrap();
+            let read = read_exr_layers(&path).unwrap();
+            let find = |n: &str| &read.iter().find(|(m, _)| m == n).unwrap().1;
+            assert_eq!(find(""), &images[0]);
+            assert_eq!(find("variance"), &images[1]);
+            assert_eq!(find("depth1"), &images[2]);
+            // The same file as the one compressed here at once.
+            let named: Vec<NamedLayer> = names
+                .iter()
+                .zip(&images[1..])
+                .map(|(n, image)| NamedLayer {
+                    name: n.clone(),
+                    image,
+                })
+                .collect();
+            let whole = dir.join(format!("w{lines}.exr"));
+            write_exr_in_blocks(
+                &whole,
+                &images[0],
+                &named,
+                &[("omis.spp", "2".into())],
+                lines,
+            )
+            .unwrap();
+            assert_eq!(
+                std::fs::read(&whole).unwrap(),
+                std::fs::read(&path).unwrap()
+            );
+            // Not every block: refused.
+            assert!(layout.write(&path, &[], &blocks[1..]).is_err());
+        }
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn damaged_or_misplaced_blocks_are_refused_with_an_error() {
+        let (w, h) = (16, 40);
+        let img = ramp(w, h, 0);
+        let layout = ExrLayout::new(w, h, &[], 16).unwrap();
+        let good = layout
+            .compress_block(1, |_, y| &img.pixels[y * w..(y + 1) * w])
+            .unwrap();
+        assert!(good.len() < layout.max_block_bytes(), "compressed");
+        assert!(layout.decompress_block(1, &good).is_ok());
+        // Another block's lines (the last block has 8), a block past the end, truncated,
+        // garbage, too long: each an error, none a panic.
+        assert!(layout.decompress_block(2, &good).is_err());
+        assert!(layout.decompress_block(3, &good).is_err());
+        assert!(layout.decompress_block(1, &good[..good.len() - 1]).is_err());
+        assert!(layout.decompress_block(1, &[]).is_err());
+        let mut flipped = good.clone();
+        let k = flipped.len() / 2;
+        flipped[k] ^= 0x40;
+        assert!(layout.decompress_block(1, &flipped).is_err());
+        assert!(
+            layout
+                .decompress_block(1, &vec![7; layout.max_block_bytes() + 1])
+                .is_err()
+        );
+        for n in [0, 1, 9, 100, 3000] {
+            let junk: Vec<u8> = (0..n).map(|i| (i * 31 % 251) as u8).collect();
+            assert!(layout.decompress_block(0, &junk).is_err(), "{n} bytes");
+        }
+        // Lines that are not whole blocks.
+        assert_eq!(layout.blocks_of(16..40), Ok(1..3));
+        assert!(layout.blocks_of(8..40).is_err());
+        assert!(layout.blocks_of(0..20).is_err());
+        assert!(layout.blocks_of(0..41).is_err());
+        assert!(ExrLayout::new(w, h, &[], 8).is_err());
+        assert!(ExrLayout::new(w, h, &["a b".into()], 16).is_err());
+        assert!(ExrLayout::new(w, h, &["x".into(), "x".into()], 16).is_err());
+        assert_eq!(block_lines(64), 16);
+        assert_eq!(block_lines(24), 1);
+    }
 
     #[test]
     fn round_trip_with_layers() {

@@ -99,6 +99,12 @@ impl TileGrid {
         (b * c).min(self.len())..((b + 1) * c).min(self.len())
     }
 
+    /// The scan lines of the bands `bands`.
+    pub fn band_rows(&self, bands: std::ops::Range<usize>) -> std::ops::Range<usize> {
+        let y = |b: usize| (b as u64 * self.size as u64).min(self.height as u64) as usize;
+        y(bands.start)..y(bands.end)
+    }
+
     /// The frame pixels (y * width + x) of band `b`.
     pub fn band_pixels(&self, b: usize) -> std::ops::Range<u64> {
         let w = self.width as u64;

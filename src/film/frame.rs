@@ -85,12 +85,13 @@ impl Film {
         self.acc.extra_layers(&self.layout, self.light_paths())
     }
 
-    /// Writes the EXR of the frame (beauty and `extra_layers`) with `attributes` in its header;
-    /// returns the beauty image.
+    /// Writes the EXR of the frame (beauty and `extra_layers`) with `attributes` in its header,
+    /// in ZIP blocks of `lines` scan lines (`exr_io::block_lines`); returns the beauty image.
     pub fn write_exr(
         &self,
         path: &std::path::Path,
         attributes: &[(&str, String)],
+        lines: usize,
     ) -> Result<Image, String> {
         let image = self.image();
         let layers = self.extra_layers();
@@ -101,7 +102,7 @@ impl Film {
                 image,
             })
             .collect();
-        super::exr_io::write_exr(path, &image, &named, attributes)?;
+        super::exr_io::write_exr_in_blocks(path, &image, &named, attributes, lines)?;
         Ok(image)
     }
 

@@ -2,11 +2,13 @@
 //! rows of tiles), reads the group's tile checkpoints and, in task order, every part of the
 //! pass's results that lands in the group, adds them with [`BandGroup`] (so the tiles get
 //! exactly the additions `Film::merge_task` makes: the in-process bits), and returns the tiles'
-//! new checkpoints and their images (on a job's last pass every layer's image and no checkpoint:
-//! nothing continues from them). The coordinator only moves bytes: it streams the input from
-//! its result log and checkpoint slots, checks the output and writes the checkpoints in place;
-//! the work that grows with the records (decoding, applying light-tracing records to the
-//! optimal systems, solving) runs on the workers and scales with them.
+//! new checkpoints and their beauty; on a job's last pass, from which nothing continues, it
+//! returns instead the group's scan lines of the final EXR, every layer, in compressed blocks
+//! (`exr_io::ExrLayout`). The coordinator only moves bytes: it streams the input from its result
+//! log and checkpoint slots, checks the output (inflating the EXR blocks) and writes the
+//! checkpoints in place, or the EXR from the blocks; the work that grows with the records
+//! (decoding, applying light-tracing records to the optimal systems, solving) and the EXR's
+//! compression run on the workers and scale with them.
 //!
 //! ```text
 //! input (coordinator -> worker), streamed:
@@ -20,13 +22,15 @@
 //!     back, each part packed (film::pack), as the result log keeps them: the coordinator
 //!     copies both straight from it
 //! output (worker -> coordinator):
-//!   magic "OMISMRGO", version u32, bands b0 b1 u32, passes u32 (pass + 1), layers l u32
-//!   unless last, per tile: length u64, its checkpoint holding pass + 1 passes
-//!   per layer (beauty first; on the last pass then FilmLayout::extra_layer_names, l = 1
-//!     otherwise), per tile: pixels x 3 f32
+//!   magic "OMISMRGO", version u32, bands b0 b1 u32, passes u32 (pass + 1), then
+//!   before the last pass: tiles t u32, per tile: length u64, its checkpoint holding pass + 1
+//!     passes; then per tile: its beauty, pixels x 3 f32
+//!   on the last pass: blocks k u32 (those of the group's scan lines, `exr_layout`), per block:
+//!     length u32, the block as the EXR stores it (ZIP-compressed, or stored)
 //! ```
 
 use super::bands::BandGroup;
+use super::exr_io::ExrLayout;
 use super::film_tile::TileGrid;
 use super::layers::FilmLayout;
 use super::wire::{TileCheckpoint, WireError, unpack_own, unpack_section};
@@ -36,8 +40,9 @@ use std::io::Read;
 
 const IN_MAGIC: &[u8; 8] = b"OMISMRGI";
 const OUT_MAGIC: &[u8; 8] = b"OMISMRGO";
-/// 3: the last pass's output holds no checkpoints. 4: the results' parts are packed.
-const VERSION: u32 = 4;
+/// 3: the last pass's output holds no checkpoints. 4: the results' parts are packed. 5: the
+/// last pass's output is the EXR's compressed blocks; before it, the beauty only.
+const VERSION: u32 = 5;
 /// No part of a merge input (a checkpoint, a result's part) is longer.
 const MAX_PART: u64 = 1 << 31;
 
@@ -50,8 +55,8 @@ pub struct MergeHead {
     pub pass: u32,
     /// Light paths traced for the frame once the pass is merged (N_L of the optimal systems).
     pub light_paths: u64,
-    /// The job's last pass: return the image of every layer the job keeps, not only the
-    /// beauty, and no checkpoints (the job ends with this pass; its EXR is made from the images).
+    /// The job's last pass: return the final EXR's blocks of the group's scan lines (every
+    /// layer the job keeps) and no checkpoints (the job ends with this pass).
     pub last: bool,
     /// Results that follow the tiles.
     pub results: u32,
@@ -277,35 +282,85 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
     }
     group.end_pass(head.light_paths, layout.kappa);
     let passes = head.pass + 1;
-    let layers = tile_images(&group.tiles, layout, head.light_paths, head.last);
     let mut out = Vec::new();
     out.extend_from_slice(OUT_MAGIC);
-    for v in [
-        VERSION,
-        head.bands.start,
-        head.bands.end,
-        passes,
-        layers.len() as u32,
-    ] {
+    for v in [VERSION, head.bands.start, head.bands.end, passes] {
         out.extend_from_slice(&v.to_le_bytes());
     }
-    if !head.last {
-        for tile in &group.tiles {
-            let ck = TileCheckpoint::encode_parts(tile, passes);
-            out.extend_from_slice(&(ck.len() as u64).to_le_bytes());
-            out.extend_from_slice(&ck);
-        }
+    if head.last {
+        exr_blocks(
+            &mut out,
+            grid,
+            layout,
+            bands,
+            &group.tiles,
+            head.light_paths,
+        )?;
+        return Ok(out);
     }
-    for layer in &layers {
-        for (_, img) in layer {
-            for p in &img.pixels {
-                for v in p.to_array() {
-                    out.extend_from_slice(&v.to_le_bytes());
-                }
+    out.extend_from_slice(&(group.tiles.len() as u32).to_le_bytes());
+    for tile in &group.tiles {
+        let ck = TileCheckpoint::encode_parts(tile, passes);
+        out.extend_from_slice(&(ck.len() as u64).to_le_bytes());
+        out.extend_from_slice(&ck);
+    }
+    for (_, img) in tile_images(&group.tiles, layout, head.light_paths, false)
+        .iter()
+        .flatten()
+    {
+        for p in &img.pixels {
+            for v in p.to_array() {
+                out.extend_from_slice(&v.to_le_bytes());
             }
         }
     }
     Ok(out)
+}
+
+/// The EXR layout of a frame tiled by `grid` whose films have `layout`: the beauty and every
+/// extra layer, in blocks that rows of tiles never split (`exr_io::block_lines`).
+pub fn exr_layout(grid: &TileGrid, layout: &FilmLayout) -> Result<ExrLayout, WireError> {
+    ExrLayout::new(
+        grid.width as usize,
+        grid.height as usize,
+        &layout.extra_layer_names(),
+        super::exr_io::block_lines(grid.size),
+    )
+    .map_err(WireError)
+}
+
+/// Appends the EXR blocks of the scan lines of `bands` (block count, then each block's length
+/// and bytes), made from the images of `tiles` (the bands' tiles, merged).
+fn exr_blocks(
+    out: &mut Vec<u8>,
+    grid: &TileGrid,
+    layout: &FilmLayout,
+    bands: std::ops::Range<usize>,
+    tiles: &[FilmTile],
+    light_paths: u64,
+) -> Result<(), WireError> {
+    let exr = exr_layout(grid, layout)?;
+    let rows = grid.band_rows(bands);
+    let blocks = exr.blocks_of(rows.clone()).map_err(WireError)?;
+    let w = grid.width as usize;
+    let mut frames: Vec<Image> = Vec::new();
+    for (l, list) in tile_images(tiles, layout, light_paths, true)
+        .iter()
+        .enumerate()
+    {
+        frames.push(Image::new(w, rows.len()));
+        for (t, img) in list {
+            frames[l].blit(img, t.x0 as usize, t.y0 as usize - rows.start);
+        }
+    }
+    out.extend_from_slice(&(blocks.len() as u32).to_le_bytes());
+    for b in blocks {
+        let line = |l: usize, y: usize| &frames[l].pixels[(y - rows.start) * w..][..w];
+        let bytes = exr.compress_block(b, line).map_err(WireError)?;
+        out.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
+        out.extend_from_slice(&bytes);
+    }
+    Ok(())
 }
 
 /// A merge task's output, checked against what the task asked for.
@@ -313,15 +368,22 @@ pub struct MergeOutput<'a> {
     /// Per tile of the group, in tile order: its encoded checkpoint (holding `passes`), where
     /// it lies in the output; none after the job's last pass.
     pub checkpoints: Vec<&'a [u8]>,
-    /// Per layer (beauty first), per tile: the tile's image.
-    pub layers: LayerImages,
+    /// The group's beauty: per tile before the job's last pass; after it, one image of the
+    /// group's scan lines, read from its EXR blocks.
+    pub beauty: Vec<(Tile, Image)>,
+    /// After the job's last pass: the final EXR's blocks of the group's scan lines, as the EXR
+    /// stores them (`exr_layout`), the first being block `first_block`; each one was inflated
+    /// to check it (and read for the beauty).
+    pub blocks: Vec<&'a [u8]>,
+    /// The frame's block index of `blocks[0]`.
+    pub first_block: usize,
 }
 
 impl<'a> MergeOutput<'a> {
     /// Parses the output of the merge of `bands` into tiles that hold `passes` passes now, for a
-    /// frame tiled by `grid` whose films have `layout`; `last`: the job's last pass (every layer,
-    /// no checkpoints). Every checkpoint is decoded (its structure and checksum checked) before
-    /// it is accepted.
+    /// frame tiled by `grid` whose films have `layout`; `last`: the job's last pass (EXR blocks,
+    /// no checkpoints). Every checkpoint is decoded (its structure and checksum checked) and
+    /// every EXR block inflated before it is accepted.
     pub fn decode(
         bytes: &'a [u8],
         grid: &TileGrid,
@@ -330,7 +392,6 @@ impl<'a> MergeOutput<'a> {
         passes: u32,
         last: bool,
     ) -> Result<MergeOutput<'a>, WireError> {
-        let layer_count = Self::layer_count(layout, last);
         let mut at = 0usize;
         let mut take = |n: usize| -> Result<&'a [u8], WireError> {
             if bytes.len() - at < n {
@@ -341,49 +402,98 @@ impl<'a> MergeOutput<'a> {
             at += n;
             Ok(&bytes[at - n..at])
         };
+        let u32_at = |take: &mut dyn FnMut(usize) -> Result<&'a [u8], WireError>| {
+            take(4).map(|b| u32::from_le_bytes(b.try_into().expect("4 bytes")))
+        };
         if take(8)? != OUT_MAGIC {
             return Err(WireError("not a merge output (bad magic)".into()));
         }
         let mut u32s = [0u32; 5];
         for v in &mut u32s {
-            *v = u32::from_le_bytes(take(4)?.try_into().expect("4 bytes"));
+            *v = u32_at(&mut take)?;
         }
-        let [version, b0, b1, got_passes, layers] = u32s;
+        let [version, b0, b1, got_passes, n] = u32s;
         if version != VERSION {
             return Err(WireError(format!(
                 "merge output version {version}, expected {VERSION}"
             )));
         }
-        if (b0..b1) != bands || got_passes != passes || layers as usize != layer_count {
+        let band_range = bands.start as usize..bands.end as usize;
+        let tiles = grid.tiles_of_bands(band_range.clone());
+        let rows = grid.band_rows(band_range);
+        let exr = match last {
+            true => Some(exr_layout(grid, layout)?),
+            false => None,
+        };
+        let (what, want) = match &exr {
+            Some(exr) => (
+                "EXR blocks",
+                exr.blocks_of(rows.clone()).map_err(WireError)?.len(),
+            ),
+            None => ("tiles", tiles.len()),
+        };
+        if (b0..b1) != bands || got_passes != passes || n as usize != want {
             return Err(WireError(format!(
-                "merge output of bands {b0}..{b1} holding {got_passes} passes with {layers} \
-                 layers; the task is bands {bands:?}, {passes} passes, {layer_count} layers"
+                "merge output of bands {b0}..{b1} holding {got_passes} passes with {n} {what}; \
+                 the task is bands {bands:?}, {passes} passes, {want} {what}"
             )));
         }
-        let tiles = grid.tiles_of_bands(bands.start as usize..bands.end as usize);
-        let mut checkpoints = Vec::with_capacity(tiles.len());
-        for t in tiles.clone().filter(|_| !last) {
-            let len = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
-            let want = TileCheckpoint::encoded_len(grid.tile(t).pixels(), layout);
-            if len != want {
-                return Err(WireError(format!(
-                    "merge output: checkpoint of tile {t} has {len} bytes, expected {want}"
-                )));
+        let mut out = MergeOutput {
+            checkpoints: Vec::new(),
+            beauty: Vec::new(),
+            blocks: Vec::new(),
+            first_block: 0,
+        };
+        if let Some(exr) = exr {
+            let blocks = exr.blocks_of(rows.clone()).map_err(WireError)?;
+            let w = grid.width as usize;
+            let mut beauty = Image::new(w, rows.len());
+            out.first_block = blocks.start;
+            for b in blocks {
+                let len = u32_at(&mut take)? as usize;
+                if len > exr.max_block_bytes() {
+                    return Err(WireError(format!(
+                        "merge output: EXR block {b} of {len} bytes (at most {})",
+                        exr.max_block_bytes()
+                    )));
+                }
+                let block = take(len)?;
+                let samples = exr
+                    .decompress_block(b, block)
+                    .map_err(|e| WireError(format!("merge output: {e}")))?;
+                for y in exr.block_rows(b) {
+                    let line = &mut beauty.pixels[(y - rows.start) * w..][..w];
+                    exr.read_row(&samples, 0, y, line);
+                }
+                out.blocks.push(block);
             }
-            let ck = take(len as usize)?;
-            let decoded = TileCheckpoint::decode(ck, grid.tile(t), layout)?;
-            if decoded.passes != passes {
-                return Err(WireError(format!(
-                    "merge output: checkpoint of tile {t} holds {} passes",
-                    decoded.passes
-                )));
-            }
-            checkpoints.push(ck);
-        }
-        let mut out_layers = Vec::with_capacity(layer_count);
-        for _ in 0..layer_count {
-            let mut list = Vec::with_capacity(tiles.len());
+            let tile = Tile {
+                x0: 0,
+                y0: rows.start as u32,
+                x1: grid.width,
+                y1: rows.end as u32,
+            };
+            out.beauty.push((tile, beauty));
+        } else {
             for t in tiles.clone() {
+                let len = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
+                let want = TileCheckpoint::encoded_len(grid.tile(t).pixels(), layout);
+                if len != want {
+                    return Err(WireError(format!(
+                        "merge output: checkpoint of tile {t} has {len} bytes, expected {want}"
+                    )));
+                }
+                let ck = take(len as usize)?;
+                let decoded = TileCheckpoint::decode(ck, grid.tile(t), layout)?;
+                if decoded.passes != passes {
+                    return Err(WireError(format!(
+                        "merge output: checkpoint of tile {t} holds {} passes",
+                        decoded.passes
+                    )));
+                }
+                out.checkpoints.push(ck);
+            }
+            for t in tiles {
                 let tile = grid.tile(t);
                 let raw = take(tile.pixels() * 12)?;
                 let mut img = Image::new(tile.width(), tile.height());
@@ -391,9 +501,8 @@ impl<'a> MergeOutput<'a> {
                     let f = |k: usize| f32::from_le_bytes(c[k..k + 4].try_into().expect("4"));
                     *p = Rgb::new(f(0), f(4), f(8));
                 }
-                list.push((tile, img));
+                out.beauty.push((tile, img));
             }
-            out_layers.push(list);
         }
         if at != bytes.len() {
             return Err(WireError(format!(
@@ -401,18 +510,6 @@ impl<'a> MergeOutput<'a> {
                 bytes.len() - at
             )));
         }
-        Ok(MergeOutput {
-            checkpoints,
-            layers: out_layers,
-        })
-    }
-
-    /// Layers a merge returns: the beauty, and after the job's last pass every other one.
-    pub fn layer_count(layout: &FilmLayout, last: bool) -> usize {
-        1 + if last {
-            layout.extra_layer_names().len()
-        } else {
-            0
-        }
+        Ok(out)
     }
 }

@@ -9,6 +9,7 @@ use super::protocol::{
 use super::store::{self, JobRow, TaskRow, write_atomic};
 use super::{App, merge};
 use crate::film::Tile;
+use crate::film::merge as film_merge;
 use crate::film::{Image, exr_io, metrics, plot, png};
 use crate::job::Resolved;
 use std::sync::atomic::Ordering;
@@ -269,15 +270,24 @@ fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
     Ok(())
 }
 
-/// Writes preview.png, (with a reference) error.png and, when `exr`, image.exr (the beauty and
-/// `layers`).
+/// What a job's outputs write of its image.exr.
+pub(crate) enum Exr<'a> {
+    /// Nothing (not due).
+    No,
+    /// The beauty and these layers, compressed here.
+    Images(&'a [(String, Image)]),
+    /// Every block of the file, compressed by the last pass's merge tasks (`film::merge`).
+    Blocks(&'a [Vec<u8>]),
+}
+
+/// Writes preview.png, (with a reference) error.png and image.exr as `exr` says: made durable
+/// before it replaces the last one.
 pub(crate) fn write_outputs(
     app: &App,
     job: &JobRow,
     rt: &Runtime,
     image: &Image,
-    layers: &[(String, Image)],
-    exr: bool,
+    exr: Exr,
 ) -> Result<(), String> {
     let preview = png::encode_rgb8(image.width, image.height, &png::to_srgb8(image, 0.0))?;
     write_atomic(&app.paths.output(&job.id, "preview.png"), &preview).map_err(|e| e.to_string())?;
@@ -286,20 +296,27 @@ pub(crate) fn write_outputs(
         let bytes = png::encode_rgb8(image.width, image.height, &map)?;
         write_atomic(&app.paths.output(&job.id, "error.png"), &bytes).map_err(|e| e.to_string())?;
     }
-    if !exr {
-        return Ok(());
-    }
-    let mut attrs = rt.resolved.exr_attributes(&job.scene_main, job.spp_done);
+    let r = &rt.resolved;
+    let mut attrs = r.exr_attributes(&job.scene_main, job.spp_done);
     attrs.push(("omis.job", job.id.clone()));
     let tmp = app.paths.output(&job.id, "image.exr.tmp");
-    let named: Vec<exr_io::NamedLayer> = layers
-        .iter()
-        .map(|(name, image)| exr_io::NamedLayer {
-            name: name.clone(),
-            image,
-        })
-        .collect();
-    exr_io::write_exr(&tmp, image, &named, &attrs)?;
+    match exr {
+        Exr::No => return Ok(()),
+        Exr::Images(layers) => {
+            let named: Vec<exr_io::NamedLayer> = layers
+                .iter()
+                .map(|(name, image)| exr_io::NamedLayer {
+                    name: name.clone(),
+                    image,
+                })
+                .collect();
+            let lines = exr_io::block_lines(r.tile_size);
+            exr_io::write_exr_in_blocks(&tmp, image, &named, &attrs, lines)?;
+        }
+        Exr::Blocks(blocks) => film_merge::exr_layout(&r.grid(), &r.film_layout())
+            .map_err(|e| e.to_string())?
+            .write(&tmp, &attrs, blocks)?,
+    }
     // Durable before it replaces the last one: the final EXR stands for a job's last pass.
     std::fs::File::open(&tmp)
         .and_then(|f| f.sync_all())

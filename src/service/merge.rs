@@ -2,9 +2,11 @@
 //! coordinator cuts the frame into band groups (rows of tiles) and queues one merge task per
 //! group. A worker leases it, downloads its input (the group's tile checkpoints and, in task
 //! order, the parts of the pass's results that land in the group, streamed from the result
-//! log), merges with `film::merge::run` and uploads the group's new checkpoints and images; the
-//! coordinator checks them and writes the checkpoints into the tiles' slots. Once every group is
-//! in, the checkpoints are made durable, the pass is recorded and its outputs are written.
+//! log), merges with `film::merge::run` and uploads the group's new checkpoints and beauty (on
+//! the job's last pass: the final EXR's compressed blocks of its scan lines); the coordinator
+//! checks them and writes the checkpoints into the tiles' slots. Once every group is in, the
+//! checkpoints are made durable, the pass is recorded and its outputs are written (the final
+//! EXR from the blocks as they came: the coordinator compresses nothing).
 //!
 //! So the coordinator's work per pass is moving bytes: decoding results, adding light-tracing
 //! records into optimal systems and solving pixels (what grows with the samples) run on the
@@ -64,11 +66,14 @@ pub(crate) struct PassInputs {
     pub stats: RayStats,
 }
 
-/// The images of the band groups of a pass that this process accepted (beauty first).
+/// The images of the band groups of a pass that this process accepted (beauty first), and on
+/// the job's last pass the final EXR's blocks they returned.
 pub(crate) struct PassImages {
     /// The pass.
     pub pass: u32,
     layers: Vec<Image>,
+    /// The final EXR's blocks (compressed, as the merge tasks returned them), by block index.
+    blocks: Vec<Option<Vec<u8>>>,
     /// Merge tasks (their group index) whose checkpoints were written and images put here.
     merged: HashSet<u32>,
 }
@@ -78,8 +83,22 @@ impl PassImages {
         PassImages {
             pass,
             layers: Vec::new(),
+            blocks: Vec::new(),
             merged: HashSet::new(),
         }
+    }
+
+    /// Keeps the EXR blocks `blocks`, the first being block `first` of `count`.
+    fn keep_blocks(&mut self, count: usize, first: usize, blocks: &[&[u8]]) {
+        self.blocks.resize_with(count, || None);
+        for (slot, b) in self.blocks[first..].iter_mut().zip(blocks) {
+            *slot = Some(b.to_vec());
+        }
+    }
+
+    /// Every block of the final EXR, or None while one is missing.
+    fn take_blocks(&mut self) -> Option<Vec<Vec<u8>>> {
+        std::mem::take(&mut self.blocks).into_iter().collect()
     }
 
     fn blit(&mut self, r: &Resolved, layers: &[Vec<(Tile, Image)>]) {
@@ -580,7 +599,13 @@ pub(crate) fn accept(
     }
     let images = rt.images.get_or_insert_with(|| PassImages::new(task.pass));
     if images.pass == task.pass {
-        images.blit(&r, &out.layers);
+        images.blit(&r, std::slice::from_ref(&out.beauty));
+        if !out.blocks.is_empty() {
+            let count = film_merge::exr_layout(&grid, &layout)
+                .map_err(|e| e.to_string())?
+                .blocks();
+            images.keep_blocks(count, out.first_block, &out.blocks);
+        }
         images.merged.insert(task.tile);
     }
     Ok(Accepted::Yes)
@@ -756,7 +781,8 @@ pub(crate) fn finish_pass(
         }
     };
     let spp = spp_after(&r, pass);
-    let (image, layers) = images.into_named(&r);
+    let blocks = images.take_blocks();
+    let (image, _) = images.into_named(&r);
     if last {
         // The final EXR stands in for the checkpoints this pass does not write: it is written
         // (fsync'd) before the pass is recorded, so a job recorded with its last pass always has
@@ -765,7 +791,8 @@ pub(crate) fn finish_pass(
             spp_done: spp,
             ..job.clone()
         };
-        jobs::write_outputs(app, &at_end, rt, &image, &layers, true)?;
+        let blocks = blocks.ok_or("the last pass's merges left an EXR block missing")?;
+        jobs::write_outputs(app, &at_end, rt, &image, jobs::Exr::Blocks(&blocks))?;
         rt.exr_written = std::time::Instant::now();
     } else {
         sync_tiles(app, &job.id).map_err(|e| format!("cannot sync the tile checkpoints: {e}"))?;
@@ -786,7 +813,12 @@ pub(crate) fn finish_pass(
         .ok_or("job vanished")?;
     if !last {
         let exr = rt.exr_due(app.cfg.exr_interval_s);
-        jobs::write_outputs(app, &job, rt, &image, &[], exr)?;
+        let what = if exr {
+            jobs::Exr::Images(&[])
+        } else {
+            jobs::Exr::No
+        };
+        jobs::write_outputs(app, &job, rt, &image, what)?;
         if exr {
             rt.exr_written = std::time::Instant::now();
         }
@@ -848,5 +880,5 @@ pub(crate) fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), S
             .ok_or_else(|| format!("a tile checkpoint holding {passes} passes is missing"))
     })?;
     let (image, layers) = images.into_named(r);
-    jobs::write_outputs(app, job, rt, &image, &layers, true)
+    jobs::write_outputs(app, job, rt, &image, jobs::Exr::Images(&layers))
 }
