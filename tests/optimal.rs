@@ -236,6 +236,76 @@ fn wire_decoding_rejects_damaged_results() {
     assert!(err(&bad).contains("expected"), "{}", err(&bad));
 }
 
+/// The coordinator's check of a result (`TileFilm::check`, which skips the values) refuses
+/// exactly what decoding refuses, and reports what decoding reads: for results with every kind
+/// of content (splats, records, strategy and depth layers, optimal systems, and none of them),
+/// whole, cut anywhere, with a byte changed anywhere, checked against another layout.
+#[test]
+fn checking_a_result_refuses_exactly_what_decoding_refuses() {
+    let scene = load("cornell-box.json", 16, 16);
+    let tile = Tile {
+        x0: 8,
+        y0: 0,
+        x1: 16,
+        y1: 8,
+    };
+    let full = RenderSettings {
+        strategies: true,
+        depth_layers: true,
+        ..optimal(2, 3, 2)
+    };
+    let plain = RenderSettings {
+        mis: MisKind::Balance,
+        ..optimal(2, 3, 2)
+    };
+    let layouts = [full.film_layout(), plain.film_layout()];
+    for s in [&full, &plain] {
+        let mut film = integrator::render_tile(&scene, s, tile, 0..2);
+        let whole = film.encode(0..2);
+        film.splats.clear();
+        film.records = Default::default();
+        let own = film.encode(0..2);
+        for bytes in [whole, own] {
+            let mut variants = vec![bytes.clone()];
+            for cut in (0..bytes.len()).step_by(bytes.len() / 97 + 1) {
+                variants.push(bytes[..cut].to_vec());
+            }
+            for at in (0..bytes.len()).step_by(bytes.len() / 389 + 1) {
+                for flip in [0x01u8, 0x80, 0xff] {
+                    let mut v = bytes.clone();
+                    v[at] ^= flip;
+                    variants.push(v);
+                }
+            }
+            let mut refused = 0;
+            for v in &variants {
+                for layout in &layouts {
+                    let checked = TileFilm::check(v, 16, 16, layout);
+                    match TileFilm::decode(v, 16, 16, layout) {
+                        Ok((f, samples)) => {
+                            let c = checked.expect("decoded, so it checks");
+                            assert_eq!(c.tile, f.tile);
+                            assert_eq!(c.samples, samples);
+                            assert_eq!(c.stats, f.stats);
+                            assert_eq!(c.splats, f.splats.len());
+                            assert_eq!(c.records, f.records.pixels.len());
+                        }
+                        Err(e) => {
+                            refused += 1;
+                            assert!(checked.is_err(), "decode refused ({e}), check accepted");
+                        }
+                    }
+                }
+            }
+            assert!(
+                refused > variants.len() / 2,
+                "{refused} of {}",
+                2 * variants.len()
+            );
+        }
+    }
+}
+
 /// The upload of tile 0 (samples 0..2, optimal MIS D_opt 3) of a 16x16 Cornell box in tiles of
 /// 8, laid out by band as a worker sends it: (grid, layout, bytes).
 fn banded_result() -> (omis::film::TileGrid, omis::film::FilmLayout, Vec<u8>) {

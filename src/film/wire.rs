@@ -565,6 +565,14 @@ impl Reader<'_> {
         }
         Ok(())
     }
+    /// The u32 at the reading position, not consumed.
+    fn peek_count(&self) -> Result<usize, WireError> {
+        let b = self
+            .b
+            .get(self.at..self.at + 4)
+            .ok_or_else(|| WireError(format!("truncated at byte {}", self.at)))?;
+        Ok(u32::from_le_bytes(b.try_into().expect("4 bytes")) as usize)
+    }
     /// A count that must fit in the remaining bytes at `unit` bytes per item.
     fn count(&mut self, unit: usize, what: &str) -> Result<usize, WireError> {
         let n = self.u32()? as usize;
@@ -613,6 +621,31 @@ impl TileFilm {
         height: u32,
         layout: &FilmLayout,
     ) -> Result<(TileFilm, std::ops::Range<u32>), WireError> {
+        let (checked, film) = Self::walk(bytes, width, height, layout, true)?;
+        Ok((film.expect("kept"), checked.samples))
+    }
+
+    /// Checks an encoded result as `decode` would read it (it refuses what `decode` refuses),
+    /// without keeping its values (they are skipped, not parsed): its tile, sample range and
+    /// work counters, and how many splats and records it holds. What a coordinator does with
+    /// the own part of every result it accepts.
+    pub fn check(
+        bytes: &[u8],
+        width: u32,
+        height: u32,
+        layout: &FilmLayout,
+    ) -> Result<Checked, WireError> {
+        Ok(Self::walk(bytes, width, height, layout, false)?.0)
+    }
+
+    /// Reads an encoded result, keeping its film when `keep`, or only checking it.
+    fn walk(
+        bytes: &[u8],
+        width: u32,
+        height: u32,
+        layout: &FilmLayout,
+        keep: bool,
+    ) -> Result<(Checked, Option<TileFilm>), WireError> {
         let d_opt = layout.d_opt();
         let mut r = Reader { b: bytes, at: 0 };
         r.header(MAGIC, VERSION, "tile result")?;
@@ -626,6 +659,45 @@ impl TileFilm {
         }
         let stats = r.stats()?;
         let px = tile.pixels();
+        let frame_px = width as u64 * height as u64;
+        let keys = SplatKeys::of_layout(layout);
+        let strategy_values = if layout.strategy_layers {
+            px * STRATEGY_LAYERS
+        } else {
+            0
+        };
+        if !keep {
+            // Checking only: every length and count, no value.
+            r.take(px * 52)?;
+            let splats = r.count(7, "splats")?;
+            r.check_splats(
+                splats,
+                keys.layer as usize + keys.depth as usize,
+                &(0..frame_px),
+            )?;
+            check_rgb_count(&mut r, strategy_values, px, "strategy layer")?;
+            check_rgb_count(&mut r, px * layout.depth_layers, px, "depth layer")?;
+            match (r.u32()?, &layout.optimal) {
+                (0, None) => {}
+                (d, Some(l)) if d == l.d_opt => {
+                    r.take(px * (l.values_per_pixel() * 8 + l.d_opt as usize * 4))?;
+                }
+                (d, _) => return Err(optimal_mismatch(d, d_opt)),
+            }
+            let records = r.peek_count()?;
+            r.record_list(0..frame_px, d_opt, None)?;
+            if r.at != bytes.len() {
+                return Err(WireError(format!("{} trailing bytes", bytes.len() - r.at)));
+            }
+            let checked = Checked {
+                tile,
+                samples: s0..s1,
+                stats,
+                splats,
+                records,
+            };
+            return Ok((checked, None));
+        }
         let mut sums = PixelSums::new(tile.width(), tile.height());
         for i in 0..px {
             sums.count[i] = r.u32()?;
@@ -636,63 +708,90 @@ impl TileFilm {
                 sums.sum_sq[i][c] = r.f64()?;
             }
         }
-        let frame_px = width as u64 * height as u64;
-        let splats = r.splats(0..frame_px, SplatKeys::of_layout(layout))?;
-        let n = r.count(24, "layers")?;
-        let want = if layout.strategy_layers {
-            px * STRATEGY_LAYERS
-        } else {
-            0
-        };
-        if n != want {
-            return Err(WireError(format!(
-                "{n} strategy layer values for {px} pixels"
-            )));
-        }
-        let mut layers = Vec::with_capacity(n);
-        for _ in 0..n {
-            layers.push([r.f64()?, r.f64()?, r.f64()?]);
-        }
-        let n = r.count(24, "depth layers")?;
-        if n != px * layout.depth_layers {
-            return Err(WireError(format!("{n} depth layer values for {px} pixels")));
-        }
-        let mut depths = Vec::with_capacity(n);
-        for _ in 0..n {
-            depths.push([r.f64()?, r.f64()?, r.f64()?]);
-        }
-        let d = r.u32()?;
-        let optimal = match (d, &layout.optimal) {
+        let splats = r.splats(0..frame_px, keys)?;
+        let layers = read_rgb_list(&mut r, strategy_values, px, "strategy layer")?;
+        let depths = read_rgb_list(&mut r, px * layout.depth_layers, px, "depth layer")?;
+        let optimal = match (r.u32()?, &layout.optimal) {
             (0, None) => None,
             (d, Some(l)) if d == l.d_opt => {
                 let mut acc = OptimalAccum::new(l.clone(), px);
                 r.optimal_into(&mut acc)?;
                 Some(acc)
             }
-            (d, _) => {
-                return Err(WireError(format!(
-                    "optimal depth {d} does not match the job's {d_opt:?}"
-                )));
-            }
+            (d, _) => return Err(optimal_mismatch(d, d_opt)),
         };
         let records = r.records(0..frame_px, d_opt)?;
         if r.at != bytes.len() {
             return Err(WireError(format!("{} trailing bytes", bytes.len() - r.at)));
         }
-        Ok((
-            TileFilm {
-                tile,
-                sums,
-                splats,
-                layers,
-                depths,
-                optimal,
-                records,
-                stats,
-            },
-            s0..s1,
-        ))
+        let checked = Checked {
+            tile,
+            samples: s0..s1,
+            stats,
+            splats: splats.len(),
+            records: records.pixels.len(),
+        };
+        let film = TileFilm {
+            tile,
+            sums,
+            splats,
+            layers,
+            depths,
+            optimal,
+            records,
+            stats,
+        };
+        Ok((checked, Some(film)))
     }
+}
+
+/// What checking an encoded result (`TileFilm::check`) found.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Checked {
+    /// Its tile.
+    pub tile: Tile,
+    /// Its sample range.
+    pub samples: std::ops::Range<u32>,
+    /// Its work counters.
+    pub stats: RayStats,
+    /// Light-tracing splats it holds.
+    pub splats: usize,
+    /// Optimal-MIS records it holds.
+    pub records: usize,
+}
+
+fn optimal_mismatch(d: u32, d_opt: Option<u32>) -> WireError {
+    WireError(format!(
+        "optimal depth {d} does not match the job's {d_opt:?}"
+    ))
+}
+
+/// Checks the count of a list of RGB f64 triples (`want` of them for `px` pixels) and skips it.
+fn check_rgb_count(r: &mut Reader, want: usize, px: usize, what: &str) -> Result<(), WireError> {
+    let n = r.count(24, what)?;
+    if n != want {
+        return Err(WireError(format!("{n} {what} values for {px} pixels")));
+    }
+    r.take(n * 24)?;
+    Ok(())
+}
+
+/// Reads a list of RGB f64 triples (`want` of them for `px` pixels).
+fn read_rgb_list(
+    r: &mut Reader,
+    want: usize,
+    px: usize,
+    what: &str,
+) -> Result<Vec<[f64; 3]>, WireError> {
+    let n = r.count(24, what)?;
+    if n != want {
+        return Err(WireError(format!("{n} {what} values for {px} pixels")));
+    }
+    let mut list = Vec::with_capacity(n);
+    for _ in 0..n {
+        list.push([r.f64()?, r.f64()?, r.f64()?]);
+    }
+    Ok(list)
 }
 
 /// The accumulators of a `FilmTile`, after a tile checkpoint's header:
@@ -1122,14 +1221,16 @@ pub fn check_banded(
     let own = part(&index.own);
     index.check_own(own)?;
     let n = spend(own)?;
-    let (film, samples) = unpack_own(own, n, grid.width, grid.height, layout)?;
-    if film.tile != index.tile || samples != index.samples || film.stats != index.stats {
+    let film = pack::unpack(own, n, |raw| {
+        TileFilm::check(raw, grid.width, grid.height, layout)
+    })?;
+    if film.tile != index.tile || film.samples != index.samples || film.stats != index.stats {
         return Err(WireError(format!(
-            "own part of tile {:?} samples {samples:?} under a header of tile {:?} samples {:?}",
-            film.tile, index.tile, index.samples
+            "own part of tile {:?} samples {:?} under a header of tile {:?} samples {:?}",
+            film.tile, film.samples, index.tile, index.samples
         )));
     }
-    if !film.splats.is_empty() || !film.records.is_empty() {
+    if film.splats > 0 || film.records > 0 {
         return Err(WireError(
             "own part with splats or records (they belong in the sections)".into(),
         ));
