@@ -29,7 +29,7 @@ use super::{
     FilmLayout, FilmTile, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile, TileFilm,
 };
 use super::{bf16, pack};
-use crate::mis::OptimalAccum;
+use crate::mis::{OptimalAccum, Progressive};
 
 const MAGIC: &[u8; 8] = b"OMISTILE";
 const VERSION: u32 = 5;
@@ -825,56 +825,143 @@ fn write_tile_body(w: &mut Writer, t: &FilmTile) {
     }
 }
 
+/// How many values each list of a tile's accumulators holds for a layout: what
+/// `FilmTile::new` allocates.
+struct BodyLens {
+    pixels: usize,
+    layers: usize,
+    depths: usize,
+    /// d_opt, f64 values and u32 hits of the optimal systems.
+    optimal: Option<(u32, usize, usize)>,
+    /// f64 values of the progressive estimator's state.
+    progressive: Option<usize>,
+}
+
+impl BodyLens {
+    fn of(tile: Tile, layout: &FilmLayout) -> BodyLens {
+        let n = tile.pixels();
+        BodyLens {
+            pixels: n,
+            layers: if layout.strategy_layers {
+                n * STRATEGY_LAYERS
+            } else {
+                0
+            },
+            depths: n * layout.depth_layers,
+            optimal: layout
+                .optimal
+                .as_ref()
+                .map(|l| (l.d_opt, n * l.values_per_pixel(), n * l.d_opt as usize)),
+            progressive: layout
+                .progressive_layout()
+                .map(|d| n * Progressive::values_per_pixel(d)),
+        }
+    }
+}
+
 /// Reads the accumulators of `t` (empty, with the job's layout) from `r`, checking the layout.
 fn read_tile_body(r: &mut Reader, t: &mut FilmTile) -> Result<(), WireError> {
-    let n = t.tile.pixels();
+    let lens = BodyLens {
+        pixels: t.tile.pixels(),
+        layers: t.layers.len(),
+        depths: t.depths.len(),
+        optimal: t
+            .optimal
+            .as_ref()
+            .map(|o| (o.layout.d_opt, o.data.len(), o.hits.len())),
+        progressive: t.progressive.as_ref().map(|p| p.data.len()),
+    };
+    walk_tile_body(r, &lens, Some(t))
+}
+
+/// Reads a tile's accumulators of the lengths `lens` from `r` into `out`, or only checks them
+/// (lengths, counts, depth) when `out` is None, skipping the values.
+fn walk_tile_body(
+    r: &mut Reader,
+    lens: &BodyLens,
+    mut out: Option<&mut FilmTile>,
+) -> Result<(), WireError> {
+    let n = lens.pixels;
     if n.saturating_mul(76) > r.b.len() - r.at {
         return Err(WireError("checkpoint pixels truncated".into()));
     }
-    for i in 0..n {
-        t.sums.count[i] = r.u32()?;
-        for c in 0..3 {
-            t.sums.sum[i][c] = r.f64()?;
+    match out.as_deref_mut() {
+        None => {
+            r.take(n * 76)?;
         }
-        for c in 0..3 {
-            t.sums.sum_sq[i][c] = r.f64()?;
-        }
-        for c in 0..3 {
-            t.splat[i][c] = r.f64()?;
+        Some(t) => {
+            for i in 0..n {
+                t.sums.count[i] = r.u32()?;
+                for c in 0..3 {
+                    t.sums.sum[i][c] = r.f64()?;
+                }
+                for c in 0..3 {
+                    t.sums.sum_sq[i][c] = r.f64()?;
+                }
+                for c in 0..3 {
+                    t.splat[i][c] = r.f64()?;
+                }
+            }
         }
     }
-    for (list, what) in [
-        (&mut t.layers, "strategy layers"),
-        (&mut t.depths, "depth layers"),
-    ] {
+    for (k, (len, what)) in [
+        (lens.layers, "strategy layers"),
+        (lens.depths, "depth layers"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
         let m = r.count(24, what)?;
-        if m != list.len() {
-            return Err(WireError(format!(
-                "{what}: {m} values, the job has {}",
-                list.len()
-            )));
+        if m != len {
+            return Err(WireError(format!("{what}: {m} values, the job has {len}")));
         }
-        for v in list.iter_mut() {
-            *v = [r.f64()?, r.f64()?, r.f64()?];
+        match out.as_deref_mut() {
+            None => {
+                r.take(m * 24)?;
+            }
+            Some(t) => {
+                let list = if k == 0 { &mut t.layers } else { &mut t.depths };
+                for v in list.iter_mut() {
+                    *v = [r.f64()?, r.f64()?, r.f64()?];
+                }
+            }
         }
     }
     let d = r.u32()?;
-    match t.optimal.as_mut() {
-        None if d == 0 => {}
-        Some(o) if o.layout.d_opt == d => r.optimal_into(o)?,
+    match (lens.optimal, out.as_deref_mut()) {
+        (None, _) if d == 0 => {}
+        (Some((d_opt, values, hits)), t) if d_opt == d => {
+            match t.and_then(|t| t.optimal.as_mut()) {
+                Some(o) => r.optimal_into(o)?,
+                None => {
+                    if values * 8 + hits * 4 > r.b.len() - r.at {
+                        return Err(WireError("optimal systems truncated".into()));
+                    }
+                    r.take(values * 8 + hits * 4)?;
+                }
+            }
+        }
         _ => {
             return Err(WireError(format!(
                 "optimal depth {d} does not match the job's settings"
             )));
         }
     }
-    if let Some(p) = t.progressive.as_mut() {
-        p.solved_at = r.u32()?;
-        if p.data.len().saturating_mul(8) > r.b.len() - r.at {
+    if let Some(values) = lens.progressive {
+        let solved_at = r.u32()?;
+        if values.saturating_mul(8) > r.b.len() - r.at {
             return Err(WireError("progressive estimator state truncated".into()));
         }
-        for v in p.data.iter_mut() {
-            *v = r.f64()?;
+        match out.and_then(|t| t.progressive.as_mut()) {
+            Some(p) => {
+                p.solved_at = solved_at;
+                for v in p.data.iter_mut() {
+                    *v = r.f64()?;
+                }
+            }
+            None => {
+                r.take(values * 8)?;
+            }
         }
     }
     if r.at != r.b.len() {
@@ -973,6 +1060,24 @@ impl TileCheckpoint {
         tile: Tile,
         layout: &FilmLayout,
     ) -> Result<TileCheckpoint, WireError> {
+        let mut t = FilmTile::new(tile, layout);
+        let passes = Self::walk(bytes, tile, layout, Some(&mut t))?;
+        Ok(TileCheckpoint { tile: t, passes })
+    }
+
+    /// Checks the checkpoint of `tile` as `decode` reads it (it refuses what `decode` refuses),
+    /// skipping the values; returns the passes it holds. What a coordinator does with the
+    /// checkpoints a merge task returns.
+    pub fn check(bytes: &[u8], tile: Tile, layout: &FilmLayout) -> Result<u32, WireError> {
+        Self::walk(bytes, tile, layout, None)
+    }
+
+    fn walk(
+        bytes: &[u8],
+        tile: Tile,
+        layout: &FilmLayout,
+        out: Option<&mut FilmTile>,
+    ) -> Result<u32, WireError> {
         let bytes = checked(bytes, "tile checkpoint")?;
         let mut r = Reader { b: bytes, at: 0 };
         r.header(TILE_MAGIC, TILE_VERSION, "tile checkpoint")?;
@@ -983,9 +1088,11 @@ impl TileCheckpoint {
             )));
         }
         let passes = r.u32()?;
-        let mut t = FilmTile::new(tile, layout);
-        read_tile_body(&mut r, &mut t)?;
-        Ok(TileCheckpoint { tile: t, passes })
+        match out {
+            Some(t) => read_tile_body(&mut r, t)?,
+            None => walk_tile_body(&mut r, &BodyLens::of(tile, layout), None)?,
+        }
+        Ok(passes)
     }
 }
 
