@@ -309,10 +309,14 @@ fn checking_a_result_refuses_exactly_what_decoding_refuses() {
 /// The upload of tile 0 (samples 0..2, optimal MIS D_opt 3) of a 16x16 Cornell box in tiles of
 /// 8, laid out by band as a worker sends it: (grid, layout, bytes).
 fn banded_result() -> (omis::film::TileGrid, omis::film::FilmLayout, Vec<u8>) {
+    banded_result_of(&optimal(2, 3, 3))
+}
+
+/// The upload of tile 0 (samples 0..2) of a 16x16 Cornell box in tiles of 8 rendered with `s`.
+fn banded_result_of(s: &RenderSettings) -> (omis::film::TileGrid, omis::film::FilmLayout, Vec<u8>) {
     let scene = load("cornell-box.json", 16, 16);
-    let s = optimal(2, 3, 3);
     let grid = omis::film::TileGrid::new(16, 16, 8);
-    let film = integrator::render_tile(&scene, &s, grid.tile(0), 0..2);
+    let film = integrator::render_tile(&scene, s, grid.tile(0), 0..2);
     let bytes = omis::film::wire::encode_banded(film, 0..2, &grid);
     (grid, s.film_layout(), bytes)
 }
@@ -387,11 +391,25 @@ const ANY: u64 = u64::MAX;
 
 /// The coordinator checks sections without decoding them (`check_section`'s short path over
 /// the pixel steps); whatever it accepts or refuses, decoding accepts or refuses alike, for
-/// (unpacked) sections damaged anywhere (a splat's or record's pixel step, a count, a value).
+/// (unpacked) sections damaged anywhere (a splat's or record's pixel step, a count, a value, a
+/// plane), with records of several depths, and with splats keyed by strategy and depth layer.
 #[test]
 fn checking_a_section_agrees_with_decoding_it() {
+    let keyed = RenderSettings {
+        mis: MisKind::Balance,
+        strategies: true,
+        depth_layers: true,
+        ..optimal(2, 3, 3)
+    };
+    for s in [optimal(2, 3, 3), keyed] {
+        check_and_decode_agree(banded_result_of(&s));
+    }
+}
+
+fn check_and_decode_agree(
+    (grid, layout, bytes): (omis::film::TileGrid, omis::film::FilmLayout, Vec<u8>),
+) {
     use omis::film::wire::{BandedIndex, check_section, decode_section};
-    let (grid, layout, bytes) = banded_result();
     let index = BandedIndex::read(&mut &bytes[..], bytes.len() as u64).expect("index");
     let mut rng = 0x9e37_79b9_7f4a_7c15u64;
     let mut next = move || {

@@ -7,23 +7,28 @@
 //! tile x0 y0 x1 y1 u32, samples s0 s1 u32
 //! stats closest shadow samples non_finite u64
 //! per tile pixel: count u32, sum 3 x f64, sum_sq 3 x f64
-//! splats: n u32, then n x (splat step, [layer u8], [depth u8], value); layer and depth only
-//! when the job keeps strategy / depth layers; the value 3 x bfloat16 (u16) when every channel
-//! is one (the integrators round light-tracing values so: `bf16`), else 3 x f32
+//! splats: n u32, then in planes: n splat steps; [n x layer u8]; [n x depth u8] (layer and
+//! depth only when the job keeps strategy / depth layers); the high bytes of the narrow values,
+//! then their low bytes (3 x k each: a value is 3 x bfloat16 when every channel is one, as the
+//! integrators round light-tracing values: `bf16`); the wide values, 3 x w f32 (k + w = n, in
+//! splat order within each plane)
 //! layers: n u32 (0 or pixels x 14), then n x 3 x f64
 //! depths: n u32 (0 or pixels x depth layers), then n x 3 x f64
 //! optimal: d_opt u32 (0 = none), then pixels x stride f64 (A, b), pixels x d_opt u32 (hits)
 //! records: n u32, pixels n x pixel step, depths n x u8 (none when d_opt is 1: all are 1),
-//! value width u8, m u32, values m x width: width 2 (bfloat16) when the integrators' rounding
-//! made every value one, without each record's light-tracing weight (the others imply it:
-//! `LtRecords::implied_weight`), else width 4, all values as f32
+//! value width u8, m u32, values m x width: width 2 (bfloat16, the m high bytes then the m low
+//! bytes) when the integrators' rounding made every value one, without each record's
+//! light-tracing weight (the others imply it: `LtRecords::implied_weight`), else width 4, all
+//! values as f32
 //! pixel step: the difference to the previous pixel of the list (0 before the first), zigzag
 //! LEB128 (one or two bytes for the sorted lists `TileFilm::compact` makes)
 //! splat step: (difference to the previous pixel) x 2 + (1 if the value is f32), LEB128: splat
 //! lists are sorted by pixel
 //! ```
 //! All sums stay f64: the merged frame must equal a single-process render to 1e-6, and solving
-//! the optimal systems amplifies rounding.
+//! the optimal systems amplifies rounding. Splats and records lie in planes (v6) so that a
+//! banded section is packed plane by plane (`pack::pack_pieces`): the bfloat16 high bytes
+//! (sign, exponent) compress well, the low bytes (mantissa noise) not at all.
 
 use super::{
     FilmLayout, FilmTile, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile, TileFilm,
@@ -32,7 +37,8 @@ use super::{bf16, pack};
 use crate::mis::{OptimalAccum, Progressive};
 
 const MAGIC: &[u8; 8] = b"OMISTILE";
-const VERSION: u32 = 5;
+/// 6: splats and record values in planes.
+const VERSION: u32 = 6;
 
 /// Which of a splat's keys the wire carries: its strategy layer and its depth only when the
 /// film keeps strategy / depth layers (otherwise both are u8::MAX after `TileFilm::compact`,
@@ -73,11 +79,20 @@ fn depths_implied(d_opt: Option<u32>) -> bool {
 /// A little-endian writer into a byte vector.
 struct Writer {
     out: Vec<u8>,
+    /// Where the planes of splat and record lists end (`pack::pack_pieces` cuts there).
+    cuts: Vec<usize>,
 }
 
 impl Writer {
     fn new(out: Vec<u8>) -> Self {
-        Writer { out }
+        Writer {
+            out,
+            cuts: Vec::new(),
+        }
+    }
+    /// Marks the end of a plane.
+    fn cut(&mut self) {
+        self.cuts.push(self.out.len());
     }
     fn bytes(&mut self, b: &[u8]) {
         self.out.extend_from_slice(b);
@@ -132,30 +147,36 @@ impl Writer {
         }
     }
     /// A counted list of splats, sorted by pixel (`TileFilm::compact`; routing keeps the
-    /// order), with delta-coded pixels; their layer and depth only where the film keeps them
-    /// (`keys`); each value as bfloat16 where it is one.
+    /// order), in planes: delta-coded pixels, their layers and depths only where the film keeps
+    /// them (`keys`), then the values, bfloat16 (high bytes, then low bytes) where they are
+    /// one, and the others as f32.
     fn splats(&mut self, splats: &[Splat], keys: SplatKeys) {
         self.u32(splats.len() as u32);
+        let wide = |s: &Splat| !s.value.iter().all(|v| bf16::exact(*v));
         let mut prev = 0;
         for s in splats {
             assert!(s.pixel >= prev, "splats out of pixel order");
-            let wide = !s.value.iter().all(|v| bf16::exact(*v));
-            self.leb128(((s.pixel - prev) as u64) << 1 | wide as u64);
+            self.leb128(((s.pixel - prev) as u64) << 1 | wide(s) as u64);
             prev = s.pixel;
-            if keys.layer {
-                self.u8(s.layer);
-            }
-            if keys.depth {
-                self.u8(s.depth);
-            }
-            for v in s.value {
-                if wide {
-                    self.f32(v);
-                } else {
-                    self.bytes(&bf16::bits(v).to_le_bytes());
-                }
-            }
         }
+        self.cut();
+        if keys.layer {
+            self.out.extend(splats.iter().map(|s| s.layer));
+        }
+        if keys.depth {
+            self.out.extend(splats.iter().map(|s| s.depth));
+        }
+        self.cut();
+        let narrow = || splats.iter().filter(|s| !wide(s)).flat_map(|s| s.value);
+        self.out
+            .extend(narrow().map(|v| (bf16::bits(v) >> 8) as u8));
+        self.cut();
+        self.out.extend(narrow().map(|v| bf16::bits(v) as u8));
+        self.cut();
+        for v in splats.iter().filter(|s| wide(s)).flat_map(|s| s.value) {
+            self.f32(v);
+        }
+        self.cut();
     }
     /// Optimal-MIS records of a film with systems of depths 1 ..= `d_opt`: count, delta-coded
     /// pixels, depths (implied where `d_opt` is 1), then the values: as bfloat16 without each
@@ -185,15 +206,19 @@ impl Writer {
                     .chain(&rec[n..])
                     .all(|v| bf16::exact(*v))
         });
+        self.cut();
         if compact {
             self.u8(2);
             self.u32((r.values.len() - r.len()) as u32);
-            for rec in short {
-                let n = rec.len() - 3;
-                for v in rec[..n - 1].iter().chain(&rec[n..]) {
-                    self.bytes(&bf16::bits(*v).to_le_bytes());
-                }
-            }
+            let kept = || {
+                short.clone().flat_map(|rec| {
+                    let n = rec.len() - 3;
+                    rec[..n - 1].iter().chain(&rec[n..])
+                })
+            };
+            self.out.extend(kept().map(|v| (bf16::bits(*v) >> 8) as u8));
+            self.cut();
+            self.out.extend(kept().map(|v| bf16::bits(*v) as u8));
         } else {
             self.u8(4);
             self.u32(r.values.len() as u32);
@@ -346,7 +371,7 @@ impl Reader<'_> {
         })?;
         Ok((pixel, z & 1 == 1))
     }
-    /// Checks `n` splats without decoding their values: every pixel in `pixels`, the list
+    /// Checks `n` splats without decoding their values: every pixel in `pixels`, the planes
     /// within the payload. What the coordinator does for every splat it accepts, so one-byte
     /// steps (most of a sorted list) take a short path.
     fn check_splats(
@@ -357,15 +382,16 @@ impl Reader<'_> {
     ) -> Result<(), WireError> {
         let hi = pixels.end;
         let mut prev = 0u64;
+        let mut wide = 0usize;
         for _ in 0..n {
-            let (p, wide) = match self.b.get(self.at) {
+            let (p, w) = match self.b.get(self.at) {
                 Some(&byte) if byte < 0x80 => {
                     self.at += 1;
                     (prev + (byte >> 1) as u64, byte & 1 == 1)
                 }
                 _ => {
-                    let (p, wide) = self.splat_step(u32::try_from(prev).unwrap_or(u32::MAX))?;
-                    (p as u64, wide)
+                    let (p, w) = self.splat_step(u32::try_from(prev).unwrap_or(u32::MAX))?;
+                    (p as u64, w)
                 }
             };
             if p < pixels.start || p >= hi {
@@ -374,15 +400,10 @@ impl Reader<'_> {
                 )));
             }
             prev = p;
-            self.at += keys_len + if wide { 12 } else { 6 };
+            wide += w as usize;
         }
-        if self.at > self.b.len() {
-            return Err(WireError(format!(
-                "splats: truncated at byte {} (wanted {} more)",
-                self.b.len(),
-                self.at - self.b.len()
-            )));
-        }
+        self.take(n * keys_len + (n - wide) * 6 + wide * 12)
+            .map_err(|e| WireError(format!("splats: {}", e.0)))?;
         Ok(())
     }
     /// A format's magic and version, or an error naming `what` was expected.
@@ -424,38 +445,62 @@ impl Reader<'_> {
         keys: SplatKeys,
         out: Option<&mut Vec<Splat>>,
     ) -> Result<(), WireError> {
-        let n = self.count(7, "splats")?;
+        let n = self.count(1, "splats")?;
         let keys_len = keys.layer as usize + keys.depth as usize;
         let Some(o) = out else {
             return self.check_splats(n, keys_len, &pixels);
         };
+        let first = o.len();
         o.reserve(n);
+        let mut wide = Vec::with_capacity(n);
         let mut prev = 0;
         for _ in 0..n {
-            let (pixel, wide) = self.splat_step(prev)?;
+            let (pixel, w) = self.splat_step(prev)?;
             if !pixels.contains(&(pixel as u64)) {
                 return Err(WireError(format!(
                     "splat pixel {pixel} outside pixels {pixels:?}"
                 )));
             }
             prev = pixel;
-            let layer = if keys.layer { self.u8()? } else { u8::MAX };
-            let depth = if keys.depth { self.u8()? } else { u8::MAX };
-            let value = if wide {
-                let v = self.take(12)?;
-                let f = |k: usize| f32::from_le_bytes(v[k..k + 4].try_into().expect("4 bytes"));
-                [f(0), f(4), f(8)]
-            } else {
-                let v = self.take(6)?;
-                let f = |k: usize| bf16::value(u16::from_le_bytes([v[k], v[k + 1]]));
-                [f(0), f(2), f(4)]
-            };
+            wide.push(w);
             o.push(Splat {
                 pixel,
-                layer,
-                depth,
-                value,
+                layer: u8::MAX,
+                depth: u8::MAX,
+                value: [0.0; 3],
             });
+        }
+        let splats = &mut o[first..];
+        if keys.layer {
+            for (s, &l) in splats.iter_mut().zip(self.take(n)?) {
+                s.layer = l;
+            }
+        }
+        if keys.depth {
+            for (s, &d) in splats.iter_mut().zip(self.take(n)?) {
+                s.depth = d;
+            }
+        }
+        let k = wide.iter().filter(|w| !**w).count();
+        let planes = self.take(6 * k + 12 * (n - k))?;
+        let (high, rest) = planes.split_at(3 * k);
+        let (low, full) = rest.split_at(3 * k);
+        let mut narrow = high
+            .iter()
+            .zip(low)
+            .map(|(&h, &l)| bf16::value(u16::from_le_bytes([l, h])));
+        let mut f32s = full
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")));
+        for (s, w) in splats.iter_mut().zip(wide) {
+            let values = if w {
+                &mut f32s as &mut dyn Iterator<Item = f32>
+            } else {
+                &mut narrow
+            };
+            for v in &mut s.value {
+                *v = values.next().expect("counted");
+            }
         }
         Ok(())
     }
@@ -530,9 +575,11 @@ impl Reader<'_> {
             );
             return Ok(());
         }
-        let mut vals = values
-            .chunks_exact(2)
-            .map(|c| bf16::value(u16::from_le_bytes([c[0], c[1]])));
+        let (high, low) = values.split_at(m);
+        let mut vals = high
+            .iter()
+            .zip(low)
+            .map(|(&h, &l)| bf16::value(u16::from_le_bytes([l, h])));
         o.values.reserve(weights + 3 * n);
         let first = o.depths.len() - n;
         for k in first..o.depths.len() {
@@ -1097,8 +1144,8 @@ impl TileCheckpoint {
 }
 
 const BAND_MAGIC: &[u8; 8] = b"OMISBAND";
-/// 5: parts packed (`pack`).
-const BAND_VERSION: u32 = 5;
+/// 5: parts packed (`pack`). 6: sections in planes, packed in pieces.
+const BAND_VERSION: u32 = 6;
 /// Bytes before a banded result's section table.
 const BAND_HEAD: usize = 8 + 4 + 16 + 8 + 32 + 8 + 4 + 4;
 /// Bytes of one entry of the section table.
@@ -1260,7 +1307,7 @@ pub fn encode_banded(
             let mut w = Writer::new(Vec::new());
             w.splats(&routed.splats, keys);
             w.records(&routed.records, d_opt);
-            (b as u32, pack::pack(&w.out))
+            (b as u32, pack::pack_pieces(&w.out, &w.cuts))
         })
         .collect();
     let sections: Vec<(u32, &[u8])> = sections.iter().map(|(b, s)| (*b, &s[..])).collect();
