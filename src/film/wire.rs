@@ -612,6 +612,13 @@ impl Reader<'_> {
         }
         Ok(())
     }
+    /// Nothing is left to read.
+    fn end(&self) -> Result<(), WireError> {
+        match self.b.len() - self.at {
+            0 => Ok(()),
+            n => Err(WireError(format!("{n} trailing bytes"))),
+        }
+    }
     /// The u32 at the reading position, not consumed.
     fn peek_count(&self) -> Result<usize, WireError> {
         let b = self
@@ -733,16 +740,8 @@ impl TileFilm {
             }
             let records = r.peek_count()?;
             r.record_list(0..frame_px, d_opt, None)?;
-            if r.at != bytes.len() {
-                return Err(WireError(format!("{} trailing bytes", bytes.len() - r.at)));
-            }
-            let checked = Checked {
-                tile,
-                samples: s0..s1,
-                stats,
-                splats,
-                records,
-            };
+            r.end()?;
+            let checked = Checked::of(tile, s0..s1, stats, splats, records);
             return Ok((checked, None));
         }
         let mut sums = PixelSums::new(tile.width(), tile.height());
@@ -768,16 +767,8 @@ impl TileFilm {
             (d, _) => return Err(optimal_mismatch(d, d_opt)),
         };
         let records = r.records(0..frame_px, d_opt)?;
-        if r.at != bytes.len() {
-            return Err(WireError(format!("{} trailing bytes", bytes.len() - r.at)));
-        }
-        let checked = Checked {
-            tile,
-            samples: s0..s1,
-            stats,
-            splats: splats.len(),
-            records: records.pixels.len(),
-        };
+        r.end()?;
+        let checked = Checked::of(tile, s0..s1, stats, splats.len(), records.len());
         let film = TileFilm {
             tile,
             sums,
@@ -805,6 +796,24 @@ pub struct Checked {
     pub splats: usize,
     /// Optimal-MIS records it holds.
     pub records: usize,
+}
+
+impl Checked {
+    fn of(
+        tile: Tile,
+        samples: std::ops::Range<u32>,
+        stats: RayStats,
+        splats: usize,
+        records: usize,
+    ) -> Checked {
+        Checked {
+            tile,
+            samples,
+            stats,
+            splats,
+            records,
+        }
+    }
 }
 
 fn optimal_mismatch(d: u32, d_opt: Option<u32>) -> WireError {
@@ -1011,9 +1020,7 @@ fn walk_tile_body(
             }
         }
     }
-    if r.at != r.b.len() {
-        return Err(WireError(format!("{} trailing bytes", r.b.len() - r.at)));
-    }
+    r.end()?;
     Ok(())
 }
 
