@@ -219,13 +219,13 @@ impl ExrLayout {
         }
     }
 
-    /// Writes the EXR file from its compressed blocks (every one, in order), with `attributes`
-    /// as string attributes of its header.
+    /// Writes the EXR file from its compressed blocks (every one, in order; they move into the
+    /// file's chunks without a copy), with `attributes` as string attributes of its header.
     pub fn write(
         &self,
         path: &Path,
         attributes: &[(&str, String)],
-        blocks: &[impl AsRef<[u8]>],
+        blocks: Vec<Vec<u8>>,
     ) -> Result<(), String> {
         if blocks.len() != self.blocks() {
             return Err(format!("{} blocks of {}", blocks.len(), self.blocks()));
@@ -244,12 +244,12 @@ impl ExrLayout {
             SmallVec::from_elem(header, 1),
             true,
             |_, writer| {
-                for (b, bytes) in blocks.iter().enumerate() {
+                for (b, bytes) in blocks.into_iter().enumerate() {
                     let chunk = Chunk {
                         layer_index: 0,
                         compressed_block: CompressedBlock::ScanLine(CompressedScanLineBlock {
                             y_coordinate: (b * self.lines) as i32,
-                            compressed_pixels_le: bytes.as_ref().to_vec(),
+                            compressed_pixels_le: bytes,
                         }),
                     };
                     writer.write_chunk(b, chunk)?;
@@ -302,7 +302,7 @@ pub fn write_exr_in_blocks(
         .into_par_iter()
         .map(|b| layout.compress_block(b, |l, y| &images[l].pixels[y * w..(y + 1) * w]))
         .collect::<Result<Vec<_>, _>>()?;
-    layout.write(path, attributes, &blocks)
+    layout.write(path, attributes, blocks)
 }
 
 /// Reads the layers of an EXR file: the beauty (`R, G, B` or `Y`) and every `<name>.R/G/B` group.
@@ -421,7 +421,7 @@ mod tests {
             }
             let path = dir.join(format!("b{lines}.exr"));
             layout
-                .write(&path, &[("omis.spp", "2".into())], &blocks)
+                .write(&path, &[("omis.spp", "2".into())], blocks.clone())
                 .unwrap();
             let read = read_exr_layers(&path).unwrap();
             let find = |n: &str| &read.iter().find(|(m, _)| m == n).unwrap().1;
@@ -451,7 +451,7 @@ mod tests {
                 std::fs::read(&path).unwrap()
             );
             // Not every block: refused.
-            assert!(layout.write(&path, &[], &blocks[1..]).is_err());
+            assert!(layout.write(&path, &[], blocks[1..].to_vec()).is_err());
         }
         std::fs::remove_dir_all(&dir).ok();
     }

@@ -152,11 +152,14 @@ impl Writer {
     /// one, and the others as f32.
     fn splats(&mut self, splats: &[Splat], keys: SplatKeys) {
         self.u32(splats.len() as u32);
-        let wide = |s: &Splat| !s.value.iter().all(|v| bf16::exact(*v));
+        let wide: Vec<bool> = splats
+            .iter()
+            .map(|s| !s.value.iter().all(|v| bf16::exact(*v)))
+            .collect();
         let mut prev = 0;
-        for s in splats {
+        for (s, &w) in splats.iter().zip(&wide) {
             assert!(s.pixel >= prev, "splats out of pixel order");
-            self.leb128(((s.pixel - prev) as u64) << 1 | wide(s) as u64);
+            self.leb128(((s.pixel - prev) as u64) << 1 | w as u64);
             prev = s.pixel;
         }
         self.cut();
@@ -167,13 +170,20 @@ impl Writer {
             self.out.extend(splats.iter().map(|s| s.depth));
         }
         self.cut();
-        let narrow = || splats.iter().filter(|s| !wide(s)).flat_map(|s| s.value);
+        let of = |want: bool| {
+            splats
+                .iter()
+                .zip(&wide)
+                .filter(move |(_, w)| **w == want)
+                .flat_map(|(s, _)| s.value)
+        };
+        let narrow = || of(false);
         self.out
             .extend(narrow().map(|v| (bf16::bits(v) >> 8) as u8));
         self.cut();
         self.out.extend(narrow().map(|v| bf16::bits(v) as u8));
         self.cut();
-        for v in splats.iter().filter(|s| wide(s)).flat_map(|s| s.value) {
+        for v in of(true) {
             self.f32(v);
         }
         self.cut();
@@ -882,7 +892,7 @@ fn write_tile_body(w: &mut Writer, t: &FilmTile) {
 }
 
 /// How many values each list of a tile's accumulators holds for a layout: what
-/// `FilmTile::new` allocates.
+/// `FilmTile::new` allocates (a checkpoint is read into a tile made so).
 struct BodyLens {
     pixels: usize,
     layers: usize,
@@ -913,21 +923,6 @@ impl BodyLens {
                 .map(|d| n * Progressive::values_per_pixel(d)),
         }
     }
-}
-
-/// Reads the accumulators of `t` (empty, with the job's layout) from `r`, checking the layout.
-fn read_tile_body(r: &mut Reader, t: &mut FilmTile) -> Result<(), WireError> {
-    let lens = BodyLens {
-        pixels: t.tile.pixels(),
-        layers: t.layers.len(),
-        depths: t.depths.len(),
-        optimal: t
-            .optimal
-            .as_ref()
-            .map(|o| (o.layout.d_opt, o.data.len(), o.hits.len())),
-        progressive: t.progressive.as_ref().map(|p| p.data.len()),
-    };
-    walk_tile_body(r, &lens, Some(t))
 }
 
 /// Reads a tile's accumulators of the lengths `lens` from `r` into `out`, or only checks them
@@ -1142,10 +1137,7 @@ impl TileCheckpoint {
             )));
         }
         let passes = r.u32()?;
-        match out {
-            Some(t) => read_tile_body(&mut r, t)?,
-            None => walk_tile_body(&mut r, &BodyLens::of(tile, layout), None)?,
-        }
+        walk_tile_body(&mut r, &BodyLens::of(tile, layout), out)?;
         Ok(passes)
     }
 }

@@ -277,7 +277,7 @@ pub(crate) enum Exr<'a> {
     /// The beauty and these layers, compressed here.
     Images(&'a [(String, Image)]),
     /// Every block of the file, compressed by the last pass's merge tasks (`film::merge`).
-    Blocks(&'a [Vec<u8>]),
+    Blocks(Vec<Vec<u8>>),
 }
 
 /// Writes preview.png, (with a reference) error.png and image.exr as `exr` says: made durable

@@ -88,15 +88,18 @@ impl PassImages {
         }
     }
 
-    /// Keeps the EXR blocks `blocks`, the first being block `first` of `count`.
-    fn keep_blocks(&mut self, count: usize, first: usize, blocks: &[&[u8]]) {
-        self.blocks.resize_with(count, || None);
+    /// Keeps the EXR blocks `blocks`, the first being block `first`.
+    fn keep_blocks(&mut self, first: usize, blocks: &[&[u8]]) {
+        if self.blocks.len() < first + blocks.len() {
+            self.blocks.resize_with(first + blocks.len(), || None);
+        }
         for (slot, b) in self.blocks[first..].iter_mut().zip(blocks) {
             *slot = Some(b.to_vec());
         }
     }
 
-    /// Every block of the final EXR, or None while one is missing.
+    /// The blocks kept, or None while one before the last kept is missing (the file's writer
+    /// refuses fewer blocks than the frame has).
     fn take_blocks(&mut self) -> Option<Vec<Vec<u8>>> {
         std::mem::take(&mut self.blocks).into_iter().collect()
     }
@@ -600,12 +603,7 @@ pub(crate) fn accept(
     let images = rt.images.get_or_insert_with(|| PassImages::new(task.pass));
     if images.pass == task.pass {
         images.blit(&r, std::slice::from_ref(&out.beauty));
-        if !out.blocks.is_empty() {
-            let count = film_merge::exr_layout(&grid, &layout)
-                .map_err(|e| e.to_string())?
-                .blocks();
-            images.keep_blocks(count, out.first_block, &out.blocks);
-        }
+        images.keep_blocks(out.first_block, &out.blocks);
         images.merged.insert(task.tile);
     }
     Ok(Accepted::Yes)
@@ -792,7 +790,7 @@ pub(crate) fn finish_pass(
             ..job.clone()
         };
         let blocks = blocks.ok_or("the last pass's merges left an EXR block missing")?;
-        jobs::write_outputs(app, &at_end, rt, &image, jobs::Exr::Blocks(&blocks))?;
+        jobs::write_outputs(app, &at_end, rt, &image, jobs::Exr::Blocks(blocks))?;
         rt.exr_written = std::time::Instant::now();
     } else {
         sync_tiles(app, &job.id).map_err(|e| format!("cannot sync the tile checkpoints: {e}"))?;
