@@ -28,6 +28,8 @@ pub(crate) struct Runtime {
     pub inputs: Option<Arc<merge::PassInputs>>,
     /// The images of its band groups merged so far.
     pub images: Option<merge::PassImages>,
+    /// The last finished pass's beauty, kept for the next pass's frame to reuse.
+    pub frame: Option<Image>,
     /// When a pass last wrote image.exr, or (before one did) when this coordinator took the
     /// job up.
     pub exr_written: std::time::Instant,
@@ -74,6 +76,7 @@ pub(crate) fn runtime(app: &App, job: &JobRow) -> Result<Arc<Mutex<Runtime>>, St
         final_written: false,
         inputs: None,
         images: None,
+        frame: None,
         exr_written: std::time::Instant::now(),
     }));
     map.insert(job.id.clone(), rt.clone());

@@ -72,6 +72,9 @@ pub(crate) struct PassImages {
     /// The pass.
     pub pass: u32,
     layers: Vec<Image>,
+    /// Last pass's beauty, whose memory the next frame reuses (its pixels are all overwritten:
+    /// every group is put here before a pass is finished).
+    spare: Option<Image>,
     /// The final EXR's blocks (compressed, as the merge tasks returned them), by block index.
     blocks: Vec<Option<Vec<u8>>>,
     /// Merge tasks (their group index) whose checkpoints were written and images put here.
@@ -80,9 +83,16 @@ pub(crate) struct PassImages {
 
 impl PassImages {
     fn new(pass: u32) -> PassImages {
+        PassImages::reusing(pass, None)
+    }
+
+    /// Images of pass `pass` whose beauty reuses `spare` (a frame's image) when it has the
+    /// frame's size: no fresh frame-sized allocation, faulted in page by page, per pass.
+    fn reusing(pass: u32, spare: Option<Image>) -> PassImages {
         PassImages {
             pass,
             layers: Vec::new(),
+            spare,
             blocks: Vec::new(),
             merged: HashSet::new(),
         }
@@ -106,8 +116,12 @@ impl PassImages {
 
     fn blit(&mut self, r: &Resolved, layers: &[Vec<(Tile, Image)>]) {
         let (w, h) = (r.width as usize, r.height as usize);
-        if self.layers.len() < layers.len() {
-            self.layers.resize_with(layers.len(), || Image::new(w, h));
+        while self.layers.len() < layers.len() {
+            let frame = match self.spare.take() {
+                Some(f) if f.width == w && f.height == h => f,
+                _ => Image::new(w, h),
+            };
+            self.layers.push(frame);
         }
         for (frame, tiles) in self.layers.iter_mut().zip(layers) {
             for (t, img) in tiles {
@@ -301,7 +315,7 @@ pub(crate) fn begin(app: &App, job: &JobRow, rt: &mut Runtime, pass: u32) -> Res
         .create_merge_tasks(&job.id, pass, &groups)
         .map_err(|e| e.to_string())?;
     rt.inputs = Some(Arc::new(inputs));
-    rt.images = Some(PassImages::new(pass));
+    rt.images = Some(PassImages::reusing(pass, rt.frame.take()));
     app.work.notify_waiters();
     Ok(())
 }
@@ -339,23 +353,44 @@ fn read_slot(
     t: usize,
     n: u32,
 ) -> Result<Option<Vec<u8>>, String> {
-    use std::io::{Read, Seek, SeekFrom};
+    let mut bytes = Vec::new();
+    Ok(read_slot_into(app, job, r, t, n, &mut bytes)?.map(|_| bytes))
+}
+
+/// `read_slot` appended to `buf` (into its spare capacity, not zeroed first): where the
+/// checkpoint lies in `buf`, or None with `buf` as it was.
+fn read_slot_into(
+    app: &App,
+    job: &str,
+    r: &Resolved,
+    t: usize,
+    n: u32,
+    buf: &mut Vec<u8>,
+) -> Result<Option<std::ops::Range<usize>>, String> {
     let (path, at, len) = checkpoint_slot(app, job, r, t, n);
     let mut f = match std::fs::File::open(&path) {
         Ok(f) => f,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(format!("tile checkpoint {t}: {e}")),
     };
-    let mut bytes = vec![0u8; len as usize];
-    f.seek(SeekFrom::Start(at))
-        .map_err(|e| format!("tile checkpoint {t}: {e}"))?;
-    match f.read_exact(&mut bytes) {
-        Ok(()) => {}
-        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(None),
-        Err(e) => return Err(format!("tile checkpoint {t}: {e}")),
+    let start = buf.len();
+    match read_into(&mut f, &(at..at + len), buf) {
+        Ok(_) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => {
+            buf.truncate(start);
+            return Ok(None);
+        }
+        Err(e) => {
+            buf.truncate(start);
+            return Err(format!("tile checkpoint {t}: {e}"));
+        }
     }
-    let holds = TileCheckpoint::peek(&bytes, r.grid().tile(t)).ok();
-    Ok((holds == Some(n)).then_some(bytes))
+    let holds = TileCheckpoint::peek(&buf[start..], r.grid().tile(t)).ok();
+    if holds != Some(n) {
+        buf.truncate(start);
+        return Ok(None);
+    }
+    Ok(Some(start..buf.len()))
 }
 
 /// Writes the encoded checkpoint of tile `t` holding `n` passes into its slot.
@@ -435,15 +470,17 @@ pub(crate) fn stream_input(
             buf.extend(film_merge::tile_entry(None));
             continue;
         }
-        let bytes = read_slot(app, job, r, t, pass)
+        // The entry's head, then the checkpoint read in after it; the length is known
+        // beforehand (the slot's), so the head is written first and checked after.
+        let (_, _, len) = checkpoint_slot(app, job, r, t, pass);
+        buf.extend(film_merge::tile_entry(Some(len)));
+        read_slot_into(app, job, r, t, pass, &mut buf)
             .map_err(MergeError::Job)?
             .ok_or_else(|| {
                 MergeError::Job(format!(
                     "tile checkpoint {t}: no valid checkpoint holding {pass} passes"
                 ))
             })?;
-        buf.extend(film_merge::tile_entry(Some(bytes.len() as u64)));
-        buf.extend(bytes);
         if !flush(&mut buf, send, CHUNK) {
             return Ok(());
         }
@@ -726,7 +763,7 @@ pub(crate) fn finish_pass(
         .images
         .take()
         .filter(|i| i.pass == pass)
-        .unwrap_or_else(|| PassImages::new(pass));
+        .unwrap_or_else(|| PassImages::reusing(pass, rt.frame.take()));
     let unseen: Vec<&TaskRow> = merges
         .iter()
         .filter(|m| !images.merged.contains(&m.tile))
@@ -859,6 +896,9 @@ pub(crate) fn finish_pass(
             url: format!("/v1/jobs/{}/preview.png", job.id),
         }),
     );
+    if !last {
+        rt.frame = Some(image);
+    }
     Ok(true)
 }
 
