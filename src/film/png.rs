@@ -8,10 +8,11 @@ use std::path::Path;
 pub fn to_srgb8(img: &Image, exposure: f32) -> Vec<u8> {
     let k = exposure.exp2();
     let table = Srgb8::get();
-    let mut out = Vec::with_capacity(img.pixels.len() * 3);
-    for p in &img.pixels {
+    // Into a sized buffer, three codes per pixel, with no capacity check per value.
+    let mut out = vec![0u8; img.pixels.len() * 3];
+    for (o, p) in out.chunks_exact_mut(3).zip(&img.pixels) {
         for c in 0..3 {
-            out.push(table.code(p[c] * k));
+            o[c] = table.code(p[c] * k);
         }
     }
     out
