@@ -53,8 +53,9 @@ pub struct JobArgs {
     /// Override the scene's resolution, e.g. 256x256 (the vertical field of view is kept).
     #[arg(long)]
     pub resolution: Option<String>,
-    /// Tile edge in pixels [default: 64 where the frame has at least 256 such tiles (1024x1024
-    /// and up), else 32].
+    /// Tile edge in pixels [default: 128 for PT and BDPT balance / power where the frame has at
+    /// least 128 such tiles (1920x1080 and up), else 64 where it has at least 256 such tiles
+    /// (1024x1024 and up), else 32].
     #[arg(long)]
     pub tile_size: Option<u32>,
     /// Samples per pixel of the first pass (one task = one tile for one pass); each pass after

@@ -129,12 +129,30 @@ pub const LARGE_TILE_SIZE: u32 = 64;
 /// Tasks per pass a frame must have in tiles of `LARGE_TILE_SIZE` to get them (1024x1024 and
 /// up), so that a pass still keeps dozens of workers busy.
 pub const LARGE_TILE_MIN_TASKS: u64 = 256;
+/// Tile edge of large frames for jobs whose pixels hold no optimal-MIS systems (the path
+/// tracer, BDPT with the balance or power heuristic): their tasks are short and light, so a task
+/// of 4x the pixels again halves what the coordinator spends per pixel sample (1080p: PT 2.5 ->
+/// 1.8 %, BDPT balance 1.9 -> 1.4 % of the workers' CPU; BDPT's light-tracing splats aggregate
+/// per pixel, 10.7 -> 8.6 bytes per pixel sample; BENCHMARKS.md #12, stop 33). Optimal-MIS
+/// tasks keep `LARGE_TILE_SIZE`: their systems (up to 1.3 kB a pixel) and records make a task
+/// of this size heavy for the workers, and the coordinator gains less.
+pub const HUGE_TILE_SIZE: u32 = 128;
+/// Tasks per pass a frame must have in tiles of `HUGE_TILE_SIZE` to get them (1920x1080 and
+/// up): a job queues two passes at once, so a pass of 128 tasks keeps a farm of 100 busy.
+pub const HUGE_TILE_MIN_TASKS: u64 = 128;
 
-/// The tile edge of a job that does not set one: `LARGE_TILE_SIZE` where the frame has at
-/// least `LARGE_TILE_MIN_TASKS` such tiles, `DEFAULT_TILE_SIZE` otherwise.
-pub fn auto_tile_size(width: u32, height: u32) -> u32 {
-    let large = LARGE_TILE_SIZE as u64;
-    if (width as u64).div_ceil(large) * (height as u64).div_ceil(large) >= LARGE_TILE_MIN_TASKS {
+/// The tile edge of a job that does not set one: `HUGE_TILE_SIZE` for a `light` job (no
+/// optimal-MIS systems: `JobSettings::light_pixels`) whose frame has at least
+/// `HUGE_TILE_MIN_TASKS` such tiles, else `LARGE_TILE_SIZE` where the frame has at least
+/// `LARGE_TILE_MIN_TASKS` such tiles, else `DEFAULT_TILE_SIZE`.
+pub fn auto_tile_size(width: u32, height: u32, light: bool) -> u32 {
+    let tiles = |size: u32| {
+        let size = size as u64;
+        (width as u64).div_ceil(size) * (height as u64).div_ceil(size)
+    };
+    if light && tiles(HUGE_TILE_SIZE) >= HUGE_TILE_MIN_TASKS {
+        HUGE_TILE_SIZE
+    } else if tiles(LARGE_TILE_SIZE) >= LARGE_TILE_MIN_TASKS {
         LARGE_TILE_SIZE
     } else {
         DEFAULT_TILE_SIZE
@@ -305,6 +323,21 @@ impl Resolved {
 }
 
 impl JobSettings {
+    /// Whether the job's pixels hold no optimal-MIS systems: the path tracer, and BDPT with a
+    /// heuristic (VCM and BPM are left at the tiles they were measured with).
+    pub fn light_pixels(&self) -> bool {
+        match self.integrator {
+            IntegratorKind::Pt => true,
+            IntegratorKind::Bdpt => !self.mis.is_optimal(),
+            _ => false,
+        }
+    }
+
+    /// `auto_tile_size` of a `width` x `height` frame for this job.
+    pub fn auto_tile_size(&self, width: u32, height: u32) -> u32 {
+        auto_tile_size(width, height, self.light_pixels())
+    }
+
     /// Checks the settings that do not depend on the scene.
     pub fn validate(&self, limits: &Limits) -> Result<(), FieldError> {
         if let Some([w, h]) = self.resolution
@@ -419,7 +452,7 @@ impl JobSettings {
             return Err(FieldError::new("eps", "must be a finite number > 0"));
         }
         if let Some([w, h]) = self.resolution {
-            let tile = self.tile_size.unwrap_or_else(|| auto_tile_size(w, h));
+            let tile = self.tile_size.unwrap_or_else(|| self.auto_tile_size(w, h));
             check_tiles(w, h, tile, limits)?;
         }
         Ok(())
@@ -452,7 +485,7 @@ impl JobSettings {
         }
         let tile_size = self
             .tile_size
-            .unwrap_or_else(|| auto_tile_size(width, height));
+            .unwrap_or_else(|| self.auto_tile_size(width, height));
         check_tiles(width, height, tile_size, limits)?;
         if scene.stats.triangles > limits.max_triangles {
             return Err(FieldError::new(
@@ -625,11 +658,32 @@ mod tests {
 
     #[test]
     fn tiles_grow_with_the_frame_unless_set() {
-        assert_eq!(auto_tile_size(512, 512), DEFAULT_TILE_SIZE);
-        assert_eq!(auto_tile_size(1280, 720), DEFAULT_TILE_SIZE); // 240 large tiles
-        assert_eq!(auto_tile_size(1024, 1024), LARGE_TILE_SIZE); // 256
-        assert_eq!(auto_tile_size(1920, 1080), LARGE_TILE_SIZE); // 510
-        assert_eq!(auto_tile_size(0, 0), DEFAULT_TILE_SIZE);
+        for light in [false, true] {
+            assert_eq!(auto_tile_size(512, 512, light), DEFAULT_TILE_SIZE);
+            assert_eq!(auto_tile_size(1280, 720, light), DEFAULT_TILE_SIZE); // 240 large tiles
+            assert_eq!(auto_tile_size(1024, 1024, light), LARGE_TILE_SIZE); // 256, 64 huge
+            assert_eq!(auto_tile_size(0, 0, light), DEFAULT_TILE_SIZE);
+        }
+        // 1080p: 510 large tiles, 135 huge ones; huge only where no systems are kept.
+        assert_eq!(auto_tile_size(1920, 1080, false), LARGE_TILE_SIZE);
+        assert_eq!(auto_tile_size(1920, 1080, true), HUGE_TILE_SIZE);
+        let job = |integrator, mis| JobSettings {
+            integrator,
+            mis,
+            ..JobSettings::default()
+        };
+        let (pt, bdpt) = (IntegratorKind::Pt, IntegratorKind::Bdpt);
+        assert_eq!(job(pt, MisKind::Balance).auto_tile_size(1920, 1080), 128);
+        assert_eq!(job(bdpt, MisKind::Power).auto_tile_size(1920, 1080), 128);
+        assert_eq!(job(bdpt, MisKind::Optimal).auto_tile_size(1920, 1080), 64);
+        assert_eq!(
+            job(bdpt, MisKind::OptimalProgressive).auto_tile_size(1920, 1080),
+            64
+        );
+        assert_eq!(
+            job(IntegratorKind::Vcm, MisKind::Balance).auto_tile_size(1920, 1080),
+            64
+        );
         // Resolved against the scene's frame; an explicit size wins, also where it is smaller.
         let mut scene = crate::scene::Scene::load(std::path::Path::new(concat!(
             env!("CARGO_MANIFEST_DIR"),
@@ -649,7 +703,7 @@ mod tests {
             .expect("resolves")
             .tile_size
         };
-        assert_eq!(at([1920, 1080], None, &mut scene), 64);
+        assert_eq!(at([1920, 1080], None, &mut scene), 128); // the path tracer: light
         assert_eq!(at([640, 480], None, &mut scene), 32);
         assert_eq!(at([1920, 1080], Some(16), &mut scene), 16);
         // Stored settings from before the field was optional read back as what they said.
