@@ -1181,6 +1181,25 @@ fn cli_clients_submit_wait_download_status_and_cancel() {
     assert_eq!(series.len(), 2);
     let relmse = series[1]["relmse"].as_f64().expect("relMSE per pass");
     assert!(relmse > 0.0 && relmse < 1.0, "{relmse}");
+    // The last pass's relMSE is the final image's, to the bit: the frame it was measured on
+    // (which reuses the previous pass's memory) holds every pixel of the last pass.
+    let second = dir.join("second.exr");
+    let out = omis(&["download", &id, "--out", &s(&second)]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let image = exr_io::read_exr(&second).expect("the second EXR opens");
+    let reference = exr_io::read_exr(&exr).expect("the reference opens");
+    let eps = st["settings"]["eps"].as_f64().expect("eps");
+    let measured = omis::film::metrics::compare(&image, &reference, eps)
+        .expect("same size")
+        .relmse;
+    assert_eq!(
+        measured, relmse,
+        "relMSE of the final EXR against the pass's"
+    );
     let out = omis(&["status", &id]);
     assert!(out.status.success());
     let v: Value = serde_json::from_slice(&out.stdout).expect("status JSON");
