@@ -131,9 +131,9 @@ pub const LARGE_TILE_SIZE: u32 = 64;
 pub const LARGE_TILE_MIN_TASKS: u64 = 256;
 /// Tile edge of large frames for jobs whose pixels hold no optimal-MIS systems (the path
 /// tracer, BDPT with the balance or power heuristic): their tasks are short and light, so a task
-/// of 4x the pixels again halves what the coordinator spends per pixel sample (1080p: PT 2.5 ->
-/// 1.8 %, BDPT balance 1.9 -> 1.4 % of the workers' CPU; BDPT's light-tracing splats aggregate
-/// per pixel, 10.7 -> 8.6 bytes per pixel sample; BENCHMARKS.md #12, stop 33). Optimal-MIS
+/// of 4x the pixels cuts what the coordinator spends per pixel sample by a quarter to a third
+/// (1080p: PT 2.8 -> 1.8 %, BDPT balance 1.8 -> 1.4 % of the workers' CPU; BDPT's light-tracing
+/// splats aggregate per pixel, 10.7 -> 8.6 bytes per pixel sample; BENCHMARKS.md #12, stop 33). Optimal-MIS
 /// tasks keep `LARGE_TILE_SIZE`: their systems (up to 1.3 kB a pixel) and records make a task
 /// of this size heavy for the workers, and the coordinator gains less.
 pub const HUGE_TILE_SIZE: u32 = 128;
