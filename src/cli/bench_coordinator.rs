@@ -354,13 +354,17 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
         }
         return Ok(());
     }
+    // The MIS heuristic only where the integrator weighs techniques by it (BDPT).
+    let method = match r.render.integrator {
+        crate::integrator::IntegratorKind::Bdpt => format!("BDPT, {} MIS", r.render.mis.name()),
+        other => format!("{other:?}").to_lowercase(),
+    };
     println!(
-        "{}: {}x{}, {} spp, {:?} MIS, tiles {} ({} per pass), passes {} (first {} spp, up to {})",
+        "{}: {}x{}, {} spp, {method}, tiles {} ({} per pass), passes {} (first {} spp, up to {})",
         a.scene.display(),
         r.width,
         r.height,
         r.spp.unwrap_or(0),
-        r.render.mis,
         r.tile_size,
         r.grid().len(),
         r.total_passes().unwrap_or(0),
