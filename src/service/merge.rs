@@ -354,21 +354,22 @@ fn read_slot(
     n: u32,
 ) -> Result<Option<Vec<u8>>, String> {
     let mut bytes = Vec::new();
-    Ok(read_slot_into(app, job, r, t, n, &mut bytes)?.map(|_| bytes))
+    let slot = checkpoint_slot(app, job, r, t, n);
+    Ok(read_slot_into(&slot, r, t, n, &mut bytes)?.map(|_| bytes))
 }
 
-/// `read_slot` appended to `buf` (into its spare capacity, not zeroed first): where the
-/// checkpoint lies in `buf`, or None with `buf` as it was.
+/// `read_slot` of the slot `checkpoint_slot` gave (path, offset, length), appended to `buf`
+/// (into its spare capacity, not zeroed first): where the checkpoint lies in `buf`, or None
+/// with `buf` as it was.
 fn read_slot_into(
-    app: &App,
-    job: &str,
+    (path, at, len): &(std::path::PathBuf, u64, u64),
     r: &Resolved,
     t: usize,
     n: u32,
     buf: &mut Vec<u8>,
 ) -> Result<Option<std::ops::Range<usize>>, String> {
-    let (path, at, len) = checkpoint_slot(app, job, r, t, n);
-    let mut f = match std::fs::File::open(&path) {
+    let (at, len) = (*at, *len);
+    let mut f = match std::fs::File::open(path) {
         Ok(f) => f,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(format!("tile checkpoint {t}: {e}")),
@@ -472,9 +473,9 @@ pub(crate) fn stream_input(
         }
         // The entry's head, then the checkpoint read in after it; the length is known
         // beforehand (the slot's), so the head is written first and checked after.
-        let (_, _, len) = checkpoint_slot(app, job, r, t, pass);
-        buf.extend(film_merge::tile_entry(Some(len)));
-        read_slot_into(app, job, r, t, pass, &mut buf)
+        let slot = checkpoint_slot(app, job, r, t, pass);
+        buf.extend(film_merge::tile_entry(Some(slot.2)));
+        read_slot_into(&slot, r, t, pass, &mut buf)
             .map_err(MergeError::Job)?
             .ok_or_else(|| {
                 MergeError::Job(format!(
