@@ -546,6 +546,14 @@ impl SqliteStore {
         conn.busy_timeout(std::time::Duration::from_secs(10))?;
         // Every query of the store is a cached statement (parsed once, not per result).
         conn.set_prepared_statement_cache_capacity(64);
+        // And kept: without the query planner stability guarantee, SQLite (built with STAT4)
+        // re-prepares a statement whenever a value bound to it could change its plan, which
+        // the lease query's did on every lease (BENCHMARKS.md #12, stop 34). Every query here
+        // is written for its index.
+        conn.set_db_config(
+            rusqlite::config::DbConfig::SQLITE_DBCONFIG_ENABLE_QPSG,
+            true,
+        )?;
         conn.execute_batch(SCHEMA)?;
         let has = |sql: &str| conn.prepare(sql).is_ok();
         let old = has("SELECT id FROM tasks LIMIT 0") && !has("SELECT kind FROM tasks LIMIT 0");
