@@ -415,6 +415,10 @@ const T_DONE: TaskState = TaskState::Done;
 const K_RENDER: TaskKind = TaskKind::Render;
 const K_MERGE: TaskKind = TaskKind::Merge;
 
+/// The first queued task of a job (`lease`): merges first, then passes and tiles in order.
+const NEXT_QUEUED: &str = "SELECT id FROM tasks WHERE state = ?1 AND job_id = ?2 \
+     ORDER BY kind, pass, tile LIMIT 1";
+
 /// The queries the coordinator makes of its job store: jobs, their tasks pass by pass,
 /// leases, workers, the relMSE series and the event log. SQLite (`SqliteStore`) is the embedded
 /// store; a shared one (PostgreSQL, so that several coordinators serve one queue) implements
@@ -861,10 +865,7 @@ impl JobStore for SqliteStore {
         let mut id: Option<i64> = None;
         for job in &jobs {
             id = tx
-                .prepare_cached(
-                    "SELECT id FROM tasks WHERE state = ?1 AND job_id = ?2 \
-                     ORDER BY kind, pass, tile LIMIT 1",
-                )?
+                .prepare_cached(NEXT_QUEUED)?
                 .query_row(params![T_QUEUED, job], |r| r.get(0))
                 .optional()?;
             if id.is_some() {
@@ -1110,5 +1111,54 @@ impl JobStore for SqliteStore {
         st.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
             .collect::<rusqlite::Result<Vec<_>>>()
             .map_err(StoreError::from)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Leases bind new values to cached statements; none of them may be parsed again for it
+    /// (SQLite's STAT4 build re-prepared the lease query on every lease without QPSG).
+    #[test]
+    fn leasing_reuses_prepared_statements() {
+        let dir = std::env::temp_dir().join(format!("omis-store-{}", uuid::Uuid::new_v4()));
+        std::fs::create_dir_all(&dir).expect("temporary folder");
+        let db = SqliteStore::open(&dir.join("db.sqlite")).expect("store");
+        for (job, tiles) in [("a", 3), ("b", 40)] {
+            db.insert_job(&NewJob {
+                id: job,
+                name: None,
+                settings: "{}",
+                resolved: "{}",
+                scene_id: "s",
+                scene_main: "scene.json",
+                reference: None,
+                accum_bytes: 0,
+            })
+            .expect("job");
+            db.create_tasks(job, 0, 0..tiles, 0..16).expect("tasks");
+        }
+        db.register_worker("w", "w", 1, "test").expect("worker");
+        let mut leased = Vec::new();
+        for _ in 0..12 {
+            let t = db.lease("w", 60.0).expect("lease").expect("a queued task");
+            leased.push((t.job_id, t.tile));
+        }
+        // Job by job in order, tile by tile: the lease query's plan still holds.
+        let want: Vec<(String, u32)> = (0..3)
+            .map(|t| ("a".to_string(), t))
+            .chain((0..9).map(|t| ("b".to_string(), t)))
+            .collect();
+        assert_eq!(leased, want);
+        let st = db.conn.prepare_cached(NEXT_QUEUED).expect("cached");
+        assert_eq!(
+            st.get_status(rusqlite::StatementStatus::RePrepare),
+            0,
+            "the lease query was prepared again"
+        );
+        drop(st);
+        drop(db);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }
