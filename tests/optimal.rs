@@ -639,6 +639,87 @@ fn camera_techniques_survive_a_light_tracing_count_1e13_times_larger() {
     assert_eq!(f[2], 0.0);
 }
 
+/// The path tracer makes no light-tracing splats: its films and tile checkpoints keep no splat
+/// sums (52 bytes a pixel instead of 76), its image is the same, and a result or a banded
+/// upload that carries splats is refused for it rather than merged into sums it does not keep.
+#[test]
+fn path_tracer_checkpoints_keep_no_splat_sums_and_its_results_no_splats() {
+    use omis::film::wire::{self, TileCheckpoint};
+    use omis::film::{FilmTile, TileGrid};
+    let scene = load("cornell-box.json", 16, 16);
+    let pt = RenderSettings {
+        integrator: IntegratorKind::Pt,
+        ..optimal(4, 3, 1)
+    };
+    let bdpt = RenderSettings {
+        mis: MisKind::Balance,
+        ..optimal(4, 3, 1)
+    };
+    let (pt_layout, bdpt_layout) = (pt.film_layout(), bdpt.film_layout());
+    assert!(!pt_layout.splats && bdpt_layout.splats);
+    let grid = TileGrid::new(16, 16, 8);
+    let tile = grid.tile(3);
+    let px = tile.pixels();
+    assert_eq!(
+        TileCheckpoint::encoded_len(px, &bdpt_layout) - TileCheckpoint::encoded_len(px, &pt_layout),
+        24 * px as u64
+    );
+    // A path-traced tile through its checkpoint: exact, and the image of the frame's pixels.
+    let film = integrator::render_tile(&scene, &pt, tile, 0..4);
+    let mut acc = FilmTile::new(tile, &pt_layout);
+    assert!(acc.splat.is_empty());
+    acc.merge_own(&film);
+    acc.end_pass(16 * 16 * 4, pt_layout.kappa);
+    let bytes = TileCheckpoint {
+        tile: acc.clone(),
+        passes: 1,
+    }
+    .encode();
+    assert_eq!(
+        bytes.len() as u64,
+        TileCheckpoint::encoded_len(px, &pt_layout)
+    );
+    let back = TileCheckpoint::decode(&bytes, tile, &pt_layout).expect("decodes");
+    assert_eq!(back.tile.sums.sum, acc.sums.sum);
+    assert_eq!(back.tile.sums.sum_sq, acc.sums.sum_sq);
+    assert_eq!(back.tile.sums.count, acc.sums.count);
+    assert_eq!(
+        TileCheckpoint::check(&bytes, tile, &pt_layout).ok(),
+        Some(1)
+    );
+    // Each layout refuses the other's checkpoints (their lengths differ), never misreads them.
+    assert!(TileCheckpoint::check(&bytes, tile, &bdpt_layout).is_err());
+    let b = TileCheckpoint {
+        tile: FilmTile::new(tile, &bdpt_layout),
+        passes: 1,
+    }
+    .encode();
+    assert!(TileCheckpoint::check(&b, tile, &pt_layout).is_err());
+    assert!(TileCheckpoint::decode(&b, tile, &pt_layout).is_err());
+    // The image is the camera sums' mean.
+    let img = acc.image(16 * 16 * 4, pt_layout.kappa);
+    for (i, p) in img.pixels.iter().enumerate() {
+        let n = acc.sums.count[i].max(1) as f64;
+        assert_eq!(p.x, (acc.sums.sum[i][0] / n) as f32);
+    }
+    // A BDPT result has splats: the path tracer's layout refuses it, whole or banded, with an
+    // error that says so; BDPT's own layout accepts the same bytes.
+    let with_splats = integrator::render_tile(&scene, &bdpt, tile, 0..4);
+    assert!(!with_splats.splats.is_empty());
+    let whole = with_splats.encode(0..4);
+    let e = TileFilm::check(&whole, 16, 16, &pt_layout).expect_err("refused");
+    assert!(e.to_string().contains("splats"), "{e}");
+    assert!(TileFilm::decode(&whole, 16, 16, &pt_layout).is_err());
+    assert!(TileFilm::check(&whole, 16, 16, &bdpt_layout).is_ok());
+    let banded = wire::encode_banded(with_splats, 0..4, &grid);
+    let e = wire::check_banded(&banded, &grid, &pt_layout, 1 << 30).expect_err("refused");
+    assert!(e.to_string().contains("splats"), "{e}");
+    assert!(wire::check_banded(&banded, &grid, &bdpt_layout, 1 << 30).is_ok());
+    // The path tracer's own result passes.
+    let banded = wire::encode_banded(film, 0..4, &grid);
+    assert!(wire::check_banded(&banded, &grid, &pt_layout, 1 << 30).is_ok());
+}
+
 /// A frame merged tile by tile — each tile's accumulators receiving, pass by pass, its own
 /// task's sums and what every task of the pass routed to it, in task order — has the bits of the
 /// frame merged task by task, whatever order the tiles are merged in.

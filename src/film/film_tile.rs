@@ -205,7 +205,7 @@ pub struct FilmTile {
     pub tile: Tile,
     /// Camera-side sums (the whole estimate for the path tracer).
     pub sums: PixelSums,
-    /// Light-tracing splat sums.
+    /// Light-tracing splat sums (empty where the layout keeps none: the path tracer).
     pub splat: Vec<[f64; 3]>,
     /// STRATEGY_LAYERS per pixel when kept (camera and light-tracing parts together).
     pub layers: Vec<[f64; 3]>,
@@ -224,7 +224,11 @@ impl FilmTile {
         FilmTile {
             tile,
             sums: PixelSums::new(tile.width(), tile.height()),
-            splat: vec![[0.0; 3]; n],
+            splat: if layout.splats {
+                vec![[0.0; 3]; n]
+            } else {
+                Vec::new()
+            },
             layers: if layout.strategy_layers {
                 vec![[0.0; 3]; n * STRATEGY_LAYERS]
             } else {
@@ -300,8 +304,11 @@ impl FilmTile {
             let Some(p) = self.local(s.pixel, frame_width) else {
                 continue;
             };
-            for c in 0..3 {
-                self.splat[p][c] += s.value[c] as f64;
+            // A film without splat sums receives none (the wire refuses them).
+            if let Some(sum) = self.splat.get_mut(p) {
+                for (a, v) in sum.iter_mut().zip(s.value) {
+                    *a += v as f64;
+                }
             }
             if (s.depth as usize) < nd {
                 for c in 0..3 {
@@ -375,7 +382,8 @@ impl FilmTile {
                 let n = spp.max(1) as f64;
                 let s = match depth {
                     None => {
-                        let (s, l) = (self.sums.sum[i], self.splat[i]);
+                        let s = self.sums.sum[i];
+                        let l = self.splat.get(i).copied().unwrap_or_default();
                         [s[0] + l[0], s[1] + l[1], s[2] + l[2]]
                     }
                     Some(d) => self.depths[i * nd + d],

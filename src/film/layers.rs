@@ -45,6 +45,9 @@ pub struct FilmLayout {
     /// Write the per-pixel variance of the mean as a layer (meaningful when every sample of a
     /// pixel lands in its camera sums, as for the path tracer).
     pub variance_layer: bool,
+    /// Per-pixel sums of light-tracing splats (every integrator but the path tracer, which
+    /// makes none: its films and checkpoints leave them out, a third of a checkpoint's bytes).
+    pub splats: bool,
 }
 
 impl FilmLayout {
@@ -75,8 +78,8 @@ impl FilmLayout {
 
     /// Bytes of accumulator memory per pixel of a whole-frame film.
     pub fn bytes_per_pixel(&self) -> usize {
-        // Camera sums and sums of squares (2 x 3 f64), count (u32), splat (3 f64).
-        let base = 2 * 24 + 4 + 24;
+        // Camera sums and sums of squares (2 x 3 f64), count (u32), splat (3 f64) when kept.
+        let base = 2 * 24 + 4 + if self.splats { 24 } else { 0 };
         base + self.optimal.as_ref().map_or(0, |o| o.bytes_per_pixel())
             + self
                 .progressive_layout()

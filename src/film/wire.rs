@@ -47,6 +47,8 @@ const VERSION: u32 = 6;
 struct SplatKeys {
     layer: bool,
     depth: bool,
+    /// Whether the film may hold splats at all (not the path tracer's: `FilmLayout::splats`).
+    kept: bool,
 }
 
 impl SplatKeys {
@@ -54,13 +56,24 @@ impl SplatKeys {
         SplatKeys {
             layer: l.strategy_layers,
             depth: l.depth_layers > 0,
+            kept: l.splats,
         }
+    }
+    /// Refuses `n` splats for a film that keeps none.
+    fn allow(self, n: usize) -> Result<(), WireError> {
+        if n > 0 && !self.kept {
+            return Err(WireError(format!(
+                "{n} light-tracing splats for a film that keeps none (the path tracer)"
+            )));
+        }
+        Ok(())
     }
     /// The keys of a film made with some layout (its layer lists are empty when not kept).
     fn of_film(f: &TileFilm) -> SplatKeys {
         SplatKeys {
             layer: !f.layers.is_empty(),
             depth: !f.depths.is_empty(),
+            kept: true,
         }
     }
 }
@@ -456,6 +469,7 @@ impl Reader<'_> {
         out: Option<&mut Vec<Splat>>,
     ) -> Result<(), WireError> {
         let n = self.count(1, "splats")?;
+        keys.allow(n)?;
         let keys_len = keys.layer as usize + keys.depth as usize;
         let Some(o) = out else {
             return self.check_splats(n, keys_len, &pixels);
@@ -734,6 +748,7 @@ impl TileFilm {
             // Checking only: every length and count, no value.
             r.take(px * 52)?;
             let splats = r.count(7, "splats")?;
+            keys.allow(splats)?;
             r.check_splats(
                 splats,
                 keys.layer as usize + keys.depth as usize,
@@ -863,7 +878,7 @@ fn read_rgb_list(
 /// The accumulators of a `FilmTile`, after a tile checkpoint's header:
 ///
 /// ```text
-/// per pixel: count u32, sum 3 x f64, sum_sq 3 x f64, splat 3 x f64
+/// per pixel: count u32, sum 3 x f64, sum_sq 3 x f64, splat 3 x f64 (where kept: `FilmLayout::splats`)
 /// layers: n u32, n x 3 x f64; depths: n u32, n x 3 x f64
 /// optimal: d_opt u32 (0 = none), then pixels x stride f64, pixels x d_opt u32
 /// progressive (only when the job's layout keeps it): solved_at u32, pixels x values f64
@@ -872,11 +887,9 @@ fn read_rgb_list(
 fn write_tile_body(w: &mut Writer, t: &FilmTile) {
     for i in 0..t.tile.pixels() {
         w.u32(t.sums.count[i]);
-        for v in t.sums.sum[i]
-            .iter()
-            .chain(&t.sums.sum_sq[i])
-            .chain(&t.splat[i])
-        {
+        // The splat sums only where the film keeps them (`FilmLayout::splats`).
+        let splat = t.splat.get(i).map_or(&[][..], |s| &s[..]);
+        for v in t.sums.sum[i].iter().chain(&t.sums.sum_sq[i]).chain(splat) {
             w.f64(*v);
         }
     }
@@ -895,6 +908,8 @@ fn write_tile_body(w: &mut Writer, t: &FilmTile) {
 /// `FilmTile::new` allocates (a checkpoint is read into a tile made so).
 struct BodyLens {
     pixels: usize,
+    /// Whether each pixel holds its splat sums.
+    splats: bool,
     layers: usize,
     depths: usize,
     /// d_opt, f64 values and u32 hits of the optimal systems.
@@ -908,6 +923,7 @@ impl BodyLens {
         let n = tile.pixels();
         BodyLens {
             pixels: n,
+            splats: layout.splats,
             layers: if layout.strategy_layers {
                 n * STRATEGY_LAYERS
             } else {
@@ -933,12 +949,13 @@ fn walk_tile_body(
     mut out: Option<&mut FilmTile>,
 ) -> Result<(), WireError> {
     let n = lens.pixels;
-    if n.saturating_mul(76) > r.b.len() - r.at {
+    let per_pixel = if lens.splats { 76 } else { 52 };
+    if n.saturating_mul(per_pixel) > r.b.len() - r.at {
         return Err(WireError("checkpoint pixels truncated".into()));
     }
     match out.as_deref_mut() {
         None => {
-            r.take(n * 76)?;
+            r.take(n * per_pixel)?;
         }
         Some(t) => {
             for i in 0..n {
@@ -949,8 +966,10 @@ fn walk_tile_body(
                 for c in 0..3 {
                     t.sums.sum_sq[i][c] = r.f64()?;
                 }
-                for c in 0..3 {
-                    t.splat[i][c] = r.f64()?;
+                if let Some(splat) = t.splat.get_mut(i) {
+                    for v in splat.iter_mut() {
+                        *v = r.f64()?;
+                    }
                 }
             }
         }
@@ -1020,7 +1039,8 @@ fn walk_tile_body(
 }
 
 const TILE_MAGIC: &[u8; 8] = b"OMISTACC";
-const TILE_VERSION: u32 = 2;
+/// 3: the path tracer's checkpoints without splat sums.
+const TILE_VERSION: u32 = 3;
 
 /// `bytes` without its trailing CRC-32 (IEEE, u32), when the checksum matches.
 fn checked<'a>(bytes: &'a [u8], what: &str) -> Result<&'a [u8], WireError> {
@@ -1062,6 +1082,7 @@ impl TileCheckpoint {
     /// The encoding of the checkpoint of `tile` holding `passes` passes (without making one).
     pub fn encode_parts(tile: &FilmTile, passes: u32) -> Vec<u8> {
         let mut w = Writer::new(Vec::with_capacity(36 + tile.tile.pixels() * 76));
+        debug_assert!(tile.splat.is_empty() || tile.splat.len() == tile.tile.pixels());
         w.bytes(TILE_MAGIC);
         w.u32(TILE_VERSION);
         let t = &tile.tile;

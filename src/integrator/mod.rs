@@ -166,6 +166,7 @@ impl RenderSettings {
             progressive: self.mis == MisKind::OptimalProgressive && self.optimal_layout().is_some(),
             kappa: self.optimal_kappa,
             variance_layer: self.integrator == IntegratorKind::Pt,
+            splats: self.integrator != IntegratorKind::Pt,
         }
     }
 }

@@ -155,7 +155,8 @@ fn replica(scene: &Scene, s: &RenderSettings, dmax: u32) -> Replica {
     let rest = (0..pixels)
         .map(|i| {
             let n = acc.sums.count[i].max(1) as f64;
-            std::array::from_fn(|c| (acc.sums.sum[i][c] + acc.splat[i][c]) / n)
+            let splat = acc.splat.get(i).copied().unwrap_or_default();
+            std::array::from_fn(|c| (acc.sums.sum[i][c] + splat[c]) / n)
         })
         .collect();
     let mut technique_samples = vec![0.0; dmax as usize];
