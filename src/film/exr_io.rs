@@ -55,21 +55,42 @@ pub struct Block {
 
 impl ExrLayout {
     /// A `width` x `height` frame with the beauty and the `extra` layers (in that order), in
-    /// blocks of `lines` (1 or 16) scan lines.
+    /// ZIP blocks of `lines` (1 or 16) scan lines.
     pub fn new(
         width: usize,
         height: usize,
         extra: &[String],
         lines: usize,
     ) -> Result<ExrLayout, String> {
-        if width == 0 || height == 0 {
-            return Err(format!("an EXR of {width}x{height} pixels"));
-        }
         let compression = match lines {
             1 => Compression::ZIP1,
             16 => Compression::ZIP16,
             _ => return Err(format!("ZIP blocks of {lines} lines")),
         };
+        Self::with(width, height, extra, lines, compression)
+    }
+
+    /// The same frame stored uncompressed, one scan line per block: what the coordinator
+    /// writes between passes, where deflating the beauty cost more than all else a pass did
+    /// (BENCHMARKS.md #12, stop 34).
+    pub fn uncompressed(
+        width: usize,
+        height: usize,
+        extra: &[String],
+    ) -> Result<ExrLayout, String> {
+        Self::with(width, height, extra, 1, Compression::Uncompressed)
+    }
+
+    fn with(
+        width: usize,
+        height: usize,
+        extra: &[String],
+        lines: usize,
+        compression: Compression,
+    ) -> Result<ExrLayout, String> {
+        if width == 0 || height == 0 {
+            return Err(format!("an EXR of {width}x{height} pixels"));
+        }
         let mut named: Vec<(String, (usize, usize))> = Vec::new();
         for (l, name) in std::iter::once("")
             .chain(extra.iter().map(String::as_str))
@@ -285,6 +306,29 @@ pub fn write_exr_in_blocks(
     attributes: &[(&str, String)],
     lines: usize,
 ) -> Result<(), String> {
+    write_layers(path, beauty, extra, attributes, |w, h, names| {
+        ExrLayout::new(w, h, names, lines)
+    })
+}
+
+/// `write_exr` with every sample stored as it is (no compression).
+pub fn write_exr_uncompressed(
+    path: &Path,
+    beauty: &Image,
+    extra: &[NamedLayer],
+    attributes: &[(&str, String)],
+) -> Result<(), String> {
+    write_layers(path, beauty, extra, attributes, ExrLayout::uncompressed)
+}
+
+/// The beauty and `extra` layers written in the blocks of the layout `layout` makes for them.
+fn write_layers(
+    path: &Path,
+    beauty: &Image,
+    extra: &[NamedLayer],
+    attributes: &[(&str, String)],
+    layout: impl FnOnce(usize, usize, &[String]) -> Result<ExrLayout, String>,
+) -> Result<(), String> {
     let (w, h) = (beauty.width, beauty.height);
     let mut images = vec![beauty];
     for l in extra {
@@ -297,7 +341,7 @@ pub fn write_exr_in_blocks(
         images.push(l.image);
     }
     let names: Vec<String> = extra.iter().map(|l| l.name.clone()).collect();
-    let layout = ExrLayout::new(w, h, &names, lines)?;
+    let layout = layout(w, h, &names)?;
     let blocks = (0..layout.blocks())
         .into_par_iter()
         .map(|b| layout.compress_block(b, |l, y| &images[l].pixels[y * w..(y + 1) * w]))
@@ -453,6 +497,28 @@ mod tests {
             // Not every block: refused.
             assert!(layout.write(&path, &[], blocks[1..].to_vec()).is_err());
         }
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// The coordinator's interim EXR: every sample stored as it is, read back exactly, as
+    /// large as its samples (no compression), its header saying so.
+    #[test]
+    fn an_uncompressed_exr_reads_back_exactly() {
+        let dir = std::env::temp_dir().join(format!("omis-exr-raw-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (w, h) = (13, 37);
+        let beauty = ramp(w, h, 0);
+        let path = dir.join("raw.exr");
+        write_exr_uncompressed(&path, &beauty, &[], &[("omis.spp", "3".into())]).unwrap();
+        assert_eq!(read_exr(&path).unwrap(), beauty);
+        let len = std::fs::metadata(&path).unwrap().len() as usize;
+        assert!(len >= w * h * 12, "{len} bytes");
+        let meta = exr::meta::MetaData::read_from_file(&path, false).unwrap();
+        assert_eq!(meta.headers[0].compression, Compression::Uncompressed);
+        // Compressed, the same samples.
+        let zip = dir.join("zip.exr");
+        write_exr(&zip, &beauty, &[], &[("omis.spp", "3".into())]).unwrap();
+        assert_eq!(read_exr(&zip).unwrap(), beauty);
         std::fs::remove_dir_all(&dir).ok();
     }
 

@@ -277,6 +277,9 @@ fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
 pub(crate) enum Exr<'a> {
     /// Nothing (not due).
     No,
+    /// The beauty alone, stored uncompressed: between passes, until the final one replaces it
+    /// (deflating it was 8-17 % of a 1080p BDPT job's coordinator CPU, BENCHMARKS.md #12 stop 34).
+    Interim,
     /// The beauty and these layers, compressed here.
     Images(&'a [(String, Image)]),
     /// Every block of the file, compressed by the last pass's merge tasks (`film::merge`).
@@ -305,6 +308,7 @@ pub(crate) fn write_outputs(
     let tmp = app.paths.output(&job.id, "image.exr.tmp");
     match exr {
         Exr::No => return Ok(()),
+        Exr::Interim => exr_io::write_exr_uncompressed(&tmp, image, &[], &attrs)?,
         Exr::Images(layers) => {
             let named: Vec<exr_io::NamedLayer> = layers
                 .iter()

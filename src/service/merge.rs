@@ -867,7 +867,7 @@ pub(crate) fn finish_pass(
     if !last {
         let exr = rt.exr_due(app.cfg.exr_interval_s);
         let what = if exr {
-            jobs::Exr::Images(&[])
+            jobs::Exr::Interim
         } else {
             jobs::Exr::No
         };
