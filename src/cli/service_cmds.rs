@@ -101,8 +101,8 @@ pub(crate) struct ServeArgs {
     #[arg(long, default_value_t = 256)]
     pub merge_memory_mb: u64,
     /// Shortest time between two rewrites of a running job's image.exr (its beauty,
-    /// uncompressed) after a pass, in seconds (the preview is rewritten after every pass, the final EXR always written; 0:
-    /// the EXR after every pass too).
+    /// uncompressed) after a pass, in seconds (the preview is rewritten after every pass, the
+    /// final EXR always written; 0: the EXR after every pass too).
     #[arg(long, default_value_t = service::DEFAULT_EXR_INTERVAL_S)]
     pub exr_interval: f64,
 }

@@ -278,7 +278,7 @@ pub(crate) enum Exr<'a> {
     /// Nothing (not due).
     No,
     /// The beauty alone, stored uncompressed: between passes, until the final one replaces it
-    /// (deflating it was 8-17 % of a 1080p BDPT job's coordinator CPU, BENCHMARKS.md #12 stop 34).
+    /// (`exr_io::ExrLayout::uncompressed` says why).
     Interim,
     /// The beauty and these layers, compressed here.
     Images(&'a [(String, Image)]),

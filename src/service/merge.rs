@@ -376,18 +376,15 @@ fn read_slot_into(
     };
     no_readahead(&f);
     let start = buf.len();
-    match read_into(&mut f, &(at..at + len), buf) {
-        Ok(_) => {}
-        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => {
-            buf.truncate(start);
-            return Ok(None);
-        }
+    let holds = match read_into(&mut f, &(at..at + len), buf) {
+        Ok(_) => TileCheckpoint::peek(&buf[start..], r.grid().tile(t)).ok(),
+        // Shorter than the slot: never written whole.
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => None,
         Err(e) => {
             buf.truncate(start);
             return Err(format!("tile checkpoint {t}: {e}"));
         }
-    }
-    let holds = TileCheckpoint::peek(&buf[start..], r.grid().tile(t)).ok();
+    };
     if holds != Some(n) {
         buf.truncate(start);
         return Ok(None);
