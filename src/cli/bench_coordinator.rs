@@ -273,7 +273,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
             let c = Client::new(&url, None)?;
             let scene = SceneSource::Bundle(c.upload_bundle(tar.clone(), main.clone()).await?);
             let (rss0, _) = super::procstat::memory(Some(pid));
-            let cpu0 = super::procstat::cpu_seconds(Some(pid));
+            let cpu0 = super::procstat::usage(pid).unwrap_or_default();
             let own0 = super::procstat::cpu_seconds(None);
             let io0 = super::procstat::write_bytes(pid);
             let counters = Arc::new(Counters::default());
@@ -308,15 +308,16 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
             if state != JobState::Done {
                 bail!("the job {state}");
             }
-            let cpu = super::procstat::cpu_seconds(Some(pid)) - cpu0;
+            let used = super::procstat::usage(pid).unwrap_or_default().since(cpu0);
             let own = super::procstat::cpu_seconds(None) - own0;
             let written = super::procstat::write_bytes(pid).saturating_sub(io0);
-            Ok::<_, anyhow::Error>((seconds, cpu, own, written, rss0, latencies, counters))
+            Ok::<_, anyhow::Error>((seconds, used, own, written, rss0, latencies, counters))
         });
         let (_, hwm) = super::procstat::memory(Some(pid));
         server.stop();
         let _ = std::fs::remove_dir_all(&data);
-        let (seconds, cpu, own_cpu, written, rss0, latencies, counters) = result?;
+        let (seconds, used, own_cpu, written, rss0, latencies, counters) = result?;
+        let cpu = used.user_s + used.sys_s;
         let results = counters.results.load(Ordering::Relaxed);
         let bytes = counters.bytes.load(Ordering::Relaxed) as f64;
         let worker_cpu = counters.worker_cpu_us.load(Ordering::Relaxed) as f64 * 1e-6;
@@ -330,6 +331,8 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
             "mb_per_second": bytes / 1e6 / seconds,
             "bytes_per_pixel_sample": bytes / samples.max(1.0),
             "coordinator_cpu_s": cpu,
+            "coordinator_sys_s": used.sys_s,
+            "coordinator_minor_faults": used.minor_faults,
             "coordinator_cpu_ms_per_result": cpu * 1e3 / results.max(1) as f64,
             "worker_cpu_s": worker_cpu,
             "coordinator_cpu_share": cpu / worker_cpu.max(1e-9),
@@ -372,7 +375,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
         r.pass_len(u32::MAX),
     );
     println!(
-        "{:>7} {:>8} {:>7} {:>8} {:>9} {:>7} {:>9} {:>9} {:>8} {:>9} {:>10} {:>10} {:>9} {:>9}",
+        "{:>7} {:>8} {:>7} {:>8} {:>9} {:>7} {:>9} {:>9} {:>9} {:>8} {:>9} {:>10} {:>10} {:>9} {:>9}",
         "workers",
         "results",
         "merges",
@@ -381,6 +384,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
         "MB/s",
         "B/sample",
         "coord CPU",
+        "of it sys",
         "ms/res",
         "CPU share",
         "merge CPU",
@@ -391,7 +395,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
     for row in &rows {
         let f = |k: &str| row[k].as_f64().unwrap_or(f64::NAN);
         println!(
-            "{:>7} {:>8} {:>7} {:>8.2} {:>9.1} {:>7.1} {:>9.1} {:>8.2}s {:>8.2} {:>8.2}% {:>9.2}% {:>7.0}MB {:>9.1} {:>8.3}s",
+            "{:>7} {:>8} {:>7} {:>8.2} {:>9.1} {:>7.1} {:>9.1} {:>8.2}s {:>8.2}s {:>8.2} {:>8.2}% {:>9.2}% {:>7.0}MB {:>9.1} {:>8.3}s",
             row["simulated_workers"],
             row["results"],
             row["merges"],
@@ -400,6 +404,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
             f("mb_per_second"),
             f("bytes_per_pixel_sample"),
             f("coordinator_cpu_s"),
+            f("coordinator_sys_s"),
             f("coordinator_cpu_ms_per_result"),
             100.0 * f("coordinator_cpu_share"),
             100.0 * f("simulated_workers_cpu_share"),

@@ -1,6 +1,6 @@
 //! `omis bench-service`: the render service measured against the in-process render of the same
-//! job: wall time, CPU time (coordinator and its workers together, and the coordinator alone)
-//! and throughput with 1, 2, ... local worker processes, bytes shipped per pixel
+//! job: wall time, CPU time (coordinator and its workers together, and the coordinator alone,
+//! with its kernel time and minor page faults) and throughput with 1, 2, ... local worker processes, bytes shipped per pixel
 //! sample, coordinator memory per megapixel, pass latency (last tile of a pass in, pass merged
 //! and solved), and whether the images are equal.
 
@@ -71,7 +71,7 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
             let t0 = Instant::now();
             let (cpu0, coord0) = (
                 super::procstat::cpu_seconds_with_children(pid),
-                super::procstat::cpu_seconds(Some(pid)),
+                super::procstat::usage(pid).unwrap_or_default(),
             );
             let scene = SceneSource::Bundle(c.upload_bundle(tar.clone(), main.clone()).await?);
             let st = submit_job(&c, scene, &a.job, None, None).await?;
@@ -87,18 +87,20 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
                 .await?;
             let seconds = t0.elapsed().as_secs_f64();
             let cpu = super::procstat::cpu_seconds_with_children(pid) - cpu0;
-            let coordinator_cpu = super::procstat::cpu_seconds(Some(pid)) - coord0;
+            let coordinator = super::procstat::usage(pid)
+                .unwrap_or_default()
+                .since(coord0);
             if state != JobState::Done {
                 bail!("the job {state}");
             }
             let st = c.status(&id).await?;
             c.download(&id, "image.exr", &out).await?;
-            Ok::<_, anyhow::Error>(((st, seconds, cpu, coordinator_cpu), latencies))
+            Ok::<_, anyhow::Error>(((st, seconds, cpu, coordinator), latencies))
         });
         let (_, hwm) = super::procstat::memory(Some(pid));
         server.stop();
         let (row, passes) = result?;
-        let (st, seconds, cpu, coordinator_cpu) = row;
+        let (st, seconds, cpu, coordinator) = row;
         let samples = st.samples as f64;
         let bytes = st.result_bytes as f64;
         let mean_latency = passes.iter().sum::<f64>() / passes.len().max(1) as f64;
@@ -108,7 +110,9 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
             "workers": n,
             "seconds": seconds,
             "cpu_s": cpu,
-            "coordinator_cpu_s": coordinator_cpu,
+            "coordinator_cpu_s": coordinator.user_s + coordinator.sys_s,
+            "coordinator_sys_s": coordinator.sys_s,
+            "coordinator_minor_faults": coordinator.minor_faults,
             "pixel_samples_per_second": samples / seconds,
             "bytes_per_pixel_sample": bytes / samples.max(1.0),
             "result_bytes": bytes,
@@ -157,11 +161,12 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
         r.pass_size
     );
     println!(
-        "{:<22} {:>9} {:>9} {:>10} {:>14} {:>12} {:>14} {:>10} {:>6}",
+        "{:<22} {:>9} {:>9} {:>10} {:>10} {:>14} {:>12} {:>14} {:>10} {:>6}",
         "mode",
         "seconds",
         "CPU s",
         "coord CPU",
+        "of it sys",
         "samples/s",
         "B/sample",
         "coord MB/Mpx",
@@ -171,11 +176,12 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
     for row in &rows {
         let f = |k: &str| row[k].as_f64();
         println!(
-            "{:<22} {:>9.3} {:>9.2} {:>10} {:>14.0} {:>12} {:>14} {:>10} {:>6}",
+            "{:<22} {:>9.3} {:>9.2} {:>10} {:>10} {:>14.0} {:>12} {:>14} {:>10} {:>6}",
             row["mode"].as_str().unwrap_or(""),
             f("seconds").unwrap_or(0.0),
             f("cpu_s").unwrap_or(f64::NAN),
             f("coordinator_cpu_s").map_or("-".into(), |v| format!("{v:.2}")),
+            f("coordinator_sys_s").map_or("-".into(), |v| format!("{v:.2}")),
             f("pixel_samples_per_second").unwrap_or(0.0),
             f("bytes_per_pixel_sample").map_or("-".into(), |v| format!("{v:.1}")),
             f("coordinator_peak_bytes_per_megapixel")
