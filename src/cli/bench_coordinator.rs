@@ -42,6 +42,10 @@ pub struct BenchCoordinatorArgs {
     /// CPU time stands for the worker CPU of the job).
     #[arg(long, default_value_t = 4)]
     pub record: usize,
+    /// Jobs run one after another on each coordinator (a row each): a coordinator's first job
+    /// also pays for what it does once, such as the first use of its files' pages.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub jobs: u32,
     /// Print one JSON object per line instead of the table.
     #[arg(long)]
     pub json: bool,
@@ -273,82 +277,94 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
             let c = Client::new(&url, None)?;
             let scene = SceneSource::Bundle(c.upload_bundle(tar.clone(), main.clone()).await?);
             let (rss0, _) = super::procstat::memory(Some(pid));
-            let cpu0 = super::procstat::usage(pid).unwrap_or_default();
-            let own0 = super::procstat::cpu_seconds(None);
-            let io0 = super::procstat::write_bytes(pid);
-            let counters = Arc::new(Counters::default());
-            let done = Arc::new(AtomicBool::new(false));
-            let t0 = Instant::now();
-            let st = submit_job(&c, scene, &a.job, None, None).await?;
-            let workers: Vec<_> = (0..n)
-                .map(|k| {
-                    tokio::spawn(simulated_worker(
-                        url.clone(),
-                        recorded.clone(),
-                        counters.clone(),
-                        done.clone(),
-                        k,
-                    ))
-                })
-                .collect();
-            let mut last_tile = Instant::now();
-            let mut latencies = Vec::new();
-            let state = c
-                .follow(&st.id, |e| match e {
-                    JobEvent::TileDone(_) => last_tile = Instant::now(),
-                    JobEvent::PassDone(_) => latencies.push(last_tile.elapsed().as_secs_f64()),
-                    _ => {}
-                })
-                .await?;
-            let seconds = t0.elapsed().as_secs_f64();
-            done.store(true, Ordering::Relaxed);
-            for w in workers {
-                w.await??;
+            let mut jobs = Vec::new();
+            // Job after job on the one coordinator (`--jobs`): the first one also measures
+            // what a coordinator pays once, e.g. the first use of its files' pages.
+            for _ in 0..a.jobs {
+                let cpu0 = super::procstat::usage(pid).unwrap_or_default();
+                let own0 = super::procstat::cpu_seconds(None);
+                let io0 = super::procstat::write_bytes(pid);
+                let counters = Arc::new(Counters::default());
+                let done = Arc::new(AtomicBool::new(false));
+                let t0 = Instant::now();
+                let st = submit_job(&c, scene.clone(), &a.job, None, None).await?;
+                let workers: Vec<_> = (0..n)
+                    .map(|k| {
+                        tokio::spawn(simulated_worker(
+                            url.clone(),
+                            recorded.clone(),
+                            counters.clone(),
+                            done.clone(),
+                            k,
+                        ))
+                    })
+                    .collect();
+                let mut last_tile = Instant::now();
+                let mut latencies = Vec::new();
+                let state = c
+                    .follow(&st.id, |e| match e {
+                        JobEvent::TileDone(_) => last_tile = Instant::now(),
+                        JobEvent::PassDone(_) => latencies.push(last_tile.elapsed().as_secs_f64()),
+                        _ => {}
+                    })
+                    .await?;
+                let seconds = t0.elapsed().as_secs_f64();
+                done.store(true, Ordering::Relaxed);
+                for w in workers {
+                    w.await??;
+                }
+                if state != JobState::Done {
+                    bail!("the job {state}");
+                }
+                let used = super::procstat::usage(pid).unwrap_or_default().since(cpu0);
+                let own = super::procstat::cpu_seconds(None) - own0;
+                let written = super::procstat::write_bytes(pid).saturating_sub(io0);
+                let (_, hwm) = super::procstat::memory(Some(pid));
+                jobs.push((seconds, used, own, written, hwm, latencies, counters));
             }
-            if state != JobState::Done {
-                bail!("the job {state}");
-            }
-            let used = super::procstat::usage(pid).unwrap_or_default().since(cpu0);
-            let own = super::procstat::cpu_seconds(None) - own0;
-            let written = super::procstat::write_bytes(pid).saturating_sub(io0);
-            Ok::<_, anyhow::Error>((seconds, used, own, written, rss0, latencies, counters))
+            Ok::<_, anyhow::Error>((rss0, jobs))
         });
-        let (_, hwm) = super::procstat::memory(Some(pid));
         server.stop();
         let _ = std::fs::remove_dir_all(&data);
-        let (seconds, used, own_cpu, written, rss0, latencies, counters) = result?;
-        let cpu = used.user_s + used.sys_s;
-        let results = counters.results.load(Ordering::Relaxed);
-        let bytes = counters.bytes.load(Ordering::Relaxed) as f64;
-        let worker_cpu = counters.worker_cpu_us.load(Ordering::Relaxed) as f64 * 1e-6;
-        let samples = r.width as f64 * r.height as f64 * r.spp.unwrap_or(0) as f64;
-        rows.push(json!({
-            "simulated_workers": n,
-            "results": results,
-            "refused": counters.refused.load(Ordering::Relaxed),
-            "seconds": seconds,
-            "results_per_second": results as f64 / seconds,
-            "mb_per_second": bytes / 1e6 / seconds,
-            "bytes_per_pixel_sample": bytes / samples.max(1.0),
-            "coordinator_cpu_s": cpu,
-            "coordinator_sys_s": used.sys_s,
-            "coordinator_minor_faults": used.minor_faults,
-            "coordinator_cpu_ms_per_result": cpu * 1e3 / results.max(1) as f64,
-            "worker_cpu_s": worker_cpu,
-            "coordinator_cpu_share": cpu / worker_cpu.max(1e-9),
-            "merges": counters.merges.load(Ordering::Relaxed),
-            "merge_output_bytes": counters.merge_out_bytes.load(Ordering::Relaxed),
-            "simulated_workers_cpu_s": own_cpu,
-            "simulated_workers_cpu_share": own_cpu / worker_cpu.max(1e-9),
-            "coordinator_idle_bytes": rss0,
-            "coordinator_peak_bytes": hwm,
-            "disk_written_bytes": written,
-            "disk_written_per_result_bytes": written as f64 / results.max(1) as f64,
-            "result_bytes": bytes,
-            "pass_latency_mean_s": latencies.iter().sum::<f64>() / latencies.len().max(1) as f64,
-            "pass_latency_max_s": latencies.iter().cloned().fold(0.0, f64::max),
-            "passes": latencies.len(),
-        }));
+        let (rss0, jobs) = result?;
+        for (j, (seconds, used, own_cpu, written, hwm, latencies, counters)) in
+            jobs.into_iter().enumerate()
+        {
+            let cpu = used.user_s + used.sys_s;
+            let results = counters.results.load(Ordering::Relaxed);
+            let bytes = counters.bytes.load(Ordering::Relaxed) as f64;
+            let worker_cpu = counters.worker_cpu_us.load(Ordering::Relaxed) as f64 * 1e-6;
+            let samples = r.width as f64 * r.height as f64 * r.spp.unwrap_or(0) as f64;
+            rows.push(json!({
+                "simulated_workers": n,
+                "job": j + 1,
+                "results": results,
+                "refused": counters.refused.load(Ordering::Relaxed),
+                "seconds": seconds,
+                "results_per_second": results as f64 / seconds,
+                "mb_per_second": bytes / 1e6 / seconds,
+                "bytes_per_pixel_sample": bytes / samples.max(1.0),
+                "coordinator_cpu_s": cpu,
+                "coordinator_sys_s": used.sys_s,
+                "coordinator_minor_faults": used.minor_faults,
+                "coordinator_cpu_ms_per_result": cpu * 1e3 / results.max(1) as f64,
+                "worker_cpu_s": worker_cpu,
+                "coordinator_cpu_share": cpu / worker_cpu.max(1e-9),
+                "merges": counters.merges.load(Ordering::Relaxed),
+                "merge_output_bytes": counters.merge_out_bytes.load(Ordering::Relaxed),
+                "simulated_workers_cpu_s": own_cpu,
+                "simulated_workers_cpu_share": own_cpu / worker_cpu.max(1e-9),
+                "coordinator_idle_bytes": rss0,
+                "coordinator_peak_bytes": hwm,
+                "disk_written_bytes": written,
+                "disk_written_per_result_bytes": written as f64 / results.max(1) as f64,
+                "result_bytes": bytes,
+                "pass_latency_mean_s": latencies.iter().sum::<f64>()
+                    / latencies.len().max(1) as f64,
+                "pass_latency_max_s": latencies.iter().cloned().fold(0.0, f64::max),
+                "passes": latencies.len(),
+            }));
+        }
     }
     let _ = std::fs::remove_dir_all(&tmp);
     if a.json {
@@ -375,8 +391,9 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
         r.pass_len(u32::MAX),
     );
     println!(
-        "{:>7} {:>8} {:>7} {:>8} {:>9} {:>7} {:>9} {:>9} {:>9} {:>8} {:>9} {:>10} {:>10} {:>9} {:>9}",
+        "{:>7} {:>4} {:>8} {:>7} {:>8} {:>9} {:>7} {:>9} {:>9} {:>9} {:>8} {:>9} {:>10} {:>10} {:>9} {:>9}",
         "workers",
+        "job",
         "results",
         "merges",
         "seconds",
@@ -395,8 +412,9 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
     for row in &rows {
         let f = |k: &str| row[k].as_f64().unwrap_or(f64::NAN);
         println!(
-            "{:>7} {:>8} {:>7} {:>8.2} {:>9.1} {:>7.1} {:>9.1} {:>8.2}s {:>8.2}s {:>8.2} {:>8.2}% {:>9.2}% {:>7.0}MB {:>9.1} {:>8.3}s",
+            "{:>7} {:>4} {:>8} {:>7} {:>8.2} {:>9.1} {:>7.1} {:>9.1} {:>8.2}s {:>8.2}s {:>8.2} {:>8.2}% {:>9.2}% {:>7.0}MB {:>9.1} {:>8.3}s",
             row["simulated_workers"],
+            row["job"],
             row["results"],
             row["merges"],
             f("seconds"),
