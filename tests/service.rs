@@ -596,7 +596,7 @@ fn a_recorded_result_damaged_on_disk_is_rendered_again() {
     assert_eq!(upload(&c, &url, &t, &w, tile_result(&t["task"], 7)), 200);
     // Damage the stored record before its pass is merged: one byte in the middle of the first
     // pixel's radiance sum (it would still decode, and the image would show it).
-    let log = data.join(format!("jobs/{id}/pass-000000/results.log"));
+    let log = data.join(format!("jobs/{id}/results-0.log"));
     let mut bytes = std::fs::read(&log).expect("the pass's result log");
     let sections = u32::from_le_bytes(bytes[80..84].try_into().expect("4 bytes")) as usize;
     let own = 84 + sections * 16 + 4;
@@ -610,6 +610,10 @@ fn a_recorded_result_damaged_on_disk_is_rendered_again() {
     let tasks = 6.0; // 40x32 in tiles of 16
     assert_eq!(metric(&c, &url, "omis_results_accepted_total"), tasks + 1.0);
     assert_equal(&download_exr(&c, &url, &id, &dir), &in_process(4));
+    // The ended job's result log is kept as a spare for the next job's, not left in its folder.
+    assert!(!data.join(format!("jobs/{id}/results-0.log")).exists());
+    let spares = std::fs::read_dir(data.join("spare-logs")).map_or(0, |d| d.count());
+    assert_eq!(spares, 1, "the job's one log, kept as a spare");
 }
 
 /// A job of two passes of 4 spp (6 tiles of at most 16x16 on `data`) whose first pass is

@@ -156,6 +156,7 @@ pub(crate) fn fail_job(app: &App, id: &str, error: &str) {
                 error: error.to_string(),
             }),
         );
+        app.result_logs.remove(&app.paths, id);
     }
     drop_runtime(app, id);
 }
@@ -268,6 +269,7 @@ fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
         .map_err(|e| e.to_string())?;
     if ended {
         let _ = std::fs::remove_dir_all(app.paths.tiles_dir(&job.id));
+        app.result_logs.remove(&app.paths, &job.id);
         app.event(&job.id, JobEvent::Done(DoneEvent { spp: job.spp_done }));
     }
     Ok(())
@@ -411,6 +413,7 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
                 job.passes_done
             );
         }
+        app.result_logs.remove(&app.paths, id);
     }
     drop_runtime(app, id);
     Ok(ended)
@@ -465,12 +468,6 @@ fn reconcile(app: &App, id: &str) -> anyhow::Result<()> {
             app.event(id, JobEvent::Failed(FailedEvent { error: msg }));
         }
         return Ok(());
-    }
-    // Results of passes merged before the stop are no longer needed.
-    if let Some(job) = app.db().job(&job.id)? {
-        for p in 0..job.passes_done {
-            let _ = std::fs::remove_dir_all(app.paths.pass_dir(&job.id, p));
-        }
     }
     tracing::info!("recovering job {} ({})", job.id, job.state);
     Ok(())

@@ -850,7 +850,9 @@ pub(crate) fn finish_pass(
     app.db()
         .pass_merged(&job.id, pass + 1, spp, &stats)
         .map_err(|e| e.to_string())?;
-    let _ = std::fs::remove_dir_all(app.paths.pass_dir(&job.id, pass));
+    // A later pass of the job rewrites this pass's log in place (`store::ResultLogs`).
+    let reused = r.time_budget_s.is_some() || r.pass_range(pass + 2).is_some();
+    app.result_logs.release(&app.paths, &job.id, pass, reused);
     rt.inputs = None;
     super::Metrics::add(&app.metrics.passes_merged, 1);
     super::Metrics::add(&app.metrics.merge_micros, t0.elapsed().as_micros() as u64);

@@ -136,8 +136,8 @@ pub(crate) struct App {
     /// whole frame in this process; two at a time also lets their buffers be reused
     /// (`buffers`) instead of faulted in afresh.
     pub merge_bodies: tokio::sync::Semaphore,
-    /// Held while a result is appended to its pass's result log (one append at a time).
-    pub result_log: Mutex<()>,
+    /// The result logs' write positions (one write at a time).
+    pub result_logs: store::ResultLogs,
     /// Reused buffers for uploads and merge inputs (`buffers`).
     pub buffers: Arc<buffers::Buffers>,
 }
@@ -256,7 +256,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
             std::thread::available_parallelism().map_or(2, |n| n.get().max(2)),
         ),
         merge_bodies: tokio::sync::Semaphore::new(MERGE_BODIES),
-        result_log: Mutex::new(()),
+        result_logs: store::ResultLogs::default(),
         buffers: Arc::new(buffers::Buffers::new(KEPT_BUFFER_BYTES)),
     });
     if cfg.client_token.is_none() && cfg.worker_token.is_none() {

@@ -8,6 +8,7 @@ use super::protocol::{
 use rusqlite::{Connection, OptionalExtension, params};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 use std::time::{SystemTime, UNIX_EPOCH};
 
 /// Seconds since the Unix epoch.
@@ -31,13 +32,16 @@ impl Paths {
     pub fn job(&self, id: &str) -> PathBuf {
         self.root.join("jobs").join(id)
     }
-    pub fn pass_dir(&self, id: &str, pass: u32) -> PathBuf {
-        self.job(id).join(format!("pass-{pass:06}"))
-    }
-    /// The uploaded results of one pass, appended one after the other (the store records
-    /// where the accepted attempt of each task lies).
+    /// The log of the uploaded results of pass `pass`: one file for a job's even passes and one
+    /// for its odd ones, each record written after the one before, and a log rewritten from its
+    /// start by the pass two after the one it held (`ResultLogs`); the store records where the
+    /// accepted attempt of each task lies.
     pub fn result_log(&self, id: &str, pass: u32) -> PathBuf {
-        self.pass_dir(id, pass).join("results.log")
+        self.job(id).join(format!("results-{}.log", pass % 2))
+    }
+    /// Result logs of ended jobs, kept to be written again (`ResultLogs`).
+    pub fn spare_logs(&self) -> PathBuf {
+        self.root.join("spare-logs")
     }
     /// The folder of a job's tile checkpoints.
     pub fn tiles_dir(&self, id: &str) -> PathBuf {
@@ -85,19 +89,131 @@ pub(crate) fn write_replacing(path: &Path, bytes: &[u8], durable: bool) -> std::
     std::fs::rename(&tmp, path)
 }
 
-/// Appends `bytes` to the file at `path` (created with its folder when missing) and returns
-/// where they lie in it; not fsync'd (a record damaged by a power cut fails its checksums when
-/// merged, and its task is rendered again). Appends to one file must not run at once.
-pub(crate) fn append(path: &Path, bytes: &[u8]) -> std::io::Result<std::ops::Range<u64>> {
-    use std::io::Write;
-    let mut f = open_creating(path, std::fs::OpenOptions::new().append(true).create(true))?;
-    let at = f.metadata()?.len();
-    if let Err(e) = f.write_all(bytes) {
-        // Leave no partial record for the next append to follow.
-        let _ = f.set_len(at);
-        return Err(e);
+/// Where the next record of each result log goes (`Paths::result_log`).
+///
+/// A log is not deleted and written afresh each pass but rewritten in place, from its start,
+/// by the pass two after the one it held, once that pass is recorded (no merge reads it any
+/// more; `jobs::ensure_passes` creates a pass's tasks only once the pass two before it is
+/// recorded). A log no later pass of its job will write is not deleted either but kept as a
+/// spare (up to `SPARE_LOGS` of them, in `Paths::spare_logs`), which the next new log takes
+/// instead of a new file, as PostgreSQL recycles its WAL segments. A file written afresh takes
+/// new page-cache pages, and on a virtual machine that hands freed memory
+/// back to its host each new page is faulted in on the host too: writing 850 MB (a 1080p BDPT
+/// pass's results) into a new file took 2.6-2.8 s of system CPU on this project's benchmark
+/// machine, into the same file again 0.16-0.19 s (BENCHMARKS.md #12, stop 35). Records are not
+/// fsync'd: a record damaged by a power cut (or found holding an older pass's bytes) fails its
+/// checksums when merged, and its task is rendered again.
+#[derive(Default)]
+pub(crate) struct ResultLogs {
+    /// Per job, per log (pass parity): the pass writing it now and where its records end.
+    cursors: Mutex<HashMap<String, [Option<LogCursor>; 2]>>,
+}
+
+/// Spare result logs kept at most (each as long as the longest pass's results it held).
+const SPARE_LOGS: usize = 4;
+
+#[derive(Clone, Copy)]
+struct LogCursor {
+    pass: u32,
+    end: u64,
+}
+
+impl ResultLogs {
+    /// Writes `bytes`, a result of pass `pass` of job `job` (which has recorded `recorded`
+    /// passes), into its log and returns where they lie. They go after the pass's last record;
+    /// at the start of the log when the pass is the first to write it since the pass it held
+    /// was recorded; and at the end of the file when this process does not know the log (after
+    /// a restart) or the result is of an older pass than the log's (a stale attempt, which the
+    /// store will refuse). One write at a time: every log's cursor is held meanwhile.
+    pub fn write(
+        &self,
+        paths: &Paths,
+        job: &str,
+        pass: u32,
+        recorded: u32,
+        bytes: &[u8],
+    ) -> std::io::Result<std::ops::Range<u64>> {
+        let mut cursors = self.cursors.lock().unwrap_or_else(|e| e.into_inner());
+        let slot = &mut cursors.entry(job.to_string()).or_default()[(pass % 2) as usize];
+        let path = paths.result_log(job, pass);
+        let file_end = || match std::fs::metadata(&path) {
+            Ok(m) => Ok(m.len()),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(0),
+            Err(e) => Err(e),
+        };
+        let (at, moves) = match *slot {
+            Some(c) if c.pass == pass => (c.end, true),
+            Some(c) if c.pass < pass && recorded > c.pass => (0, true),
+            Some(c) if c.pass > pass => (file_end()?, false),
+            _ => match file_end()? {
+                // A new log: a spare's old bytes are never read (no record points there).
+                0 => {
+                    take_spare(paths, &path);
+                    (0, true)
+                }
+                end => (end, true),
+            },
+        };
+        write_at(&path, at, bytes, false)?;
+        let end = at + bytes.len() as u64;
+        if moves {
+            *slot = Some(LogCursor { pass, end });
+        }
+        Ok(at..end)
     }
-    Ok(at..at + bytes.len() as u64)
+
+    /// Deletes the log of recorded pass `pass` of job `job` when no later pass will write it
+    /// (`reused`: false), which gives its pages back at once; else it waits for pass `pass + 2`.
+    pub fn release(&self, paths: &Paths, job: &str, pass: u32, reused: bool) {
+        if reused {
+            return;
+        }
+        let mut cursors = self.cursors.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(logs) = cursors.get_mut(job) {
+            logs[(pass % 2) as usize] = None;
+        }
+        retire(paths, &paths.result_log(job, pass));
+    }
+
+    /// Forgets job `job`'s logs (it ended) and keeps them as spares.
+    pub fn remove(&self, paths: &Paths, job: &str) {
+        let mut cursors = self.cursors.lock().unwrap_or_else(|e| e.into_inner());
+        cursors.remove(job);
+        for parity in 0..2 {
+            retire(paths, &paths.result_log(job, parity));
+        }
+    }
+}
+
+/// Moves a spare log (if there is one) to `path`, which does not exist.
+fn take_spare(paths: &Paths, path: &Path) {
+    let Ok(dir) = std::fs::read_dir(paths.spare_logs()) else {
+        return;
+    };
+    for spare in dir.flatten() {
+        if let Some(parent) = path.parent()
+            && std::fs::create_dir_all(parent).is_ok()
+            && std::fs::rename(spare.path(), path).is_ok()
+        {
+            return;
+        }
+    }
+}
+
+/// Keeps the log at `path` as a spare, or deletes it when `SPARE_LOGS` are kept already.
+fn retire(paths: &Paths, path: &Path) {
+    if !path.exists() {
+        return;
+    }
+    let dir = paths.spare_logs();
+    let kept = std::fs::read_dir(&dir).map_or(0, |d| d.count());
+    if kept < SPARE_LOGS
+        && std::fs::create_dir_all(&dir).is_ok()
+        && std::fs::rename(path, dir.join(format!("{}.log", uuid::Uuid::new_v4()))).is_ok()
+    {
+        return;
+    }
+    let _ = std::fs::remove_file(path);
 }
 
 /// Opens `path` with `options`, making its folder first when it is missing.
@@ -1117,6 +1233,81 @@ impl JobStore for SqliteStore {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A pass's results follow one another in its log; the pass two later rewrites the log from
+    /// its start only once the pass it held is recorded; a stale attempt of an older pass and
+    /// a process that does not know the log (a restart) write after everything in the file, so
+    /// no record a merge may still read is ever overwritten.
+    #[test]
+    fn result_logs_are_rewritten_in_place_only_once_their_pass_is_recorded() {
+        let dir = std::env::temp_dir().join(format!("omis-logs-{}", uuid::Uuid::new_v4()));
+        let paths = Paths { root: dir.clone() };
+        let logs = ResultLogs::default();
+        let read = |pass: u32, r: &std::ops::Range<u64>| {
+            let bytes = std::fs::read(paths.result_log("j", pass)).expect("log");
+            bytes[r.start as usize..r.end as usize].to_vec()
+        };
+        let w = |pass: u32, recorded: u32, b: &[u8]| {
+            logs.write(&paths, "j", pass, recorded, b).expect("write")
+        };
+        // Pass 0 and pass 1 (each in its own log) while pass 0 is merged.
+        assert_eq!(w(0, 0, b"aaaa"), 0..4);
+        assert_eq!(w(0, 0, b"bb"), 4..6);
+        assert_eq!(w(1, 0, b"cccc"), 0..4);
+        // Pass 2 before pass 0 is recorded (ensure_passes never lets it, but if it did): after
+        // pass 0's records.
+        assert_eq!(w(2, 0, b"dd"), 6..8);
+        assert_eq!(read(0, &(0..4)), b"aaaa");
+        // Once pass 0 is recorded, pass 2 begins the log again.
+        let logs2 = ResultLogs::default();
+        let w2 = |pass: u32, recorded: u32, b: &[u8]| {
+            logs2.write(&paths, "j", pass, recorded, b).expect("write")
+        };
+        // (A process that does not know the log writes after its end: 8 bytes so far.)
+        assert_eq!(w2(0, 0, b"ee"), 8..10);
+        assert_eq!(w2(2, 1, b"ffff"), 0..4);
+        assert_eq!(w2(2, 1, b"g"), 4..5);
+        assert_eq!(read(2, &(0..5)), b"ffffg");
+        // A late attempt of pass 0 goes after the end and leaves pass 2's place alone.
+        assert_eq!(w2(0, 1, b"hh"), 10..12);
+        assert_eq!(w2(2, 1, b"i"), 5..6);
+        assert_eq!(read(2, &(0..6)), b"ffffgi");
+        // A recorded pass no later pass writes gives its log up at once, the others when the
+        // job ends: kept as spares, which the next new logs take (and write from their start).
+        let spares = || std::fs::read_dir(paths.spare_logs()).map_or(0, |d| d.count());
+        logs2.release(&paths, "j", 1, false);
+        assert!(!paths.result_log("j", 1).exists());
+        logs2.release(&paths, "j", 2, true);
+        assert!(paths.result_log("j", 2).exists());
+        logs2.remove(&paths, "j");
+        assert!(!paths.result_log("j", 0).exists());
+        assert_eq!(spares(), 2);
+        for job in ["k", "l", "m"] {
+            assert_eq!(logs2.write(&paths, job, 0, 0, b"n").expect("write"), 0..1);
+        }
+        assert_eq!(spares(), 0);
+        let len = |job: &str| {
+            std::fs::metadata(paths.result_log(job, 0))
+                .expect("log")
+                .len()
+        };
+        let mut taken = [len("k"), len("l")];
+        taken.sort_unstable();
+        assert_eq!(
+            (taken, len("m")),
+            ([4, 12], 1),
+            "the two spares, then a new log"
+        );
+        // At most SPARE_LOGS are kept; the rest are deleted.
+        for j in 0..SPARE_LOGS + 2 {
+            let path = dir.join(format!("extra-{j}.log"));
+            std::fs::write(&path, b"p").expect("a log");
+            retire(&paths, &path);
+            assert!(!path.exists());
+        }
+        assert_eq!(spares(), SPARE_LOGS);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     /// Leases bind new values to cached statements; none of them may be parsed again for it
     /// (SQLite's STAT4 build re-prepared the lease query on every lease without QPSG).

@@ -10,7 +10,7 @@ use crate::service::protocol::{
     JobState, Lease, LeaseRequest, LeasedJob, LeasedTask, OkAnswer, RegisterRequest, Registration,
     ResultAnswer, ResultQuery, TaskKind, TaskState, TileDoneEvent, WorkerList, WorkerState,
 };
-use crate::service::store::{self, JobRow, TaskRow};
+use crate::service::store::{JobRow, TaskRow};
 use crate::service::{Metrics, jobs, merge};
 use axum::Json;
 use axum::body::{Body, Bytes};
@@ -406,10 +406,10 @@ pub(crate) async fn upload_result(
                 index.tile, index.samples, t.s0, t.s1
             )));
         }
-        let banded = body;
-        let path = a.paths.result_log(&t.job_id, t.pass);
-        let _log = a.result_log.lock().unwrap_or_else(|e| e.into_inner());
-        let stored = store::append(&path, &banded[..]).map_err(ApiError::internal)?;
+        let stored = a
+            .result_logs
+            .write(&a.paths, &t.job_id, t.pass, job.passes_done, &body[..])
+            .map_err(ApiError::internal)?;
         Ok(Ok(stored))
     })
     .await
