@@ -97,12 +97,13 @@ pub(crate) fn write_replacing(path: &Path, bytes: &[u8], durable: bool) -> std::
 /// recorded). A log no later pass of its job will write is not deleted either but kept as a
 /// spare (up to `SPARE_LOGS` of them, in `Paths::spare_logs`), which the next new log takes
 /// instead of a new file, as PostgreSQL recycles its WAL segments. A file written afresh takes
-/// new page-cache pages, and on a virtual machine that hands freed memory
-/// back to its host each new page is faulted in on the host too: writing 850 MB (a 1080p BDPT
-/// pass's results) into a new file took 2.6-2.8 s of system CPU on this project's benchmark
-/// machine, into the same file again 0.16-0.19 s (BENCHMARKS.md #12, stop 35). Records are not
-/// fsync'd: a record damaged by a power cut (or found holding an older pass's bytes) fails its
-/// checksums when merged, and its task is rendered again.
+/// new page-cache pages, and on a virtual machine that hands freed memory back to its host each
+/// new page is faulted in on the host too: writing 850 MB (a 1080p BDPT pass's results) into a
+/// new file took 2.6-2.8 s of system CPU on this project's benchmark machine, into the same
+/// file again 0.16-0.19 s; a coordinator's second and later balance jobs take 19 % less CPU
+/// (BENCHMARKS.md #12, stop 35). Records are not fsync'd: a record damaged by a power cut (or
+/// found holding an older pass's bytes) fails its checksums when merged, and its task is
+/// rendered again.
 #[derive(Default)]
 pub(crate) struct ResultLogs {
     /// Per job, per log (pass parity): the pass writing it now and where its records end.
@@ -162,8 +163,9 @@ impl ResultLogs {
         Ok(at..end)
     }
 
-    /// Deletes the log of recorded pass `pass` of job `job` when no later pass will write it
-    /// (`reused`: false), which gives its pages back at once; else it waits for pass `pass + 2`.
+    /// Gives up the log of recorded pass `pass` of job `job` when no later pass of the job will
+    /// write it (`reused`: false): kept as a spare for another job's, or deleted (`retire`);
+    /// else it waits for pass `pass + 2`.
     pub fn release(&self, paths: &Paths, job: &str, pass: u32, reused: bool) {
         if reused {
             return;
