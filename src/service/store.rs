@@ -110,8 +110,10 @@ pub(crate) struct ResultLogs {
     cursors: Mutex<HashMap<String, [Option<LogCursor>; 2]>>,
 }
 
-/// Spare result logs kept at most (each as long as the longest pass's results it held).
+/// Spare result logs kept at most, and their bytes at most (a log is as long as the longest
+/// pass's results it held; a longer one is deleted, as every log was before).
 const SPARE_LOGS: usize = 4;
+const SPARE_LOG_BYTES: u64 = 4 << 30;
 
 #[derive(Clone, Copy)]
 struct LogCursor {
@@ -202,14 +204,20 @@ fn take_spare(paths: &Paths, path: &Path) {
     }
 }
 
-/// Keeps the log at `path` as a spare, or deletes it when `SPARE_LOGS` are kept already.
+/// Keeps the log at `path` as a spare, or deletes it when `SPARE_LOGS` are kept already or it
+/// would take the spares past `SPARE_LOG_BYTES`.
 fn retire(paths: &Paths, path: &Path) {
-    if !path.exists() {
+    let Ok(len) = std::fs::metadata(path).map(|m| m.len()) else {
         return;
-    }
+    };
     let dir = paths.spare_logs();
-    let kept = std::fs::read_dir(&dir).map_or(0, |d| d.count());
-    if kept < SPARE_LOGS
+    let spares: Vec<u64> = std::fs::read_dir(&dir).map_or(Vec::new(), |d| {
+        d.flatten()
+            .map(|e| e.metadata().map_or(0, |m| m.len()))
+            .collect()
+    });
+    if spares.len() < SPARE_LOGS
+        && spares.iter().sum::<u64>() + len <= SPARE_LOG_BYTES
         && std::fs::create_dir_all(&dir).is_ok()
         && std::fs::rename(path, dir.join(format!("{}.log", uuid::Uuid::new_v4()))).is_ok()
     {
@@ -1308,6 +1316,21 @@ mod tests {
             assert!(!path.exists());
         }
         assert_eq!(spares(), SPARE_LOGS);
+        // Nor past SPARE_LOG_BYTES (a sparse file: no disk is written).
+        let spare = std::fs::read_dir(paths.spare_logs())
+            .expect("spares")
+            .flatten()
+            .next()
+            .expect("a spare")
+            .path();
+        std::fs::remove_file(&spare).expect("one spare fewer");
+        let big = dir.join("big.log");
+        std::fs::File::create(&big)
+            .and_then(|f| f.set_len(SPARE_LOG_BYTES))
+            .expect("a sparse log");
+        retire(&paths, &big);
+        assert!(!big.exists());
+        assert_eq!(spares(), SPARE_LOGS - 1);
         let _ = std::fs::remove_dir_all(&dir);
     }
 
