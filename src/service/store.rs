@@ -100,7 +100,7 @@ pub(crate) fn write_replacing(path: &Path, bytes: &[u8], durable: bool) -> std::
 /// new page-cache pages, and on a virtual machine that hands freed memory back to its host each
 /// new page is faulted in on the host too: writing 850 MB (a 1080p BDPT pass's results) into a
 /// new file took 2.6-2.8 s of system CPU on this project's benchmark machine, into the same
-/// file again 0.16-0.19 s; a coordinator's second and later balance jobs take 19 % less CPU
+/// file again 0.16-0.19 s; a coordinator's second and later balance jobs take a fifth less CPU
 /// (BENCHMARKS.md #12, stop 35). Records are not fsync'd: a record damaged by a power cut (or
 /// found holding an older pass's bytes) fails its checksums when merged, and its task is
 /// rendered again.
