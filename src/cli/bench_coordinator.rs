@@ -43,7 +43,8 @@ pub struct BenchCoordinatorArgs {
     #[arg(long, default_value_t = 4)]
     pub record: usize,
     /// Jobs run one after another on each coordinator (a row each): a coordinator's first job
-    /// also pays for what it does once, such as the first use of its files' pages.
+    /// also pays for what it does once, such as the first use of its files' pages. A row's peak
+    /// RSS is the coordinator's peak up to the end of that job.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100))]
     pub jobs: u32,
     /// Print one JSON object per line instead of the table.
@@ -281,7 +282,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
             // Job after job on the one coordinator (`--jobs`): the first one also measures
             // what a coordinator pays once, e.g. the first use of its files' pages.
             for _ in 0..a.jobs {
-                let cpu0 = super::procstat::usage(pid).unwrap_or_default();
+                let cpu0 = super::procstat::usage(pid);
                 let own0 = super::procstat::cpu_seconds(None);
                 let io0 = super::procstat::write_bytes(pid);
                 let counters = Arc::new(Counters::default());
@@ -316,7 +317,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
                 if state != JobState::Done {
                     bail!("the job {state}");
                 }
-                let used = super::procstat::usage(pid).unwrap_or_default().since(cpu0);
+                let used = super::procstat::usage_since(pid, cpu0);
                 let own = super::procstat::cpu_seconds(None) - own0;
                 let written = super::procstat::write_bytes(pid).saturating_sub(io0);
                 let (_, hwm) = super::procstat::memory(Some(pid));
@@ -330,7 +331,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
         for (j, (seconds, used, own_cpu, written, hwm, latencies, counters)) in
             jobs.into_iter().enumerate()
         {
-            let cpu = used.user_s + used.sys_s;
+            let cpu = used.map_or(f64::NAN, |u| u.cpu_s());
             let results = counters.results.load(Ordering::Relaxed);
             let bytes = counters.bytes.load(Ordering::Relaxed) as f64;
             let worker_cpu = counters.worker_cpu_us.load(Ordering::Relaxed) as f64 * 1e-6;
@@ -345,8 +346,8 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
                 "mb_per_second": bytes / 1e6 / seconds,
                 "bytes_per_pixel_sample": bytes / samples.max(1.0),
                 "coordinator_cpu_s": cpu,
-                "coordinator_sys_s": used.sys_s,
-                "coordinator_minor_faults": used.minor_faults,
+                "coordinator_sys_s": used.map(|u| u.sys_s),
+                "coordinator_minor_faults": used.map(|u| u.minor_faults),
                 "coordinator_cpu_ms_per_result": cpu * 1e3 / results.max(1) as f64,
                 "worker_cpu_s": worker_cpu,
                 "coordinator_cpu_share": cpu / worker_cpu.max(1e-9),

@@ -1,7 +1,7 @@
 //! `omis bench-service`: the render service measured against the in-process render of the same
 //! job: wall time, CPU time (coordinator and its workers together, and the coordinator alone,
-//! with its kernel time and minor page faults) and throughput with 1, 2, ... local worker processes, bytes shipped per pixel
-//! sample, coordinator memory per megapixel, pass latency (last tile of a pass in, pass merged
+//! with its kernel time and minor page faults) and throughput with 1, 2, ... local worker
+//! processes, bytes shipped per pixel sample, coordinator memory per megapixel, pass latency (last tile of a pass in, pass merged
 //! and solved), and whether the images are equal.
 
 use super::child_coordinator::ChildCoordinator;
@@ -71,7 +71,7 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
             let t0 = Instant::now();
             let (cpu0, coord0) = (
                 super::procstat::cpu_seconds_with_children(pid),
-                super::procstat::usage(pid).unwrap_or_default(),
+                super::procstat::usage(pid),
             );
             let scene = SceneSource::Bundle(c.upload_bundle(tar.clone(), main.clone()).await?);
             let st = submit_job(&c, scene, &a.job, None, None).await?;
@@ -87,9 +87,7 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
                 .await?;
             let seconds = t0.elapsed().as_secs_f64();
             let cpu = super::procstat::cpu_seconds_with_children(pid) - cpu0;
-            let coordinator = super::procstat::usage(pid)
-                .unwrap_or_default()
-                .since(coord0);
+            let coordinator = super::procstat::usage_since(pid, coord0);
             if state != JobState::Done {
                 bail!("the job {state}");
             }
@@ -110,9 +108,9 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
             "workers": n,
             "seconds": seconds,
             "cpu_s": cpu,
-            "coordinator_cpu_s": coordinator.user_s + coordinator.sys_s,
-            "coordinator_sys_s": coordinator.sys_s,
-            "coordinator_minor_faults": coordinator.minor_faults,
+            "coordinator_cpu_s": coordinator.map(|u| u.cpu_s()),
+            "coordinator_sys_s": coordinator.map(|u| u.sys_s),
+            "coordinator_minor_faults": coordinator.map(|u| u.minor_faults),
             "pixel_samples_per_second": samples / seconds,
             "bytes_per_pixel_sample": bytes / samples.max(1.0),
             "result_bytes": bytes,

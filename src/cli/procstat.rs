@@ -38,7 +38,7 @@ pub fn cpu_seconds(pid: Option<u32>) -> f64 {
         let t = |v: libc::timeval| v.tv_sec as f64 + v.tv_usec as f64 * 1e-6;
         return t(r.ru_utime) + t(r.ru_stime);
     };
-    usage(pid).map_or(f64::NAN, |u| u.user_s + u.sys_s)
+    usage(pid).map_or(f64::NAN, |u| u.cpu_s())
 }
 
 /// What a process has used so far: CPU time in user mode and in the kernel (on its behalf:
@@ -60,6 +60,16 @@ impl ProcUse {
             minor_faults: self.minor_faults.saturating_sub(before.minor_faults),
         }
     }
+
+    /// CPU seconds, user and kernel.
+    pub fn cpu_s(&self) -> f64 {
+        self.user_s + self.sys_s
+    }
+}
+
+/// What process `pid` has used since reading `before` (None where either reading is missing).
+pub fn usage_since(pid: u32, before: Option<ProcUse>) -> Option<ProcUse> {
+    Some(usage(pid)?.since(before?))
 }
 
 /// What process `pid` has used so far (from /proc/PID/stat), or None where unavailable.

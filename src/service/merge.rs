@@ -850,8 +850,9 @@ pub(crate) fn finish_pass(
     app.db()
         .pass_merged(&job.id, pass + 1, spp, &stats)
         .map_err(|e| e.to_string())?;
-    // A later pass of the job rewrites this pass's log in place (`store::ResultLogs`).
-    let reused = r.time_budget_s.is_some() || r.pass_range(pass + 2).is_some();
+    // A later pass of the job rewrites this pass's log in place (`store::ResultLogs`); a
+    // time-budget job's passes have no end.
+    let reused = r.pass_range(pass + 2).is_some();
     app.result_logs.release(&app.paths, &job.id, pass, reused);
     rt.inputs = None;
     super::Metrics::add(&app.metrics.passes_merged, 1);

@@ -194,11 +194,14 @@ fn take_spare(paths: &Paths, path: &Path) {
     let Ok(dir) = std::fs::read_dir(paths.spare_logs()) else {
         return;
     };
+    if path
+        .parent()
+        .is_some_and(|p| std::fs::create_dir_all(p).is_err())
+    {
+        return;
+    }
     for spare in dir.flatten() {
-        if let Some(parent) = path.parent()
-            && std::fs::create_dir_all(parent).is_ok()
-            && std::fs::rename(spare.path(), path).is_ok()
-        {
+        if std::fs::rename(spare.path(), path).is_ok() {
             return;
         }
     }
