@@ -22,6 +22,7 @@
 
 use super::App;
 use super::jobs::{self, Runtime};
+use super::log_file::LogFile;
 use super::protocol::{JobEvent, PassDoneEvent, PreviewEvent, SeriesPoint};
 use super::store::{self, JobRow, TaskRow};
 use crate::film::merge::{self as film_merge, LayerImages, MergeHead, MergeOutput};
@@ -170,22 +171,18 @@ fn read_into(
 
 /// The index of the result stored at `stored` of an open result log (of `log_len` bytes).
 fn read_index(
-    log: &mut std::fs::File,
+    log: &mut LogFile,
     log_len: u64,
     stored: Option<std::ops::Range<u64>>,
 ) -> Result<BandedIndex, String> {
-    use std::io::{Read, Seek, SeekFrom};
     let stored = stored.ok_or("no stored result recorded")?;
     if stored.end > log_len || stored.start > stored.end {
         return Err(format!(
             "stored result at bytes {stored:?} of a log of {log_len}"
         ));
     }
-    log.seek(SeekFrom::Start(stored.start))
-        .map_err(|e| e.to_string())?;
     let len = stored.end - stored.start;
-    let mut r = std::io::BufReader::new(log.take(len));
-    Ok(BandedIndex::read(&mut r, len)
+    Ok(BandedIndex::read(&mut log.reader(stored.clone()), len)
         .map_err(|e| e.to_string())?
         .at(stored.start))
 }
@@ -197,11 +194,8 @@ fn load_inputs(app: &App, id: &str, pass: u32) -> Result<PassInputs, MergeError>
         .pass_tasks(id, pass)
         .map_err(|e| MergeError::Job(e.to_string()))?;
     let log = app.paths.result_log(id, pass);
-    let mut f = std::fs::File::open(&log).ok();
-    let log_len = f
-        .as_ref()
-        .and_then(|f| f.metadata().ok())
-        .map_or(0, |m| m.len());
+    let mut f = LogFile::open_read(&log).ok();
+    let log_len = f.as_ref().and_then(|f| f.len().ok()).unwrap_or(0);
     let mut results = Vec::with_capacity(tasks.len());
     let mut stats = RayStats::default();
     for t in tasks {
@@ -501,7 +495,7 @@ pub(crate) fn stream_input(
         }
     }
     let log = app.paths.result_log(job, pass);
-    let mut f = std::fs::File::open(&log)?;
+    let mut f = LogFile::open_read(&log)?;
     for p in inputs.results.iter().filter(|p| touches(p)) {
         let bad = |e: String| MergeError::Result(p.task, e);
         let own = if tiles.contains(&p.tile) {
@@ -527,13 +521,17 @@ pub(crate) fn stream_input(
         ));
         // Straight from the log into the stream, each part checked where it landed.
         if !own.is_empty() {
-            let at = read_into(&mut f, &own, &mut buf).map_err(|e| bad(e.to_string()))?;
+            let at = f
+                .read_into(&own, &mut buf)
+                .map_err(|e| bad(e.to_string()))?;
             p.index
                 .check_own(&buf[at..])
                 .map_err(|e| bad(e.to_string()))?;
         }
         if let Some(span) = p.index.span(bands.clone()) {
-            let at = read_into(&mut f, &span, &mut buf).map_err(|e| bad(e.to_string()))?;
+            let at = f
+                .read_into(&span, &mut buf)
+                .map_err(|e| bad(e.to_string()))?;
             for (k, (_, r)) in &sections {
                 let part =
                     &buf[at + (r.start - span.start) as usize..at + (r.end - span.start) as usize];

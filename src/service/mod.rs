@@ -7,6 +7,7 @@ pub(crate) mod buffers;
 pub(crate) mod bundle;
 pub(crate) mod exr_header;
 pub(crate) mod jobs;
+pub(crate) mod log_file;
 pub(crate) mod merge;
 pub(crate) mod pool;
 pub mod protocol;

@@ -2,6 +2,7 @@
 //! event log, in one embedded SQLite database (WAL) under the data folder. Outputs and task
 //! results are files beside it (see `Paths`).
 
+use super::log_file::{self, LogFile};
 use super::protocol::{
     EventKind, JobState, SeriesPoint, TaskKind, TaskState, WorkerInfo, WorkerState, WorkerTask,
 };
@@ -139,8 +140,9 @@ impl ResultLogs {
         let mut cursors = self.cursors.lock().unwrap_or_else(|e| e.into_inner());
         let slot = &mut cursors.entry(job.to_string()).or_default()[(pass % 2) as usize];
         let path = paths.result_log(job, pass);
+        // Records start at multiples of `log_file::ALIGN` (direct I/O).
         let file_end = || match std::fs::metadata(&path) {
-            Ok(m) => Ok(m.len()),
+            Ok(m) => Ok(log_file::align_up(m.len())),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(0),
             Err(e) => Err(e),
         };
@@ -157,10 +159,13 @@ impl ResultLogs {
                 end => (end, true),
             },
         };
-        write_at(&path, at, bytes, false)?;
+        LogFile::open_write(&path)?.write_at(at, bytes)?;
         let end = at + bytes.len() as u64;
         if moves {
-            *slot = Some(LogCursor { pass, end });
+            *slot = Some(LogCursor {
+                pass,
+                end: log_file::align_up(end),
+            });
         }
         Ok(at..end)
     }
@@ -1263,28 +1268,33 @@ mod tests {
         let w = |pass: u32, recorded: u32, b: &[u8]| {
             logs.write(&paths, "j", pass, recorded, b).expect("write")
         };
+        // Records start at multiples of ALIGN (direct I/O pads each one up to the next).
+        const A: u64 = log_file::ALIGN;
         // Pass 0 and pass 1 (each in its own log) while pass 0 is merged.
         assert_eq!(w(0, 0, b"aaaa"), 0..4);
-        assert_eq!(w(0, 0, b"bb"), 4..6);
+        assert_eq!(w(0, 0, b"bb"), A..A + 2);
         assert_eq!(w(1, 0, b"cccc"), 0..4);
         // Pass 2 before pass 0 is recorded (ensure_passes never lets it, but if it did): after
         // pass 0's records.
-        assert_eq!(w(2, 0, b"dd"), 6..8);
+        assert_eq!(w(2, 0, b"dd"), 2 * A..2 * A + 2);
         assert_eq!(read(0, &(0..4)), b"aaaa");
         // Once pass 0 is recorded, pass 2 begins the log again.
         let logs2 = ResultLogs::default();
         let w2 = |pass: u32, recorded: u32, b: &[u8]| {
             logs2.write(&paths, "j", pass, recorded, b).expect("write")
         };
-        // (A process that does not know the log writes after its end: 8 bytes so far.)
-        assert_eq!(w2(0, 0, b"ee"), 8..10);
+        // (A process that does not know the log writes after its end: three records so far.)
+        assert_eq!(w2(0, 0, b"ee"), 3 * A..3 * A + 2);
         assert_eq!(w2(2, 1, b"ffff"), 0..4);
-        assert_eq!(w2(2, 1, b"g"), 4..5);
-        assert_eq!(read(2, &(0..5)), b"ffffg");
+        assert_eq!(w2(2, 1, b"g"), A..A + 1);
+        assert_eq!(read(2, &(0..4)), b"ffff");
+        assert_eq!(read(2, &(A..A + 1)), b"g");
         // A late attempt of pass 0 goes after the end and leaves pass 2's place alone.
-        assert_eq!(w2(0, 1, b"hh"), 10..12);
-        assert_eq!(w2(2, 1, b"i"), 5..6);
-        assert_eq!(read(2, &(0..6)), b"ffffgi");
+        assert_eq!(w2(0, 1, b"hh"), 4 * A..4 * A + 2);
+        assert_eq!(w2(2, 1, b"i"), 2 * A..2 * A + 1);
+        assert_eq!(read(2, &(0..4)), b"ffff");
+        assert_eq!(read(2, &(A..A + 1)), b"g");
+        assert_eq!(read(2, &(2 * A..2 * A + 1)), b"i");
         // A recorded pass no later pass writes gives its log up at once, the others when the
         // job ends: kept as spares, which the next new logs take (and write from their start).
         let spares = || std::fs::read_dir(paths.spare_logs()).map_or(0, |d| d.count());
@@ -1299,16 +1309,19 @@ mod tests {
             assert_eq!(logs2.write(&paths, job, 0, 0, b"n").expect("write"), 0..1);
         }
         assert_eq!(spares(), 0);
+        // (Padded to ALIGN with direct I/O, not where the file system refuses it.)
         let len = |job: &str| {
-            std::fs::metadata(paths.result_log(job, 0))
-                .expect("log")
-                .len()
+            log_file::align_up(
+                std::fs::metadata(paths.result_log(job, 0))
+                    .expect("log")
+                    .len(),
+            )
         };
         let mut taken = [len("k"), len("l")];
         taken.sort_unstable();
         assert_eq!(
             (taken, len("m")),
-            ([4, 12], 1),
+            ([A, 5 * A], A),
             "the two spares, then a new log"
         );
         // At most SPARE_LOGS are kept; the rest are deleted.
