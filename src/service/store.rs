@@ -49,7 +49,7 @@ impl Paths {
         self.job(id).join("tiles")
     }
     /// The merged accumulators of the tiles of one band (row of tiles) of a job: two slots per
-    /// tile, rewritten in place (`jobs::checkpoint_slot` says where).
+    /// tile, rewritten in place (`merge::checkpoint_slot` says where).
     pub fn band_checkpoints(&self, id: &str, band: u32) -> PathBuf {
         self.tiles_dir(id).join(format!("band-{band:06}.acc"))
     }
@@ -234,14 +234,17 @@ fn retire(paths: &Paths, path: &Path) {
     let _ = std::fs::remove_file(path);
 }
 
-/// Opens `path` with `options`, making its folder first when it is missing.
-fn open_creating(path: &Path, options: &std::fs::OpenOptions) -> std::io::Result<std::fs::File> {
-    match options.open(path) {
+/// `open(path)`, making the file's folder first when it is missing.
+pub(crate) fn open_creating<F>(
+    path: &Path,
+    open: impl Fn(&Path) -> std::io::Result<F>,
+) -> std::io::Result<F> {
+    match open(path) {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             if let Some(dir) = path.parent() {
                 std::fs::create_dir_all(dir)?;
             }
-            options.open(path)
+            open(path)
         }
         f => f,
     }
@@ -253,13 +256,13 @@ fn open_creating(path: &Path, options: &std::fs::OpenOptions) -> std::io::Result
 /// copy (the tile checkpoints' two slots).
 pub(crate) fn write_at(path: &Path, at: u64, bytes: &[u8], durable: bool) -> std::io::Result<()> {
     use std::io::{Seek, SeekFrom, Write};
-    let mut f = open_creating(
-        path,
+    let mut f = open_creating(path, |p| {
         std::fs::OpenOptions::new()
             .write(true)
             .create(true)
-            .truncate(false),
-    )?;
+            .truncate(false)
+            .open(p)
+    })?;
     f.seek(SeekFrom::Start(at))?;
     f.write_all(bytes)?;
     if durable {
