@@ -146,6 +146,12 @@ impl LogFile {
     /// Appends bytes `range` of the file to `buf` and returns where they begin in it; an
     /// `UnexpectedEof` error (and `buf` as it was) when the file ends before `range` does.
     pub fn read_into(&mut self, range: &Range<u64>, buf: &mut Vec<u8>) -> io::Result<usize> {
+        if range.start > range.end {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                format!("bytes {range:?} of a log"),
+            ));
+        }
         let at = buf.len();
         buf.reserve((range.end - range.start) as usize);
         let read = match self.direct {
@@ -309,6 +315,11 @@ mod tests {
                 .read_into(&(end - 10..end + 10_000), &mut buf)
                 .expect_err("past the end");
             assert_eq!(e.kind(), io::ErrorKind::UnexpectedEof);
+            assert_eq!(buf, b"kept");
+            // A range that ends before it begins (a damaged index) is an error, not a panic.
+            #[allow(clippy::reversed_empty_ranges)]
+            let backwards = 10..5;
+            assert!(r.read_into(&backwards, &mut buf).is_err());
             assert_eq!(buf, b"kept");
             let _ = std::fs::remove_dir_all(&dir);
         }
