@@ -1,8 +1,8 @@
 //! `omis bench-service`: the render service measured against the in-process render of the same
 //! job: wall time, CPU time (coordinator and its workers together, and the coordinator alone,
 //! with its kernel time and minor page faults) and throughput with 1, 2, ... local worker
-//! processes, bytes shipped per pixel sample, coordinator memory per megapixel, pass latency (last tile of a pass in, pass merged
-//! and solved), and whether the images are equal.
+//! processes, bytes shipped per pixel sample, coordinator memory per megapixel, pass latency
+//! (last tile of a pass in, pass merged and solved), and whether the images are equal.
 
 use super::child_coordinator::ChildCoordinator;
 use super::client::Client;

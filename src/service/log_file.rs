@@ -49,8 +49,9 @@ fn with_scratch<R>(f: impl FnOnce(&mut [u8]) -> R) -> R {
         }
         // SAFETY: `Block` is `repr(C)` plain bytes, so the blocks are `len * ALIGN` initialised
         // bytes in a row; the slice borrows `v` mutably for as long as it lives.
-        let bytes =
-            unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr().cast::<u8>(), v.len() * 4096) };
+        let bytes = unsafe {
+            std::slice::from_raw_parts_mut(v.as_mut_ptr().cast::<u8>(), v.len() * ALIGN as usize)
+        };
         f(bytes)
     })
 }
