@@ -9,13 +9,15 @@
 //! refuses a part that inflates to anything else. Compression is lossless, so the merged image
 //! does not change by a bit.
 //!
-//! Measured on a 1080p Cornell box (BENCHMARKS.md #12, stops 31 and 32): the camera-side f64
-//! sums shrink the most (sums of a few f32 values leave the low mantissa bits zero). A section
-//! of light-tracing splats and records is cut into pieces along its planes (`wire`): pixel
-//! steps, the high bytes of the bfloat16 values (sign and exponent: 0.11-0.31 of their size),
-//! their low bytes (mantissa noise: stored, never inflated) and the f32 values: an optimal-MIS
-//! job ships 14.6 bytes per pixel sample in pieces against 17.1 as one frame per section
-//! (`omis bench-coordinator`, BENCHMARKS.md #12 stop 32).
+//! Measured on a 1080p Cornell box (BENCHMARKS.md #12, stops 31, 32 and 37): the camera-side
+//! f64 sums shrink the most (sums of a few f32 values leave the low mantissa bits zero). A
+//! section of light-tracing splats and records is cut into pieces along its planes (`wire`):
+//! pixel steps, the high bytes of the bfloat16 values (sign and exponent: 0.11-0.31 of their
+//! size), their low bytes (mantissa noise: stored, never inflated) and the f32 values: an
+//! optimal-MIS job ships 14.6 bytes per pixel sample in pieces against 17.1 as one frame per
+//! section (`omis bench-coordinator`, BENCHMARKS.md #12 stop 32). A result's own part is cut
+//! into the byte planes of its fixed-size records (`to_planes`): a path-tracing part shrinks
+//! from 0.47 to 0.39 of its size and inflates 3.6 times as fast (stop 37).
 
 use super::wire::WireError;
 use std::cell::RefCell;
@@ -98,6 +100,85 @@ pub fn pack_pieces(raw: &[u8], cuts: &[usize]) -> Vec<u8> {
         out.extend_from_slice(payload);
     }
     out
+}
+
+/// Rows of records at a time when laying bytes out in planes: a block of rows stays in the
+/// first-level cache while each of its planes is written.
+const PLANE_BLOCK: usize = 64;
+
+/// Appends the records of `rows` (row-major, `stride` bytes each) to `out` in byte planes:
+/// byte 0 of every record, then byte 1, and so on. The bytes of a float that vary alike (sign
+/// and exponent, the high mantissa, the low mantissa that a sum of few f32 values leaves zero)
+/// then lie together, and each plane is compressed or stored on its own (`pack_pieces`).
+pub fn to_planes(rows: &[u8], stride: usize, out: &mut Vec<u8>) {
+    assert!(
+        stride > 0 && rows.len().is_multiple_of(stride),
+        "whole records"
+    );
+    let n = rows.len() / stride;
+    let start = out.len();
+    out.resize(start + rows.len(), 0);
+    let planes = &mut out[start..];
+    for (k, block) in rows.chunks(stride * PLANE_BLOCK).enumerate() {
+        let first = k * PLANE_BLOCK;
+        for j in 0..stride {
+            let plane = &mut planes[j * n + first..][..block.len() / stride];
+            for (i, b) in plane.iter_mut().enumerate() {
+                *b = block[i * stride + j];
+            }
+        }
+    }
+}
+
+/// Appends the records held in byte planes by `planes` (`to_planes` of `stride`-byte records)
+/// to `out`, row-major again.
+pub fn from_planes(planes: &[u8], stride: usize, out: &mut Vec<u8>) {
+    assert!(
+        stride > 0 && planes.len().is_multiple_of(stride),
+        "whole records"
+    );
+    let n = planes.len() / stride;
+    let start = out.len();
+    out.resize(start + planes.len(), 0);
+    let rows = &mut out[start..];
+    for (k, block) in rows.chunks_mut(stride * PLANE_BLOCK).enumerate() {
+        let first = k * PLANE_BLOCK;
+        for j in 0..stride {
+            let plane = &planes[j * n + first..][..block.len() / stride];
+            for (i, b) in plane.iter().enumerate() {
+                block[i * stride + j] = *b;
+            }
+        }
+    }
+}
+
+/// The offsets into its raw bytes where the pieces of `part` end but the last (none for a part
+/// packed whole): the cuts that `pack_pieces` would make again.
+pub fn piece_cuts(part: &[u8]) -> Result<Vec<usize>, WireError> {
+    if part.first() != Some(&PIECES) {
+        return Ok(Vec::new());
+    }
+    let count = part
+        .get(HEAD..HEAD + 4)
+        .map(|c| u32::from_le_bytes(c.try_into().expect("4 bytes")) as usize)
+        .ok_or_else(|| WireError("packed part in pieces: no piece count".into()))?;
+    let payload = &part[HEAD..];
+    let (mut at, mut raw) = (4, 0usize);
+    let mut cuts = Vec::new();
+    for k in 0..count {
+        let head = payload.get(at..at + PIECE_HEAD).ok_or_else(|| {
+            WireError(format!(
+                "packed part in pieces: piece {k} of {count} truncated"
+            ))
+        })?;
+        let word = |i: usize| u32::from_le_bytes(head[i..i + 4].try_into().expect("4")) as usize;
+        raw += word(1);
+        at += PIECE_HEAD + word(5);
+        if k + 1 < count {
+            cuts.push(raw);
+        }
+    }
+    Ok(cuts)
 }
 
 /// The raw length a part says it holds (checked when it is unpacked).
@@ -305,6 +386,36 @@ mod tests {
                 unpack_vec(&part[..cut], usize::MAX).is_err(),
                 "cut at {cut}"
             );
+        }
+    }
+
+    #[test]
+    fn byte_planes_round_trip_and_pieces_give_back_their_cuts() {
+        for stride in [1, 4, 8, 24, 52] {
+            for n in [0, 1, 63, 64, 65, 1000] {
+                let rows: Vec<u8> = (0..n * stride).map(|i| (i * 7 + i / 3) as u8).collect();
+                let mut planes = vec![9];
+                to_planes(&rows, stride, &mut planes);
+                assert_eq!(planes.len(), 1 + rows.len());
+                for i in 0..n {
+                    for j in 0..stride {
+                        assert_eq!(planes[1 + j * n + i], rows[i * stride + j], "{stride} {n}");
+                    }
+                }
+                let mut back = vec![5];
+                from_planes(&planes[1..], stride, &mut back);
+                assert_eq!(back[0], 5);
+                assert_eq!(&back[1..], &rows[..], "stride {stride}, {n} records");
+            }
+        }
+        let raw: Vec<u8> = (0..20_000u32).map(|i| (i / 700) as u8).collect();
+        let part = pack_pieces(&raw, &[6000, 11000, 15000]);
+        let cuts = piece_cuts(&part).expect("cuts");
+        assert_eq!(cuts, [6000, 11000, 15000]);
+        assert_eq!(pack_pieces(&raw, &cuts), part, "packed again the same");
+        assert!(piece_cuts(&pack(&raw)).expect("whole").is_empty());
+        for cut in [1, HEAD, HEAD + 4, HEAD + 10] {
+            assert!(piece_cuts(&part[..cut]).is_err(), "cut at {cut}");
         }
     }
 }

@@ -6,15 +6,16 @@
 //! magic "OMISTILE", version u32
 //! tile x0 y0 x1 y1 u32, samples s0 s1 u32
 //! stats closest shadow samples non_finite u64
-//! per tile pixel: count u32, sum 3 x f64, sum_sq 3 x f64
+//! per tile pixel: count u32, sum 3 x f64, sum_sq 3 x f64 (a record of 52 bytes; in byte planes)
 //! splats: n u32, then in planes: n splat steps; [n x layer u8]; [n x depth u8] (layer and
 //! depth only when the job keeps strategy / depth layers); the high bytes of the narrow values,
 //! then their low bytes (3 x k each: a value is 3 x bfloat16 when every channel is one, as the
 //! integrators round light-tracing values: `bf16`); the wide values, 3 x w f32 (k + w = n, in
 //! splat order within each plane)
-//! layers: n u32 (0 or pixels x 14), then n x 3 x f64
-//! depths: n u32 (0 or pixels x depth layers), then n x 3 x f64
-//! optimal: d_opt u32 (0 = none), then pixels x stride f64 (A, b), pixels x d_opt u32 (hits)
+//! layers: n u32 (0 or pixels x 14), then n x 3 x f64 (records of 24 bytes, in byte planes)
+//! depths: n u32 (0 or pixels x depth layers), then n x 3 x f64 (the same)
+//! optimal: d_opt u32 (0 = none), then pixels x stride f64 (A, b), pixels x d_opt u32 (hits),
+//! each list in byte planes
 //! records: n u32, pixels n x pixel step, depths n x u8 (none when d_opt is 1: all are 1),
 //! value width u8, m u32, values m x width: width 2 (bfloat16, the m high bytes then the m low
 //! bytes) when the integrators' rounding made every value one, without each record's
@@ -22,6 +23,8 @@
 //! values as f32
 //! pixel step: the difference to the previous pixel of the list (0 before the first), zigzag
 //! LEB128 (one or two bytes for the sorted lists `TileFilm::compact` makes)
+//! byte planes: a list of n records of s bytes as s planes of n bytes, byte 0 of every record
+//! first (`pack::to_planes`); version 6 wrote the records one after another, and is still read
 //! splat step: (difference to the previous pixel) x 2 + (1 if the value is f32), LEB128: splat
 //! lists are sorted by pixel
 //! ```
@@ -37,8 +40,11 @@ use super::{bf16, pack};
 use crate::mis::{OptimalAccum, Progressive};
 
 const MAGIC: &[u8; 8] = b"OMISTILE";
-/// 6: splats and record values in planes.
-const VERSION: u32 = 6;
+/// 6: splats and record values in planes; 7: the fixed-size records (pixel sums, layers,
+/// optimal systems) in byte planes too.
+const VERSION: u32 = 7;
+/// The version before, whose results (in a coordinator's logs when it is upgraded) still read.
+const VERSION_ROWS: u32 = 6;
 
 /// Which of a splat's keys the wire carries: its strategy layer and its depth only when the
 /// film keeps strategy / depth layers (otherwise both are u8::MAX after `TileFilm::compact`,
@@ -92,8 +98,11 @@ fn depths_implied(d_opt: Option<u32>) -> bool {
 /// A little-endian writer into a byte vector.
 struct Writer {
     out: Vec<u8>,
-    /// Where the planes of splat and record lists end (`pack::pack_pieces` cuts there).
+    /// Where the planes of lists end (`pack::pack_pieces` cuts there).
     cuts: Vec<usize>,
+    /// Whether lists of fixed-size records go in byte planes (`rows`): tile results, not
+    /// checkpoints (rewritten in place, never packed).
+    planes: bool,
 }
 
 impl Writer {
@@ -101,7 +110,20 @@ impl Writer {
         Writer {
             out,
             cuts: Vec::new(),
+            planes: false,
         }
+    }
+    /// Fixed-size records, row-major in `rows` (`stride` bytes each): in byte planes, each
+    /// ending at a cut, where the writer lays them so; else as they are.
+    fn rows(&mut self, rows: &[u8], stride: usize) {
+        if !self.planes {
+            return self.bytes(rows);
+        }
+        self.cut();
+        let start = self.out.len();
+        pack::to_planes(rows, stride, &mut self.out);
+        let n = rows.len() / stride;
+        self.cuts.extend((1..=stride).map(|j| start + j * n));
     }
     /// Marks the end of a plane.
     fn cut(&mut self) {
@@ -153,11 +175,12 @@ impl Writer {
     /// A counted list of RGB f64 triples (strategy or depth layers).
     fn rgb_list(&mut self, list: &[[f64; 3]]) {
         self.u32(list.len() as u32);
-        for l in list {
-            for v in l {
-                self.f64(*v);
-            }
-        }
+        let rows: Vec<u8> = list
+            .iter()
+            .flatten()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        self.rows(&rows, 24);
     }
     /// A counted list of splats, sorted by pixel (`TileFilm::compact`; routing keeps the
     /// order), in planes: delta-coded pixels, their layers and depths only where the film keeps
@@ -256,12 +279,10 @@ impl Writer {
             None => self.u32(0),
             Some(o) => {
                 self.u32(o.layout.d_opt);
-                for v in &o.data {
-                    self.f64(*v);
-                }
-                for v in &o.hits {
-                    self.u32(*v);
-                }
+                let data: Vec<u8> = o.data.iter().flat_map(|v| v.to_le_bytes()).collect();
+                self.rows(&data, 8);
+                let hits: Vec<u8> = o.hits.iter().flat_map(|v| v.to_le_bytes()).collect();
+                self.rows(&hits, 4);
             }
         }
     }
@@ -273,7 +294,7 @@ struct Reader<'a> {
     at: usize,
 }
 
-impl Reader<'_> {
+impl<'a> Reader<'a> {
     fn take(&mut self, n: usize) -> Result<&[u8], WireError> {
         if self.b.len() - self.at < n {
             return Err(WireError(format!(
@@ -431,14 +452,51 @@ impl Reader<'_> {
     }
     /// A format's magic and version, or an error naming `what` was expected.
     fn header(&mut self, magic: &[u8; 8], version: u32, what: &str) -> Result<(), WireError> {
+        self.header_of(magic, &[version], what).map(|_| ())
+    }
+    /// A format's magic and one of its `versions` (which it returns), or an error naming `what`
+    /// was expected.
+    fn header_of(
+        &mut self,
+        magic: &[u8; 8],
+        versions: &[u32],
+        what: &str,
+    ) -> Result<u32, WireError> {
         if self.take(8)? != magic {
             return Err(WireError(format!("not a {what} (bad magic)")));
         }
         let v = self.u32()?;
-        if v != version {
-            return Err(WireError(format!("{what} version {v}, expected {version}")));
+        if !versions.contains(&v) {
+            return Err(WireError(format!(
+                "{what} version {v}, expected {versions:?}"
+            )));
         }
-        Ok(())
+        Ok(v)
+    }
+    /// `n` records of `stride` bytes, row-major: gathered from byte planes when `planes`
+    /// (`Writer::rows`), else as they lie.
+    fn rows(
+        &mut self,
+        n: usize,
+        stride: usize,
+        planes: bool,
+    ) -> Result<std::borrow::Cow<'a, [u8]>, WireError> {
+        let b: &'a [u8] = self.b;
+        let len = n.saturating_mul(stride);
+        if b.len() - self.at < len {
+            return Err(WireError(format!(
+                "truncated at byte {} (wanted {len} more)",
+                self.at
+            )));
+        }
+        let bytes = &b[self.at..self.at + len];
+        self.at += len;
+        if !planes {
+            return Ok(bytes.into());
+        }
+        let mut rows = Vec::with_capacity(len);
+        pack::from_planes(bytes, stride, &mut rows);
+        Ok(rows.into())
     }
     /// A tile rectangle (x0 y0 x1 y1).
     fn tile(&mut self) -> Result<Tile, WireError> {
@@ -624,15 +682,18 @@ impl Reader<'_> {
         })
     }
     /// Fills `acc` (whose layout says how much) with the optimal-MIS values and hit counts.
-    fn optimal_into(&mut self, acc: &mut OptimalAccum) -> Result<(), WireError> {
+    /// Each list in byte planes when `planes`.
+    fn optimal_into(&mut self, acc: &mut OptimalAccum, planes: bool) -> Result<(), WireError> {
         if acc.data.len() * 8 + acc.hits.len() * 4 > self.b.len() - self.at {
             return Err(WireError("optimal systems truncated".into()));
         }
-        for v in acc.data.iter_mut() {
-            *v = self.f64()?;
+        let data = self.rows(acc.data.len(), 8, planes)?;
+        for (v, b) in acc.data.iter_mut().zip(data.chunks_exact(8)) {
+            *v = f64::from_le_bytes(b.try_into().expect("8 bytes"));
         }
-        for v in acc.hits.iter_mut() {
-            *v = self.u32()?;
+        let hits = self.rows(acc.hits.len(), 4, planes)?;
+        for (v, b) in acc.hits.iter_mut().zip(hits.chunks_exact(4)) {
+            *v = u32::from_le_bytes(b.try_into().expect("4 bytes"));
         }
         Ok(())
     }
@@ -664,31 +725,43 @@ impl Reader<'_> {
 impl TileFilm {
     /// Serialises the result for upload.
     pub fn encode(&self, samples: std::ops::Range<u32>) -> Vec<u8> {
+        self.encode_as(samples, VERSION).out
+    }
+
+    /// Serialises the result for upload, with the offsets where its planes end: the cuts at
+    /// which `pack::pack_pieces` packs it.
+    pub fn encode_in_planes(&self, samples: std::ops::Range<u32>) -> (Vec<u8>, Vec<usize>) {
+        let w = self.encode_as(samples, VERSION);
+        (w.out, w.cuts)
+    }
+
+    /// Serialises the result in format `version` (`VERSION`, or `VERSION_ROWS` for tests).
+    fn encode_as(&self, samples: std::ops::Range<u32>, version: u32) -> Writer {
         let px = self.tile.pixels();
-        let mut w = Writer::new(Vec::with_capacity(64 + px * 52));
+        let mut w = Writer::new(Vec::with_capacity(128 + px * 52));
+        w.planes = version == VERSION;
         w.bytes(MAGIC);
-        w.u32(VERSION);
+        w.u32(version);
         for v in [self.tile.x0, self.tile.y0, self.tile.x1, self.tile.y1] {
             w.u32(v);
         }
         w.u32(samples.start);
         w.u32(samples.end);
         w.stats(&self.stats);
+        let mut sums = Vec::with_capacity(px * 52);
         for i in 0..px {
-            w.u32(self.sums.count[i]);
-            for c in 0..3 {
-                w.f64(self.sums.sum[i][c]);
-            }
-            for c in 0..3 {
-                w.f64(self.sums.sum_sq[i][c]);
+            sums.extend_from_slice(&self.sums.count[i].to_le_bytes());
+            for v in self.sums.sum[i].iter().chain(&self.sums.sum_sq[i]) {
+                sums.extend_from_slice(&v.to_le_bytes());
             }
         }
+        w.rows(&sums, 52);
         w.splats(&self.splats, SplatKeys::of_film(self));
         w.rgb_list(&self.layers);
         w.rgb_list(&self.depths);
         w.optimal(self.optimal.as_ref());
         w.records(&self.records, self.optimal.as_ref().map(|o| o.layout.d_opt));
-        w.out
+        w
     }
 
     /// Parses and validates an uploaded result for a frame of `width` x `height` pixels whose
@@ -726,7 +799,7 @@ impl TileFilm {
     ) -> Result<(Checked, Option<TileFilm>), WireError> {
         let d_opt = layout.d_opt();
         let mut r = Reader { b: bytes, at: 0 };
-        r.header(MAGIC, VERSION, "tile result")?;
+        let planes = r.header_of(MAGIC, &[VERSION, VERSION_ROWS], "tile result")? == VERSION;
         let tile = r.tile()?;
         if !(tile.x0 < tile.x1 && tile.y0 < tile.y1 && tile.x1 <= width && tile.y1 <= height) {
             return Err(WireError(format!("tile {tile:?} outside {width}x{height}")));
@@ -770,23 +843,25 @@ impl TileFilm {
             return Ok((checked, None));
         }
         let mut sums = PixelSums::new(tile.width(), tile.height());
+        let rows = r.rows(px, 52, planes)?;
+        let mut p = Reader { b: &rows, at: 0 };
         for i in 0..px {
-            sums.count[i] = r.u32()?;
+            sums.count[i] = p.u32()?;
             for c in 0..3 {
-                sums.sum[i][c] = r.f64()?;
+                sums.sum[i][c] = p.f64()?;
             }
             for c in 0..3 {
-                sums.sum_sq[i][c] = r.f64()?;
+                sums.sum_sq[i][c] = p.f64()?;
             }
         }
         let splats = r.splats(0..frame_px, keys)?;
-        let layers = read_rgb_list(&mut r, strategy_values, px, "strategy layer")?;
-        let depths = read_rgb_list(&mut r, px * layout.depth_layers, px, "depth layer")?;
+        let layers = read_rgb_list(&mut r, strategy_values, px, "strategy layer", planes)?;
+        let depths = read_rgb_list(&mut r, px * layout.depth_layers, px, "depth layer", planes)?;
         let optimal = match (r.u32()?, &layout.optimal) {
             (0, None) => None,
             (d, Some(l)) if d == l.d_opt => {
                 let mut acc = OptimalAccum::new(l.clone(), px);
-                r.optimal_into(&mut acc)?;
+                r.optimal_into(&mut acc, planes)?;
                 Some(acc)
             }
             (d, _) => return Err(optimal_mismatch(d, d_opt)),
@@ -857,22 +932,25 @@ fn check_rgb_count(r: &mut Reader, want: usize, px: usize, what: &str) -> Result
     Ok(())
 }
 
-/// Reads a list of RGB f64 triples (`want` of them for `px` pixels).
+/// Reads a list of RGB f64 triples (`want` of them for `px` pixels; in byte planes when
+/// `planes`).
 fn read_rgb_list(
     r: &mut Reader,
     want: usize,
     px: usize,
     what: &str,
+    planes: bool,
 ) -> Result<Vec<[f64; 3]>, WireError> {
     let n = r.count(24, what)?;
     if n != want {
         return Err(WireError(format!("{n} {what} values for {px} pixels")));
     }
-    let mut list = Vec::with_capacity(n);
-    for _ in 0..n {
-        list.push([r.f64()?, r.f64()?, r.f64()?]);
-    }
-    Ok(list)
+    let rows = r.rows(n, 24, planes)?;
+    let f = |b: &[u8]| f64::from_le_bytes(b.try_into().expect("8 bytes"));
+    Ok(rows
+        .chunks_exact(24)
+        .map(|v| [f(&v[..8]), f(&v[8..16]), f(&v[16..])])
+        .collect())
 }
 
 /// The accumulators of a `FilmTile`, after a tile checkpoint's header:
@@ -1002,7 +1080,7 @@ fn walk_tile_body(
         (None, _) if d == 0 => {}
         (Some((d_opt, values, hits)), t) if d_opt == d => {
             match t.and_then(|t| t.optimal.as_mut()) {
-                Some(o) => r.optimal_into(o)?,
+                Some(o) => r.optimal_into(o, false)?,
                 None => {
                     if values * 8 + hits * 4 > r.b.len() - r.at {
                         return Err(WireError("optimal systems truncated".into()));
@@ -1320,7 +1398,8 @@ pub fn encode_banded(
     let d_opt = film.optimal.as_ref().map(|o| o.layout.d_opt);
     film.splats = Vec::new();
     film.records = LtRecords::default();
-    let own = pack::pack(&film.encode(samples.clone()));
+    let (own, cuts) = film.encode_in_planes(samples.clone());
+    let own = pack::pack_pieces(&own, &cuts);
     let sections: Vec<(u32, Vec<u8>)> = bands
         .into_iter()
         .map(|(b, routed)| {
@@ -1436,6 +1515,7 @@ pub fn relabel_banded(
     let index = BandedIndex::read(&mut &bytes[..], bytes.len() as u64)?;
     let part = |r: &std::ops::Range<u64>| &bytes[r.start as usize..r.end as usize];
     let mut own = pack::unpack_vec(part(&index.own), usize::MAX)?;
+    let cuts = pack::piece_cuts(part(&index.own))?;
     let fields = [
         tile.x0,
         tile.y0,
@@ -1456,7 +1536,7 @@ pub fn relabel_banded(
         tile,
         samples,
         &index.stats,
-        &pack::pack(&own),
+        &pack::pack_pieces(&own, &cuts),
         &sections,
     ))
 }
@@ -1535,4 +1615,63 @@ fn section(
         )));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::integrator::{IntegratorKind, RenderSettings, render_tile};
+
+    /// A result of version 6 (records one after another) still reads, to the film that the byte
+    /// planes of version 7 hold; both have the same length and check alike, and the planes are
+    /// where the pieces are cut.
+    #[test]
+    fn results_in_rows_and_in_byte_planes_read_the_same() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes");
+        let mut scene = crate::scene::Scene::load(&dir.join("cornell-box.json")).expect("scene");
+        scene.camera = scene.camera.with_resolution(16, 16).expect("resolution");
+        let s = RenderSettings {
+            integrator: IntegratorKind::Bdpt,
+            mis: crate::mis::MisKind::Optimal,
+            spp: 2,
+            max_depth: 3,
+            optimal_max_depth: 2,
+            strategies: true,
+            depth_layers: true,
+            seed: 3,
+            ..Default::default()
+        };
+        let tile = Tile {
+            x0: 2,
+            y0: 3,
+            x1: 13,
+            y1: 9,
+        };
+        let film = render_tile(&scene, &s, tile, 0..2);
+        assert!(!film.layers.is_empty() && !film.depths.is_empty() && film.optimal.is_some());
+        let layout = s.film_layout();
+        let (planes, cuts) = film.encode_in_planes(0..2);
+        let rows = film.encode_as(0..2, VERSION_ROWS).out;
+        assert_eq!(planes, film.encode(0..2));
+        assert_eq!(planes.len(), rows.len());
+        assert_ne!(planes, rows);
+        let (a, ra) = TileFilm::decode(&planes, 16, 16, &layout).expect("version 7");
+        let (b, rb) = TileFilm::decode(&rows, 16, 16, &layout).expect("version 6");
+        assert_eq!((ra, rb), (0..2, 0..2));
+        assert_eq!(a.encode(0..2), planes, "the film read back");
+        assert_eq!(b.encode(0..2), planes, "the same film from the rows");
+        assert_eq!(
+            TileFilm::check(&planes, 16, 16, &layout).expect("checks"),
+            TileFilm::check(&rows, 16, 16, &layout).expect("checks")
+        );
+        let mut other = planes.clone();
+        other[8..12].copy_from_slice(&5u32.to_le_bytes());
+        assert!(TileFilm::decode(&other, 16, 16, &layout).is_err());
+        assert!(TileFilm::check(&other, 16, 16, &layout).is_err());
+        // The sums' 52 planes of a byte per pixel start after the 68-byte header.
+        let px = tile.pixels();
+        for j in 0..=52 {
+            assert!(cuts.contains(&(68 + j * px)), "plane {j}");
+        }
+    }
 }
