@@ -206,16 +206,30 @@ impl ExrLayout {
             ));
         }
         let rows = self.block_rows(b);
-        let samples = self
-            .header
-            .compression
-            .decompress_image_section_from_le(
-                &self.header,
-                bytes.to_vec(),
-                self.bounds(&rows),
-                true,
-            )
-            .map_err(|e| format!("EXR block {b}: {e}"))?;
+        let n = rows.len() * self.width * self.order.len() * 4;
+        let zip = matches!(
+            self.header.compression,
+            Compression::ZIP16 | Compression::ZIP1
+        );
+        let samples = if zip && bytes.len() != n {
+            unzip(bytes, n).map_err(|e| format!("EXR block {b}: {e}"))?
+        } else {
+            self.header
+                .compression
+                .decompress_image_section_from_le(
+                    &self.header,
+                    bytes.to_vec(),
+                    self.bounds(&rows),
+                    true,
+                )
+                .map_err(|e| format!("EXR block {b}: {e}"))?
+        };
+        if samples.len() != n {
+            return Err(format!(
+                "EXR block {b} holds {} bytes of samples, not {n}",
+                samples.len()
+            ));
+        }
         Ok(Block {
             first_line: rows.start,
             samples,
@@ -308,6 +322,49 @@ pub fn write_exr_in_blocks(
 ) -> Result<(), String> {
     write_layers(path, beauty, extra, attributes, |w, h, names| {
         ExrLayout::new(w, h, names, lines)
+    })
+}
+
+/// The `n` bytes of samples (little-endian f32, which this machine's are) that an EXR ZIP
+/// block `zlib` holds, or why it holds no such thing. OpenEXR's ZIP compression: the bytes are
+/// split into their even and odd halves, each byte stored as its difference to the one before
+/// plus 128, and the whole deflated in a zlib stream. Inflated by libdeflate (Biggers), which
+/// takes the stream whole into a buffer of the size it must fill: the coordinator inflates every
+/// block of a job's final EXR to check it.
+fn unzip(zlib: &[u8], n: usize) -> Result<Vec<u8>, String> {
+    const _: () = assert!(
+        cfg!(target_endian = "little"),
+        "EXR samples are little-endian"
+    );
+    thread_local! {
+        static INFLATE: std::cell::RefCell<(libdeflater::Decompressor, Vec<u8>)> =
+            std::cell::RefCell::new((libdeflater::Decompressor::new(), Vec::new()));
+    }
+    INFLATE.with_borrow_mut(|(inflater, diffs)| {
+        diffs.clear();
+        diffs.resize(n, 0);
+        match inflater.zlib_decompress(zlib, diffs) {
+            Ok(k) if k == n => {}
+            Ok(k) => return Err(format!("the zlib stream holds {k} bytes, not {n}")),
+            Err(e) => return Err(format!("not a zlib stream of {n} bytes: {e}")),
+        }
+        let mut prev = 0u8;
+        for (i, d) in diffs.iter_mut().enumerate() {
+            if i > 0 {
+                *d = prev.wrapping_add(*d).wrapping_sub(128);
+            }
+            prev = *d;
+        }
+        let (even, odd) = diffs.split_at(n.div_ceil(2));
+        let mut out = vec![0u8; n];
+        for (pair, (e, o)) in out.chunks_exact_mut(2).zip(even.iter().zip(odd)) {
+            pair[0] = *e;
+            pair[1] = *o;
+        }
+        if n % 2 == 1 {
+            out[n - 1] = even[n / 2];
+        }
+        Ok(out)
     })
 }
 
@@ -520,6 +577,58 @@ mod tests {
         write_exr(&zip, &beauty, &[], &[("omis.spp", "3".into())]).unwrap();
         assert_eq!(read_exr(&zip).unwrap(), beauty);
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn zip_blocks_inflate_as_the_exr_crate_reads_them() {
+        let (w, h) = (37, 40);
+        let img = ramp(w, h, 3);
+        let layout = ExrLayout::new(w, h, &["variance".into()], 16).unwrap();
+        for b in 0..layout.blocks() {
+            let bytes = layout
+                .compress_block(b, |_, y| &img.pixels[y * w..(y + 1) * w])
+                .unwrap();
+            let rows = layout.block_rows(b);
+            let theirs = layout
+                .header
+                .compression
+                .decompress_image_section_from_le(
+                    &layout.header,
+                    bytes.clone(),
+                    layout.bounds(&rows),
+                    true,
+                )
+                .unwrap();
+            assert!(bytes.len() < theirs.len(), "compressed");
+            assert_eq!(layout.decompress_block(b, &bytes).unwrap().samples, theirs);
+        }
+        // OpenEXR's ZIP of bytes of any length, odd ones too; a stream of the wrong length is
+        // refused.
+        let mut zip = libdeflater::Compressor::new(libdeflater::CompressionLvl::default());
+        for n in [1usize, 2, 3, 17, 1000, 1001] {
+            let raw: Vec<u8> = (0..n).map(|i| (i * i % 253) as u8).collect();
+            let mut t: Vec<u8> = raw
+                .iter()
+                .step_by(2)
+                .chain(raw.iter().skip(1).step_by(2))
+                .copied()
+                .collect();
+            for i in (1..n).rev() {
+                t[i] = t[i].wrapping_sub(t[i - 1]).wrapping_add(128);
+            }
+            let mut z = vec![0; zip.zlib_compress_bound(n)];
+            let k = zip.zlib_compress(&t, &mut z).unwrap();
+            z.truncate(k);
+            assert_eq!(unzip(&z, n).unwrap(), raw, "{n} bytes");
+            assert!(unzip(&z, n + 1).is_err());
+            assert!(unzip(&z, n - 1).is_err());
+            if n > 1 {
+                assert!(
+                    layout.decompress_block(1, &z).is_err(),
+                    "{n} bytes in block 1"
+                );
+            }
+        }
     }
 
     #[test]
