@@ -111,42 +111,36 @@ const PLANE_BLOCK: usize = 64;
 /// and exponent, the high mantissa, the low mantissa that a sum of few f32 values leaves zero)
 /// then lie together, and each plane is compressed or stored on its own (`pack_pieces`).
 pub fn to_planes(rows: &[u8], stride: usize, out: &mut Vec<u8>) {
-    assert!(
-        stride > 0 && rows.len().is_multiple_of(stride),
-        "whole records"
-    );
-    let n = rows.len() / stride;
-    let start = out.len();
-    out.resize(start + rows.len(), 0);
-    let planes = &mut out[start..];
-    for (k, block) in rows.chunks(stride * PLANE_BLOCK).enumerate() {
-        let first = k * PLANE_BLOCK;
-        for j in 0..stride {
-            let plane = &mut planes[j * n + first..][..block.len() / stride];
-            for (i, b) in plane.iter_mut().enumerate() {
-                *b = block[i * stride + j];
-            }
-        }
-    }
+    transpose(rows, stride, out, true);
 }
 
 /// Appends the records held in byte planes by `planes` (`to_planes` of `stride`-byte records)
 /// to `out`, row-major again.
 pub fn from_planes(planes: &[u8], stride: usize, out: &mut Vec<u8>) {
+    transpose(planes, stride, out, false);
+}
+
+/// Appends `src`, records of `stride` bytes, to `out` with byte j of record i moved from
+/// i * stride + j to j * records + i (`into_planes`) or back, a block of records at a time.
+fn transpose(src: &[u8], stride: usize, out: &mut Vec<u8>, into_planes: bool) {
     assert!(
-        stride > 0 && planes.len().is_multiple_of(stride),
+        stride > 0 && src.len().is_multiple_of(stride),
         "whole records"
     );
-    let n = planes.len() / stride;
+    let n = src.len() / stride;
     let start = out.len();
-    out.resize(start + planes.len(), 0);
-    let rows = &mut out[start..];
-    for (k, block) in rows.chunks_mut(stride * PLANE_BLOCK).enumerate() {
-        let first = k * PLANE_BLOCK;
+    out.resize(start + src.len(), 0);
+    let dst = &mut out[start..];
+    for first in (0..n).step_by(PLANE_BLOCK) {
+        let rows = first..(first + PLANE_BLOCK).min(n);
         for j in 0..stride {
-            let plane = &planes[j * n + first..][..block.len() / stride];
-            for (i, b) in plane.iter().enumerate() {
-                block[i * stride + j] = *b;
+            for i in rows.clone() {
+                let (row, plane) = (i * stride + j, j * n + i);
+                if into_planes {
+                    dst[plane] = src[row];
+                } else {
+                    dst[row] = src[plane];
+                }
             }
         }
     }
