@@ -2,7 +2,9 @@
 //! a 1080p optimal-MIS job (Cornell box, BDPT, D_opt 1, first pass of 16 spp), rendered here
 //! from 24 tiles spread over the frame; and what a worker does to make them
 //! (`wire::encode_banded`, which packs every part). `cargo bench --bench check_uploads` prints
-//! both throughputs, in bytes uploaded (BENCHMARKS.md #12).
+//! both throughputs, in bytes uploaded (BENCHMARKS.md #12); then the check of a 1080p
+//! path-tracing job's results in pixels a second (formats of different sizes compare), and
+//! their size against their raw bytes.
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use omis::job::{JobSettings, Limits};
@@ -15,12 +17,8 @@ type Results = (
     omis::film::FilmLayout,
 );
 
-fn results() -> Results {
-    let settings: JobSettings = serde_json::from_value(serde_json::json!({
-        "resolution": [1920, 1080], "spp": 48, "integrator": "bdpt", "mis": "optimal",
-        "optimal_max_depth": 1, "seed": 1
-    }))
-    .expect("settings");
+fn render_results(job: serde_json::Value) -> Results {
+    let settings: JobSettings = serde_json::from_value(job).expect("settings");
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.json");
     let mut scene = Scene::load(&path).expect("scene");
     let r = settings
@@ -41,25 +39,50 @@ fn results() -> Results {
     (films, bytes, grid, r.film_layout())
 }
 
+/// Every result of `r` checked as the coordinator checks an upload.
+fn check_all(r: &Results) {
+    for bytes in &r.1 {
+        omis::film::wire::check_banded(bytes, &r.2, &r.3, u64::MAX).expect("valid");
+    }
+}
+
 fn check_uploads(c: &mut Criterion) {
-    let (films, results, grid, layout) = results();
+    let optimal = render_results(serde_json::json!({
+        "resolution": [1920, 1080], "spp": 48, "integrator": "bdpt", "mis": "optimal",
+        "optimal_max_depth": 1, "seed": 1
+    }));
+    let (films, results, grid, _) = &optimal;
     let total: usize = results.iter().map(Vec::len).sum();
     let mut g = c.benchmark_group("coordinator");
     g.throughput(Throughput::Bytes(total as u64));
     g.sample_size(20);
     g.bench_function("check_banded, 24 results of a 1080p optimal job", |b| {
-        b.iter(|| {
-            for r in &results {
-                omis::film::wire::check_banded(r, &grid, &layout, u64::MAX).expect("valid");
-            }
-        })
+        b.iter(|| check_all(&optimal))
     });
     g.bench_function("encode_banded (a worker), the same 24 results", |b| {
         b.iter(|| {
-            for f in &films {
-                std::hint::black_box(omis::film::wire::encode_banded(f.clone(), 0..16, &grid));
+            for f in films {
+                std::hint::black_box(omis::film::wire::encode_banded(f.clone(), 0..16, grid));
             }
         })
+    });
+    g.finish();
+    let pt = render_results(serde_json::json!({
+        "resolution": [1920, 1080], "spp": 48, "integrator": "pt", "seed": 1
+    }));
+    let (films, results, _, _) = &pt;
+    let pixels: usize = films.iter().map(|f| f.tile.pixels()).sum();
+    let packed: usize = results.iter().map(Vec::len).sum();
+    let raw: usize = films.iter().map(|f| f.encode(0..16).len()).sum();
+    println!(
+        "24 results of a 1080p PT job: {packed} bytes uploaded, {:.3} of their {raw} raw bytes",
+        packed as f64 / raw as f64
+    );
+    let mut g = c.benchmark_group("coordinator");
+    g.throughput(Throughput::Elements(pixels as u64));
+    g.sample_size(20);
+    g.bench_function("check_banded, 24 results of a 1080p PT job (pixels)", |b| {
+        b.iter(|| check_all(&pt))
     });
     g.finish();
 }

@@ -16,8 +16,9 @@
 //! size), their low bytes (mantissa noise: stored, never inflated) and the f32 values: an
 //! optimal-MIS job ships 14.6 bytes per pixel sample in pieces against 17.1 as one frame per
 //! section (`omis bench-coordinator`, BENCHMARKS.md #12 stop 32). A result's own part is cut
-//! into the byte planes of its fixed-size records (`to_planes`): a path-tracing part shrinks
-//! from 0.47 to 0.39 of its size and inflates 3.6 times as fast (stop 37).
+//! into the byte planes of its fixed-size records (`to_planes`): path-tracing results shrink
+//! from 0.41 to 0.34 of their raw size and are checked 3.1 times as fast (`cargo bench --bench
+//! check_uploads`, stop 37).
 
 use super::wire::WireError;
 use std::cell::RefCell;
@@ -152,27 +153,16 @@ pub fn piece_cuts(part: &[u8]) -> Result<Vec<usize>, WireError> {
     if part.first() != Some(&PIECES) {
         return Ok(Vec::new());
     }
-    let count = part
-        .get(HEAD..HEAD + 4)
-        .map(|c| u32::from_le_bytes(c.try_into().expect("4 bytes")) as usize)
-        .ok_or_else(|| WireError("packed part in pieces: no piece count".into()))?;
-    let payload = &part[HEAD..];
-    let (mut at, mut raw) = (4, 0usize);
-    let mut cuts = Vec::new();
-    for k in 0..count {
-        let head = payload.get(at..at + PIECE_HEAD).ok_or_else(|| {
-            WireError(format!(
-                "packed part in pieces: piece {k} of {count} truncated"
-            ))
-        })?;
-        let word = |i: usize| u32::from_le_bytes(head[i..i + 4].try_into().expect("4")) as usize;
-        raw += word(1);
-        at += PIECE_HEAD + word(5);
-        if k + 1 < count {
-            cuts.push(raw);
-        }
-    }
-    Ok(cuts)
+    let payload = part
+        .get(HEAD..)
+        .ok_or_else(|| piece_error("no piece count".into()))?;
+    let mut ends = Vec::new();
+    for_pieces(payload, |_, _, len, _| {
+        ends.push(ends.last().copied().unwrap_or(0) + len);
+        Ok(())
+    })?;
+    ends.pop();
+    Ok(ends)
 }
 
 /// The raw length a part says it holds (checked when it is unpacked).
@@ -268,43 +258,63 @@ fn inflate(frame: &[u8], n: usize, raw: &mut Vec<u8>) -> Result<(), WireError> {
 /// Appends the pieces of `payload` (a PIECES part that says it holds `n` bytes) to `raw`,
 /// checking every piece's head against the part and against what it inflates to.
 fn unpieces(payload: &[u8], n: usize, raw: &mut Vec<u8>) -> Result<(), WireError> {
-    let bad = |what: String| Err(WireError(format!("packed part in pieces: {what}")));
+    for_pieces(payload, |k, method, len, body| {
+        if len > n - raw.len() {
+            return Err(piece_error(format!(
+                "piece {k} of {len} bytes overflows the part's {n}"
+            )));
+        }
+        match method {
+            STORED if body.len() == len => raw.extend_from_slice(body),
+            ZSTD => inflate(body, len, raw)?,
+            m => {
+                return Err(piece_error(format!(
+                    "piece {k} of method {m} ({} bytes for {len})",
+                    body.len()
+                )));
+            }
+        }
+        Ok(())
+    })
+}
+
+/// Calls `f(k, method, raw length, payload)` for each piece of `payload` (a PIECES part's),
+/// in order, checking that the heads and payloads lie within it and fill it.
+fn for_pieces<'a>(
+    payload: &'a [u8],
+    mut f: impl FnMut(usize, u8, usize, &'a [u8]) -> Result<(), WireError>,
+) -> Result<(), WireError> {
     let Some(count) = payload.get(..4) else {
-        return bad("no piece count".into());
+        return Err(piece_error("no piece count".into()));
     };
     let count = u32::from_le_bytes(count.try_into().expect("4 bytes")) as usize;
     let mut at = 4;
     for k in 0..count {
         let Some(head) = payload.get(at..at + PIECE_HEAD) else {
-            return bad(format!("piece {k} of {count} truncated"));
+            return Err(piece_error(format!("piece {k} of {count} truncated")));
         };
         let word = |i: usize| u32::from_le_bytes(head[i..i + 4].try_into().expect("4")) as usize;
         let (method, len, stored) = (head[0], word(1), word(5));
         at += PIECE_HEAD;
         let Some(body) = payload.get(at..at.saturating_add(stored)) else {
-            return bad(format!("piece {k} of {stored} bytes truncated"));
+            return Err(piece_error(format!(
+                "piece {k} of {stored} bytes truncated"
+            )));
         };
         at += stored;
-        if len > n - raw.len() {
-            return bad(format!("piece {k} of {len} bytes overflows the part's {n}"));
-        }
-        match method {
-            STORED if stored == len => raw.extend_from_slice(body),
-            ZSTD => inflate(body, len, raw)?,
-            m => {
-                return bad(format!(
-                    "piece {k} of method {m} ({stored} bytes for {len})"
-                ));
-            }
-        }
+        f(k, method, len, body)?;
     }
     if at != payload.len() {
-        return bad(format!(
+        return Err(piece_error(format!(
             "{} bytes after its {count} pieces",
             payload.len() - at
-        ));
+        )));
     }
     Ok(())
+}
+
+fn piece_error(what: String) -> WireError {
+    WireError(format!("packed part in pieces: {what}"))
 }
 
 /// The raw bytes of `part` as a vector (tests, tools).

@@ -113,17 +113,18 @@ impl Writer {
             planes: false,
         }
     }
-    /// Fixed-size records, row-major in `rows` (`stride` bytes each): in byte planes, each
-    /// ending at a cut, where the writer lays them so; else as they are.
-    fn rows(&mut self, rows: &[u8], stride: usize) {
+    /// Fixed-size records of `S` bytes: in byte planes, each ending at a cut, where the writer
+    /// lays them so; else one after another.
+    fn rows<const S: usize>(&mut self, rows: impl Iterator<Item = [u8; S]>) {
         if !self.planes {
-            return self.bytes(rows);
+            return self.out.extend(rows.flatten());
         }
+        let rows: Vec<u8> = rows.flatten().collect();
         self.cut();
         let start = self.out.len();
-        pack::to_planes(rows, stride, &mut self.out);
-        let n = rows.len() / stride;
-        self.cuts.extend((1..=stride).map(|j| start + j * n));
+        pack::to_planes(&rows, S, &mut self.out);
+        let n = rows.len() / S;
+        self.cuts.extend((1..=S).map(|j| start + j * n));
     }
     /// Marks the end of a plane.
     fn cut(&mut self) {
@@ -175,12 +176,13 @@ impl Writer {
     /// A counted list of RGB f64 triples (strategy or depth layers).
     fn rgb_list(&mut self, list: &[[f64; 3]]) {
         self.u32(list.len() as u32);
-        let rows: Vec<u8> = list
-            .iter()
-            .flatten()
-            .flat_map(|v| v.to_le_bytes())
-            .collect();
-        self.rows(&rows, 24);
+        self.rows(list.iter().map(|[r, g, b]| {
+            let mut row = [0u8; 24];
+            for (at, v) in row.chunks_exact_mut(8).zip([r, g, b]) {
+                at.copy_from_slice(&v.to_le_bytes());
+            }
+            row
+        }));
     }
     /// A counted list of splats, sorted by pixel (`TileFilm::compact`; routing keeps the
     /// order), in planes: delta-coded pixels, their layers and depths only where the film keeps
@@ -279,10 +281,8 @@ impl Writer {
             None => self.u32(0),
             Some(o) => {
                 self.u32(o.layout.d_opt);
-                let data: Vec<u8> = o.data.iter().flat_map(|v| v.to_le_bytes()).collect();
-                self.rows(&data, 8);
-                let hits: Vec<u8> = o.hits.iter().flat_map(|v| v.to_le_bytes()).collect();
-                self.rows(&hits, 4);
+                self.rows(o.data.iter().map(|v| v.to_le_bytes()));
+                self.rows(o.hits.iter().map(|v| v.to_le_bytes()));
             }
         }
     }
@@ -748,14 +748,15 @@ impl TileFilm {
         w.u32(samples.start);
         w.u32(samples.end);
         w.stats(&self.stats);
-        let mut sums = Vec::with_capacity(px * 52);
-        for i in 0..px {
-            sums.extend_from_slice(&self.sums.count[i].to_le_bytes());
-            for v in self.sums.sum[i].iter().chain(&self.sums.sum_sq[i]) {
-                sums.extend_from_slice(&v.to_le_bytes());
+        w.rows((0..px).map(|i| {
+            let mut row = [0u8; 52];
+            row[..4].copy_from_slice(&self.sums.count[i].to_le_bytes());
+            let values = self.sums.sum[i].iter().chain(&self.sums.sum_sq[i]);
+            for (at, v) in row[4..].chunks_exact_mut(8).zip(values) {
+                at.copy_from_slice(&v.to_le_bytes());
             }
-        }
-        w.rows(&sums, 52);
+            row
+        }));
         w.splats(&self.splats, SplatKeys::of_film(self));
         w.rgb_list(&self.layers);
         w.rgb_list(&self.depths);

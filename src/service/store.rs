@@ -104,9 +104,9 @@ pub(crate) fn write_replacing(path: &Path, bytes: &[u8], durable: bool) -> std::
 /// file again 0.16-0.19 s; a coordinator's second and later balance jobs took a fifth less CPU
 /// (BENCHMARKS.md #12, stop 35). Since the logs go around the page cache (`log_file`, stop 36)
 /// that gain is gone (jobs 1 / 2 / 3: 2.63 / 2.62 / 2.46 s): recycling pays where a file system
-/// refuses direct I/O and the logs fall back to the page cache. Records are not fsync'd: a record damaged by a power cut (or
-/// found holding an older pass's bytes) fails its checksums when merged, and its task is
-/// rendered again.
+/// refuses direct I/O and the logs fall back to the page cache. Records are not fsync'd: a
+/// record damaged by a power cut (or found holding an older pass's bytes) fails its checksums
+/// when merged, and its task is rendered again.
 #[derive(Default)]
 pub(crate) struct ResultLogs {
     /// Per job, per log (pass parity): the pass writing it now and where its records end.
