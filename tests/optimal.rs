@@ -1051,7 +1051,7 @@ fn damaged_results_are_refused(
 /// a partial output, and so is an output with a damaged block.
 #[test]
 fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input() {
-    use omis::film::merge::{self, MergeHead, MergeOutput};
+    use omis::film::merge::{self, MergeHead, MergeOut, MergeOutput};
     use omis::film::wire::{self, BandedIndex};
     use omis::film::{TileGrid, band_groups};
     let (w, h) = (24, 20);
@@ -1087,11 +1087,17 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
             for bands in &groups {
                 let b = bands.start as u32..bands.end as u32;
                 let group_tiles = grid.tiles_of_bands(bands.clone());
+                let kind = if last {
+                    MergeOut::Exr
+                } else {
+                    MergeOut::Checkpoints
+                };
                 let mut input = MergeHead {
                     bands: b.clone(),
                     pass: p as u32,
+                    merged: 1,
                     light_paths: (w * h * range.end) as u64,
-                    last,
+                    out: kind,
                     results: stored.len() as u32,
                 }
                 .encode();
@@ -1122,12 +1128,14 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
                     }
                 }
                 let out = merge::run(&input[..], &grid, &layout).expect("merge");
-                let decode = |bytes: &[u8], b: std::ops::Range<u32>, passes: u32, last: bool| {
-                    MergeOutput::decode(bytes, &grid, &layout, b, passes, last).is_ok()
+                let decode = |bytes: &[u8], b: std::ops::Range<u32>, passes: u32, k: MergeOut| {
+                    MergeOutput::decode(bytes, &grid, &layout, b, passes, k).is_ok()
                 };
-                let got = MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32 + 1, last)
+                let got = MergeOutput::decode(&out, &grid, &layout, b.clone(), p as u32 + 1, kind)
                     .expect("the output checks");
-                assert!(!decode(&out, b.clone(), p as u32 + 1, !last));
+                for other in [MergeOut::Checkpoints, MergeOut::Beauty, MergeOut::Exr] {
+                    assert_eq!(decode(&out, b.clone(), p as u32 + 1, other), other == kind);
+                }
                 // The beauty: per tile, or the group's rows (read from its EXR blocks).
                 for (tile, img) in &got.beauty {
                     for y in 0..tile.height() {
@@ -1163,7 +1171,7 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
                     for at in [first_len + 2, out.len() - 3] {
                         let mut bad = out.clone();
                         bad[at] ^= 0x5a;
-                        assert!(!decode(&bad, b.clone(), p as u32 + 1, last), "byte {at}");
+                        assert!(!decode(&bad, b.clone(), p as u32 + 1, kind), "byte {at}");
                     }
                 } else {
                     assert_eq!(got.checkpoints.len(), group_tiles.len());
@@ -1174,8 +1182,8 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
                 }
                 // Another task's bands or passes: refused.
                 let other = b.start + 1..b.end + 1;
-                assert!(!decode(&out, other, p as u32 + 1, last));
-                assert!(!decode(&out, b.clone(), p as u32, last));
+                assert!(!decode(&out, other, p as u32 + 1, kind));
+                assert!(!decode(&out, b.clone(), p as u32, kind));
                 for cut in (0..input.len()).step_by(input.len() / 40 + 1) {
                     assert!(
                         merge::run(&input[..cut], &grid, &layout).is_err(),

@@ -422,7 +422,12 @@ fn progressive_optimal_survives_a_coordinator_restart_with_the_in_process_bits()
 
 /// A tile result as a worker would upload it, rendered with `seed`.
 fn tile_result(task: &Value, seed: u64) -> Vec<u8> {
-    let mut s: JobSettings = serde_json::from_value(settings(64)).expect("settings");
+    tile_result_of(&settings(64), task, seed)
+}
+
+/// `tile_result` of a job of `settings`.
+fn tile_result_of(settings: &Value, task: &Value, seed: u64) -> Vec<u8> {
+    let mut s: JobSettings = serde_json::from_value(settings.clone()).expect("settings");
     s.seed = seed;
     let mut scene = Scene::load(&repo().join("scenes/cornell-box.json")).expect("scene");
     let r = s.resolve(&mut scene, &Limits::default()).expect("resolve");
@@ -620,12 +625,24 @@ fn a_recorded_result_damaged_on_disk_is_rendered_again() {
 /// merged, with the path of its first band's tile checkpoints and their bytes, and the length of
 /// one slot.
 fn first_pass_merged(c: &Client, url: &str, data: &Path) -> (String, PathBuf, Vec<u8>, usize) {
-    let id = submit(c, url, 8);
+    let id = merge_first_pass(c, url, &settings(8));
+    let layout = synthetic_layout(&settings(8));
+    let len = omis::film::wire::TileCheckpoint::encoded_len(16 * 16, &layout) as usize;
+    let band = data.join(format!("jobs/{id}/tiles/band-000000.acc"));
+    let bytes = std::fs::read(&band).expect("the band's checkpoints");
+    (id, band, bytes, len)
+}
+
+/// Submits a job of `settings` (6 tiles on 40x32) and, as its only worker, renders and merges
+/// its first pass; returns the job's id.
+fn merge_first_pass(c: &Client, url: &str, settings: &Value) -> String {
+    let id = submit_settings(c, url, settings.clone());
     let w = register(c, url, "manual");
     for _ in 0..6 {
         let t = lease(c, url, &w);
         assert_eq!(t["task"]["pass"], 0, "{t}");
-        assert_eq!(upload(c, url, &t, &w, tile_result(&t["task"], 7)), 200);
+        let body = tile_result_of(settings, &t["task"], 7);
+        assert_eq!(upload(c, url, &t, &w, body), 200);
     }
     // The pass's merge tasks (leased before the next pass's render tasks once they exist).
     let start = Instant::now();
@@ -635,14 +652,111 @@ fn first_pass_merged(c: &Client, url: &str, data: &Path) -> (String, PathBuf, Ve
         if t["task"]["kind"] == "merge" {
             assert_eq!(merge_task(c, url, &t, &w), 200);
         } else {
-            assert_eq!(upload(c, url, &t, &w, tile_result(&t["task"], 7)), 200);
+            let body = tile_result_of(settings, &t["task"], 7);
+            assert_eq!(upload(c, url, &t, &w, body), 200);
         }
     }
-    let layout = synthetic_layout(&settings(8));
-    let len = omis::film::wire::TileCheckpoint::encoded_len(16 * 16, &layout) as usize;
-    let band = data.join(format!("jobs/{id}/tiles/band-000000.acc"));
-    let bytes = std::fs::read(&band).expect("the band's checkpoints");
-    (id, band, bytes, len)
+    id
+}
+
+/// A path-traced job of `spp` in passes of 4 (no optimal-MIS systems: its checkpoints are
+/// written after every second pass).
+fn path_traced(spp: u32) -> Value {
+    let mut s = settings(spp);
+    s["integrator"] = json!("pt");
+    s.as_object_mut().expect("object").remove("mis");
+    s
+}
+
+/// A light job's first pass is merged without checkpoints (the next merge reads its results
+/// again), so its results and their tasks must outlive its record: across a coordinator
+/// restart right after it, and with one of its records damaged on disk after it was merged
+/// (its tile is rendered again), the job ends with the in-process bits.
+#[test]
+fn a_pass_merged_without_checkpoints_survives_a_restart_and_a_damaged_record() {
+    let dir = folder("deferred");
+    let data = dir.join("data");
+    let (mut server, url) = serve(&data, &[]);
+    let c = http();
+    let job = path_traced(12);
+    let id = merge_first_pass(&c, &url, &job);
+    let tiles = data.join(format!("jobs/{id}/tiles"));
+    let holds_checkpoints = || std::fs::read_dir(&tiles).is_ok_and(|mut d| d.next().is_some());
+    assert!(!holds_checkpoints(), "the first pass wrote checkpoints");
+    server.kill9();
+    let (mut server, url) = serve(&data, &["--workers", "2", "--lease-seconds", "1"]);
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 12);
+    assert_equal(
+        &download_exr(&c, &url, &id, &dir),
+        &in_process_settings(job),
+    );
+    server.kill9();
+
+    let (_server, url) = serve(&data, &[]);
+    let job = path_traced(8);
+    let id = merge_first_pass(&c, &url, &job);
+    // One byte of the first record's own part, which the first merge read whole.
+    let log = data.join(format!("jobs/{id}/results-0.log"));
+    let mut bytes = std::fs::read(&log).expect("the first pass's result log, still kept");
+    let sections = u32::from_le_bytes(bytes[80..84].try_into().expect("4 bytes")) as usize;
+    bytes[84 + sections * 16 + 4 + 40] ^= 0x10;
+    std::fs::write(&log, &bytes).expect("write the log");
+    let _w = worker(&url, "w", &[]);
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    assert_eq!(st["spp_done"], 8);
+    let tasks = 6.0 * 2.0; // 40x32 in tiles of 16, two passes
+    assert_eq!(metric(&c, &url, "omis_results_accepted_total"), tasks + 1.0);
+    assert_equal(
+        &download_exr(&c, &url, &id, &dir),
+        &in_process_settings(job),
+    );
+}
+
+/// The third pass of a light job writes the log its first pass wrote, while the merge of the
+/// second still reads the first pass's results from it: they go after them, and nothing is
+/// rendered twice.
+#[test]
+fn a_pass_that_shares_a_log_with_results_still_read_leaves_them_whole() {
+    let dir = folder("shared-log");
+    let (_server, url) = serve(&dir.join("data"), &[]);
+    let c = http();
+    let job = path_traced(12);
+    let id = merge_first_pass(&c, &url, &job);
+    let w = register(&c, &url, "manual2");
+    let render = |t: &Value| upload(&c, &url, t, &w, tile_result_of(&job, &t["task"], 7));
+    // One task of the second pass held back until every task of the third is in (the first
+    // worker may have rendered some of the second pass's already).
+    let held = lease(&c, &url, &w);
+    assert_eq!(held["task"]["pass"], 1, "{held}");
+    let mut third = 0;
+    while third < 6 {
+        let t = lease(&c, &url, &w);
+        assert_eq!(t["task"]["kind"], "render", "{t}");
+        third += (t["task"]["pass"] == 2) as usize;
+        assert_eq!(render(&t), 200);
+    }
+    assert_eq!(render(&held), 200);
+    let start = Instant::now();
+    while get_json(&c, &format!("{url}/v1/jobs/{id}"))["state"] != "done" {
+        assert!(start.elapsed() < WAIT, "the job did not end");
+        // 204 once nothing is left to lease.
+        let (_, t) = post(
+            &c,
+            &format!("{url}/v1/worker/lease"),
+            &json!({ "worker_id": w, "wait_s": 1 }),
+        );
+        match t["task"]["kind"].as_str() {
+            Some("merge") => assert_eq!(merge_task(&c, &url, &t, &w), 200),
+            Some(_) => assert_eq!(render(&t), 200),
+            None => {}
+        }
+    }
+    assert_eq!(metric(&c, &url, "omis_results_accepted_total"), 18.0);
+    assert_equal(
+        &download_exr(&c, &url, &id, &dir),
+        &in_process_settings(job),
+    );
 }
 
 #[test]

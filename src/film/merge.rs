@@ -1,10 +1,11 @@
 //! A pass merged by a worker instead of the coordinator: a merge task takes one band group (a few
-//! rows of tiles), reads the group's tile checkpoints and, in task order, every part of the
-//! pass's results that lands in the group, adds them with [`BandGroup`] (so the tiles get
-//! exactly the additions `Film::merge_task` makes: the in-process bits), and returns the tiles'
-//! new checkpoints and their beauty; on a job's last pass, from which nothing continues, it
-//! returns instead the group's scan lines of the final EXR, every layer, in compressed blocks
-//! (`exr_io::ExrLayout`). The coordinator only moves bytes: it streams the input from its result
+//! rows of tiles), reads the group's tile checkpoints and, pass by pass in task order, every
+//! part of the results since them that lands in the group, adds them with [`BandGroup`] (so the
+//! tiles get exactly the additions `Film::merge_task` makes: the in-process bits), and returns
+//! what the task asks for ([`MergeOut`]): the tiles' new checkpoints and their beauty, or their
+//! beauty alone (the next merge takes this pass's results again), or, on a job's last pass,
+//! from which nothing continues, the group's scan lines of the final EXR, every layer, in
+//! compressed blocks (`exr_io::ExrLayout`). The coordinator only moves bytes: it streams the input from its result
 //! log and checkpoint slots, checks the output (inflating the EXR blocks) and writes the
 //! checkpoints in place, or the EXR from the blocks; the work that grows with the records
 //! (decoding, applying light-tracing records to the optimal systems, solving) and the EXR's
@@ -13,19 +14,21 @@
 //! ```text
 //! input (coordinator -> worker), streamed:
 //!   magic "OMISMRGI", version u32, bands b0 b1 u32, pass u32 (passes the tiles hold),
-//!   light paths after the pass u64, last u8 (the job's last pass), results n u32
+//!   merged u32 (passes whose results follow), light paths after them u64, output u8
+//!   (`MergeOut`: 0 checkpoints, 1 beauty, 2 the final EXR's blocks), results n u32
 //!   per tile of the bands, in tile order: present u8 (0: no checkpoint yet, pass 0),
 //!     [length u64, the tile checkpoint (wire::TileCheckpoint) holding `pass` passes]
-//!   per result, in task order: tile u32, own length u64, sections m u32, m x (band u32,
+//!   per result, pass by pass, in task order: tile u32, own length u64, sections m u32, m x (band u32,
 //!     length u64), then the own part (the result without its splats and records; empty
 //!     unless its tile is in the group), then the m sections (wire::decode_section) back to
 //!     back, each part packed (film::pack), as the result log keeps them: the coordinator
 //!     copies both straight from it
 //! output (worker -> coordinator):
-//!   magic "OMISMRGO", version u32, bands b0 b1 u32, passes u32 (pass + 1), then
-//!   before the last pass: tiles t u32, per tile: length u64, its checkpoint holding pass + 1
+//!   magic "OMISMRGO", version u32, bands b0 b1 u32, passes u32 (pass + merged), then
+//!   checkpoints: tiles t u32, per tile: length u64, its checkpoint holding pass + merged
 //!     passes; then per tile: its beauty, pixels x 3 f32
-//!   on the last pass: blocks k u32 (those of the group's scan lines, `exr_layout`), per block:
+//!   beauty: tiles t u32, then per tile: its beauty, pixels x 3 f32
+//!   the final EXR's blocks: blocks k u32 (those of the group's scan lines, `exr_layout`), per block:
 //!     length u32, the block as the EXR stores it (ZIP-compressed, or stored)
 //! ```
 
@@ -41,8 +44,9 @@ use std::io::Read;
 const IN_MAGIC: &[u8; 8] = b"OMISMRGI";
 const OUT_MAGIC: &[u8; 8] = b"OMISMRGO";
 /// 3: the last pass's output holds no checkpoints. 4: the results' parts are packed. 5: the
-/// last pass's output is the EXR's compressed blocks; before it, the beauty only.
-const VERSION: u32 = 5;
+/// last pass's output is the EXR's compressed blocks; before it, the beauty only. 6: a task
+/// merges the results of one pass or more and says what it returns (`MergeOut`).
+const VERSION: u32 = 6;
 /// No part of a merge input (a checkpoint, a result's part) is longer.
 const MAX_PART: u64 = 1 << 31;
 
@@ -51,15 +55,40 @@ const MAX_PART: u64 = 1 << 31;
 pub struct MergeHead {
     /// The band group.
     pub bands: std::ops::Range<u32>,
-    /// Passes the tiles hold before the merge (the index of the pass merged).
+    /// Passes the tiles hold before the merge (the index of the first pass merged).
     pub pass: u32,
-    /// Light paths traced for the frame once the pass is merged (N_L of the optimal systems).
+    /// Passes whose results follow the tiles, one after another (at least one); a job whose
+    /// pixels keep the progressive estimator's state merges one at a time (it ends each pass).
+    pub merged: u32,
+    /// Light paths traced for the frame once the passes are merged (N_L of the optimal systems).
     pub light_paths: u64,
-    /// The job's last pass: return the final EXR's blocks of the group's scan lines (every
-    /// layer the job keeps) and no checkpoints (the job ends with this pass).
-    pub last: bool,
+    /// What the task returns.
+    pub out: MergeOut,
     /// Results that follow the tiles.
     pub results: u32,
+}
+
+/// What a merge task returns.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MergeOut {
+    /// The tiles' new checkpoints and their beauty.
+    Checkpoints,
+    /// The tiles' beauty alone: nothing continues from this merge, the next one takes its
+    /// passes' results again (a pass's results can cost fewer bytes than a checkpoint).
+    Beauty,
+    /// The job's last pass: the final EXR's blocks of the group's scan lines (every layer the
+    /// job keeps); the job ends with it.
+    Exr,
+}
+
+impl MergeOut {
+    fn code(self) -> u8 {
+        match self {
+            MergeOut::Checkpoints => 0,
+            MergeOut::Beauty => 1,
+            MergeOut::Exr => 2,
+        }
+    }
 }
 
 impl MergeHead {
@@ -67,11 +96,17 @@ impl MergeHead {
     pub fn encode(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(37);
         out.extend_from_slice(IN_MAGIC);
-        for v in [VERSION, self.bands.start, self.bands.end, self.pass] {
+        for v in [
+            VERSION,
+            self.bands.start,
+            self.bands.end,
+            self.pass,
+            self.merged,
+        ] {
             out.extend_from_slice(&v.to_le_bytes());
         }
         out.extend_from_slice(&self.light_paths.to_le_bytes());
-        out.push(self.last as u8);
+        out.push(self.out.code());
         out.extend_from_slice(&self.results.to_le_bytes());
         out
     }
@@ -160,11 +195,26 @@ impl<R: Read> Input<R> {
                 grid.rows()
             )));
         }
+        let pass = self.u32("pass")?;
+        let merged = self.u32("merged passes")?;
+        if merged == 0 || pass.checked_add(merged).is_none() {
+            return Err(WireError(format!(
+                "merge input: {merged} passes merged after {pass}"
+            )));
+        }
+        let light_paths = self.u64("light paths")?;
+        let out = match self.u8("output")? {
+            0 => MergeOut::Checkpoints,
+            1 => MergeOut::Beauty,
+            2 => MergeOut::Exr,
+            k => return Err(WireError(format!("merge input: output kind {k}"))),
+        };
         Ok(MergeHead {
             bands,
-            pass: self.u32("pass")?,
-            light_paths: self.u64("light paths")?,
-            last: self.u8("last pass")? != 0,
+            pass,
+            merged,
+            light_paths,
+            out,
             results: self.u32("result count")?,
         })
     }
@@ -202,6 +252,12 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
         r: std::io::BufReader::with_capacity(1 << 20, input),
     };
     let head = r.head(grid)?;
+    if head.merged > 1 && layout.progressive_layout().is_some() {
+        return Err(WireError(format!(
+            "merge input: {} passes at once for the progressive estimator, which ends each",
+            head.merged
+        )));
+    }
     let bands = head.bands.start as usize..head.bands.end as usize;
     let tiles = grid.tiles_of_bands(bands.clone());
     let mut held = Vec::with_capacity(tiles.len());
@@ -281,13 +337,13 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
         group.add_task(grid, t, own.as_ref(), &sections);
     }
     group.end_pass(head.light_paths, layout.kappa);
-    let passes = head.pass + 1;
+    let passes = head.pass + head.merged;
     let mut out = Vec::new();
     out.extend_from_slice(OUT_MAGIC);
     for v in [VERSION, head.bands.start, head.bands.end, passes] {
         out.extend_from_slice(&v.to_le_bytes());
     }
-    if head.last {
+    if head.out == MergeOut::Exr {
         exr_blocks(
             &mut out,
             grid,
@@ -299,10 +355,12 @@ pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec
         return Ok(out);
     }
     out.extend_from_slice(&(group.tiles.len() as u32).to_le_bytes());
-    for tile in &group.tiles {
-        let ck = TileCheckpoint::encode_parts(tile, passes);
-        out.extend_from_slice(&(ck.len() as u64).to_le_bytes());
-        out.extend_from_slice(&ck);
+    if head.out == MergeOut::Checkpoints {
+        for tile in &group.tiles {
+            let ck = TileCheckpoint::encode_parts(tile, passes);
+            out.extend_from_slice(&(ck.len() as u64).to_le_bytes());
+            out.extend_from_slice(&ck);
+        }
     }
     for (_, img) in tile_images(&group.tiles, layout, head.light_paths, false)
         .iter()
@@ -366,7 +424,7 @@ fn exr_blocks(
 /// A merge task's output, checked against what the task asked for.
 pub struct MergeOutput<'a> {
     /// Per tile of the group, in tile order: its encoded checkpoint (holding `passes`), where
-    /// it lies in the output; none after the job's last pass.
+    /// it lies in the output; none unless the task returns checkpoints.
     pub checkpoints: Vec<&'a [u8]>,
     /// The group's beauty: per tile before the job's last pass; after it, one image of the
     /// group's scan lines, read from its EXR blocks.
@@ -381,16 +439,16 @@ pub struct MergeOutput<'a> {
 
 impl<'a> MergeOutput<'a> {
     /// Parses the output of the merge of `bands` into tiles that hold `passes` passes now, for a
-    /// frame tiled by `grid` whose films have `layout`; `last`: the job's last pass (EXR blocks,
-    /// no checkpoints). Every checkpoint is checked (its structure and checksum, as decoding
-    /// would) and every EXR block inflated before it is accepted.
+    /// frame tiled by `grid` whose films have `layout`, which the task asked to return as
+    /// `kind`. Every checkpoint is checked (its structure and checksum, as decoding would) and
+    /// every EXR block inflated before it is accepted.
     pub fn decode(
         bytes: &'a [u8],
         grid: &TileGrid,
         layout: &FilmLayout,
         bands: std::ops::Range<u32>,
         passes: u32,
-        last: bool,
+        kind: MergeOut,
     ) -> Result<MergeOutput<'a>, WireError> {
         let mut at = 0usize;
         let mut take = |n: usize| -> Result<&'a [u8], WireError> {
@@ -421,9 +479,9 @@ impl<'a> MergeOutput<'a> {
         let band_range = bands.start as usize..bands.end as usize;
         let tiles = grid.tiles_of_bands(band_range.clone());
         let rows = grid.band_rows(band_range);
-        let exr = match last {
-            true => Some(exr_layout(grid, layout)?),
-            false => None,
+        let exr = match kind {
+            MergeOut::Exr => Some(exr_layout(grid, layout)?),
+            _ => None,
         };
         let (what, want) = match &exr {
             Some(exr) => (
@@ -475,7 +533,12 @@ impl<'a> MergeOutput<'a> {
             };
             out.beauty.push((tile, beauty));
         } else {
-            for t in tiles.clone() {
+            let checkpoints = if kind == MergeOut::Checkpoints {
+                tiles.clone()
+            } else {
+                0..0
+            };
+            for t in checkpoints {
                 let len = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
                 let want = TileCheckpoint::encoded_len(grid.tile(t).pixels(), layout);
                 if len != want {

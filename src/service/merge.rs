@@ -1,10 +1,11 @@
 //! The merge of a finished pass, by merge tasks. When every render task of a pass is done the
 //! coordinator cuts the frame into band groups (rows of tiles) and queues one merge task per
-//! group. A worker leases it, downloads its input (the group's tile checkpoints and, in task
-//! order, the parts of the pass's results that land in the group, streamed from the result
-//! log), merges with `film::merge::run` and uploads the group's new checkpoints and beauty (on
-//! the job's last pass: the final EXR's compressed blocks of its scan lines); the coordinator
-//! checks them and writes the checkpoints into the tiles' slots. Once every group is in, the
+//! group. A worker leases it, downloads its input (the group's tile checkpoints and, pass by
+//! pass in task order, the parts of the results since them that land in the group, streamed
+//! from the result logs), merges with `film::merge::run` and uploads the group's new
+//! checkpoints and beauty (on the job's last pass: the final EXR's compressed blocks of its scan
+//! lines; on a pass after which a light job writes no checkpoints, `output_of`: the beauty
+//! alone); the coordinator checks them and writes the checkpoints into the tiles' slots. Once every group is in, the
 //! checkpoints are made durable, the pass is recorded and its outputs are written (the final
 //! EXR from the blocks as they came: the coordinator compresses nothing).
 //!
@@ -18,14 +19,16 @@
 //! restarted) gives the same bits, and a slot torn by a crash is passed over. A merge task is
 //! recorded done before its checkpoints are written; groups this process did not see written
 //! (after a restart) are read back from their slots before the pass is recorded, and a group
-//! whose slots do not hold the pass is merged again.
+//! whose slots do not hold the pass is merged again. The results of a pass merged without
+//! checkpoints, and their task rows, are kept until a pass's checkpoints hold them (`held`):
+//! the next merge reads them again, after a restart too.
 
 use super::App;
 use super::jobs::{self, Runtime};
 use super::log_file::LogFile;
 use super::protocol::{JobEvent, PassDoneEvent, PreviewEvent, SeriesPoint};
 use super::store::{self, JobRow, TaskRow};
-use crate::film::merge::{self as film_merge, LayerImages, MergeHead, MergeOutput};
+use crate::film::merge::{self as film_merge, LayerImages, MergeHead, MergeOut, MergeOutput};
 use crate::film::wire::{BandedIndex, TileCheckpoint};
 use crate::film::{FilmTile, Image, RayStats, Tile, band_bytes, band_groups, metrics};
 use crate::job::Resolved;
@@ -48,9 +51,11 @@ impl From<std::io::Error> for MergeError {
     }
 }
 
-/// One accepted result of the pass being merged.
+/// One accepted result of a pass being merged.
 struct PassResult {
-    /// Its tile (its place in the merge order).
+    /// Its pass (its result log).
+    pass: u32,
+    /// Its tile (its place in the merge order within its pass).
     tile: usize,
     /// Its render task.
     task: i64,
@@ -58,12 +63,13 @@ struct PassResult {
     index: BandedIndex,
 }
 
-/// What the merge tasks of a pass read: the pass's accepted results in task order.
+/// What the merge tasks of a pass read: the accepted results of every pass since the tiles'
+/// checkpoints (`held`), pass by pass in task order.
 pub(crate) struct PassInputs {
     /// The pass.
     pub pass: u32,
     results: Vec<PassResult>,
-    /// The work counters of the pass's results.
+    /// The work counters of the pass's own results.
     pub stats: RayStats,
 }
 
@@ -187,29 +193,36 @@ fn read_index(
         .at(stored.start))
 }
 
-/// Every accepted result of pass `pass` of job `id`, read from its index in the result log.
-fn load_inputs(app: &App, id: &str, pass: u32) -> Result<PassInputs, MergeError> {
-    let tasks = app
-        .db()
-        .pass_tasks(id, pass)
-        .map_err(|e| MergeError::Job(e.to_string()))?;
-    let log = app.paths.result_log(id, pass);
-    let mut f = LogFile::open_read(&log).ok();
-    let log_len = f.as_ref().and_then(|f| f.len().ok()).unwrap_or(0);
-    let mut results = Vec::with_capacity(tasks.len());
+/// Every accepted result that the merge of pass `pass` of job `id` reads (those of the passes
+/// since the checkpoints, `held`), read from its index in its pass's result log.
+fn load_inputs(app: &App, id: &str, r: &Resolved, pass: u32) -> Result<PassInputs, MergeError> {
+    let mut results = Vec::new();
     let mut stats = RayStats::default();
-    for t in tasks {
-        let index = match f.as_mut() {
-            Some(f) => read_index(f, log_len, t.result.clone()),
-            None => Err("the pass has no result log".to_string()),
+    for p in held(r, pass)..=pass {
+        let tasks = app
+            .db()
+            .pass_tasks(id, p)
+            .map_err(|e| MergeError::Job(e.to_string()))?;
+        let log = app.paths.result_log(id, p);
+        let mut f = LogFile::open_read(&log).ok();
+        let log_len = f.as_ref().and_then(|f| f.len().ok()).unwrap_or(0);
+        results.reserve(tasks.len());
+        for t in tasks {
+            let index = match f.as_mut() {
+                Some(f) => read_index(f, log_len, t.result.clone()),
+                None => Err("the pass has no result log".to_string()),
+            }
+            .map_err(|e| MergeError::Result(t.id, e))?;
+            if p == pass {
+                stats.add(&index.stats);
+            }
+            results.push(PassResult {
+                pass: p,
+                tile: t.tile as usize,
+                task: t.id,
+                index,
+            });
         }
-        .map_err(|e| MergeError::Result(t.id, e))?;
-        stats.add(&index.stats);
-        results.push(PassResult {
-            tile: t.tile as usize,
-            task: t.id,
-            index,
-        });
     }
     Ok(PassInputs {
         pass,
@@ -228,13 +241,14 @@ fn pass_inputs(
     if let Some(i) = rt.inputs.as_ref().filter(|i| i.pass == pass) {
         return Ok(i.clone());
     }
-    let inputs = Arc::new(load_inputs(app, id, pass)?);
+    let inputs = Arc::new(load_inputs(app, id, &rt.resolved, pass)?);
     rt.inputs = Some(inputs.clone());
     Ok(inputs)
 }
 
-/// A stored result of pass `pass` that cannot be read: its task is rendered again, and the
-/// pass's merge waits for it (its merge tasks are dropped; a merge task already done wrote
+/// A stored result read by the merge of pass `pass` (of that pass or of one since the
+/// checkpoints) that cannot be read: its task is rendered again, and the pass's merge waits
+/// for it (its merge tasks are dropped; a merge task already done wrote
 /// checkpoints holding the pass into slots nothing reads until the merge begins again, which
 /// writes them anew).
 fn reject_result(app: &App, job: &str, rt: &mut Runtime, pass: u32, task: i64, e: &str) {
@@ -286,6 +300,33 @@ fn is_last(r: &Resolved, pass: u32) -> bool {
     r.spp.is_some() && r.pass_range(pass + 1).is_none()
 }
 
+/// What the merge of pass `pass` returns. A job with a sample count whose pixels hold no
+/// optimal-MIS systems (the path tracer, BDPT with the balance or power heuristic) writes tile
+/// checkpoints after every second pass only: a pass's results take a third to a half of a
+/// checkpoint's bytes, so merging pass p + 1 from the checkpoints before pass p and the
+/// results of both moves fewer bytes through the coordinator than writing the checkpoints of
+/// pass p, storing them and serving them back (1080p path tracing: BENCHMARKS.md #12, stop 38).
+/// The in-process bits stay: the tiles get the same additions in the same order.
+fn output_of(r: &Resolved, pass: u32) -> MergeOut {
+    let layout = r.film_layout();
+    if is_last(r, pass) {
+        MergeOut::Exr
+    } else if r.spp.is_some() && layout.optimal.is_none() && pass.is_multiple_of(2) {
+        MergeOut::Beauty
+    } else {
+        MergeOut::Checkpoints
+    }
+}
+
+/// Passes the tile checkpoints hold once `merged` passes are merged: the merge of pass
+/// `merged` starts from them and reads the results of the passes since.
+pub(crate) fn held(r: &Resolved, merged: u32) -> u32 {
+    (1..=merged)
+        .rev()
+        .find(|&n| output_of(r, n - 1) == MergeOut::Checkpoints)
+        .unwrap_or(0)
+}
+
 /// Whether a job of `passes_done` merged passes has merged its last pass: its final EXR was
 /// written before that pass was recorded, and no checkpoint holds that pass, so the EXR is not
 /// to be assembled from checkpoints again.
@@ -296,7 +337,7 @@ pub(crate) fn final_in_exr(r: &Resolved, passes_done: u32) -> bool {
 /// Queues the merge tasks of pass `pass`, whose render tasks are all done (called by
 /// `jobs::advance`). A result that cannot be read is rendered again first.
 pub(crate) fn begin(app: &App, job: &JobRow, rt: &mut Runtime, pass: u32) -> Result<(), String> {
-    let inputs = match load_inputs(app, &job.id, pass) {
+    let inputs = match load_inputs(app, &job.id, &rt.resolved, pass) {
         Ok(i) => i,
         Err(MergeError::Result(t, e)) => {
             reject_result(app, &job.id, rt, pass, t, &e);
@@ -462,11 +503,13 @@ pub(crate) fn stream_input(
     let bands = task.bands().start as usize..task.bands().end as usize;
     let tiles = grid.tiles_of_bands(bands.clone());
     let touches = |p: &PassResult| tiles.contains(&p.tile) || p.index.span(bands.clone()).is_some();
+    let held = held(r, pass);
     let head = MergeHead {
         bands: task.bands(),
-        pass,
+        pass: held,
+        merged: pass + 1 - held,
         light_paths: light_paths(r, spp_after(r, pass)),
-        last: is_last(r, pass),
+        out: output_of(r, pass),
         results: inputs.results.iter().filter(|p| touches(p)).count() as u32,
     };
     let mut buf = head.encode();
@@ -475,29 +518,36 @@ pub(crate) fn stream_input(
         buf.len() < at_least || send(std::mem::replace(buf, app.buffers.take(2 * CHUNK)))
     };
     for t in tiles.clone() {
-        if pass == 0 {
+        if held == 0 {
             buf.extend(film_merge::tile_entry(None));
             continue;
         }
         // The entry's head, then the checkpoint read in after it; the length is known
         // beforehand (the slot's), so the head is written first and checked after.
-        let slot = checkpoint_slot(app, job, r, t, pass);
+        let slot = checkpoint_slot(app, job, r, t, held);
         buf.extend(film_merge::tile_entry(Some(slot.2)));
-        read_slot_into(&slot, r, t, pass, &mut buf)
+        read_slot_into(&slot, r, t, held, &mut buf)
             .map_err(MergeError::Job)?
             .ok_or_else(|| {
                 MergeError::Job(format!(
-                    "tile checkpoint {t}: no valid checkpoint holding {pass} passes"
+                    "tile checkpoint {t}: no valid checkpoint holding {held} passes"
                 ))
             })?;
         if !flush(&mut buf, send, CHUNK) {
             return Ok(());
         }
     }
-    let log = app.paths.result_log(job, pass);
-    let mut f = LogFile::open_read(&log)?;
+    // The log of the pass being read (results come pass by pass).
+    let mut log: Option<(u32, LogFile)> = None;
     for p in inputs.results.iter().filter(|p| touches(p)) {
         let bad = |e: String| MergeError::Result(p.task, e);
+        let f = match &mut log {
+            Some((at, f)) if *at == p.pass => f,
+            _ => {
+                let f = LogFile::open_read(&app.paths.result_log(job, p.pass))?;
+                &mut log.insert((p.pass, f)).1
+            }
+        };
         let own = if tiles.contains(&p.tile) {
             p.index.own.clone()
         } else {
@@ -626,7 +676,7 @@ pub(crate) fn accept(
         &layout,
         task.bands(),
         passes,
-        is_last(&r, task.pass),
+        output_of(&r, task.pass),
     ) {
         Ok(o) => o,
         Err(e) => return Ok(Accepted::Invalid(e.to_string())),
@@ -758,10 +808,10 @@ fn images_of(
 
 /// Records pass `pass` once every merge task (`merges`) is done: the images of groups merged
 /// before a restart are read back from their checkpoints (a group whose slots do not hold the
-/// pass is queued again, and false returned; on the job's last pass, whose merges write no
-/// checkpoints, every such group is), the checkpoints are made durable (on the last pass: the
-/// final EXR, written before the pass is recorded), the pass and its work counters recorded, and
-/// its outputs written.
+/// pass is queued again, and false returned; on a pass whose merges write no checkpoints, every
+/// such group is), the checkpoints are made durable (on the last pass: the final EXR, written
+/// before the pass is recorded), the pass and its work counters recorded, the result logs the
+/// checkpoints now cover given up, and its outputs written.
 pub(crate) fn finish_pass(
     app: &App,
     job: &JobRow,
@@ -772,6 +822,7 @@ pub(crate) fn finish_pass(
     let t0 = Instant::now();
     let r = rt.resolved.clone();
     let last = is_last(&r, pass);
+    let checkpoints = output_of(&r, pass) == MergeOut::Checkpoints;
     let mut images = rt
         .images
         .take()
@@ -781,11 +832,11 @@ pub(crate) fn finish_pass(
         .iter()
         .filter(|m| !images.merged.contains(&m.tile))
         .collect();
-    if last && !unseen.is_empty() {
+    if !checkpoints && !unseen.is_empty() {
         // Their images were in the memory of a coordinator that stopped; their inputs (the
-        // pass's results, the previous pass's checkpoints) are kept until the pass is recorded.
+        // results since the checkpoints, the checkpoints) are kept until the pass is recorded.
         tracing::warn!(
-            "job {} last pass {pass}: {} merge tasks done before a restart; merged again",
+            "job {} pass {pass} (no checkpoints): {} merge tasks done before a restart; merged again",
             job.id,
             unseen.len()
         );
@@ -829,6 +880,9 @@ pub(crate) fn finish_pass(
         }
     };
     let spp = spp_after(&r, pass);
+    // The tasks of the passes whose results no merge reads again: those the checkpoints hold,
+    // all of them after the last pass.
+    let kept_from = if last { pass + 1 } else { held(&r, pass + 1) };
     let blocks = images.take_blocks();
     let (image, _) = images.into_named(&r);
     if last {
@@ -842,16 +896,21 @@ pub(crate) fn finish_pass(
         let blocks = blocks.ok_or("the last pass's merges left an EXR block missing")?;
         jobs::write_outputs(app, &at_end, rt, &image, jobs::Exr::Blocks(blocks))?;
         rt.exr_written = std::time::Instant::now();
-    } else {
+    } else if checkpoints {
         sync_tiles(app, &job.id).map_err(|e| format!("cannot sync the tile checkpoints: {e}"))?;
     }
     app.db()
-        .pass_merged(&job.id, pass + 1, spp, &stats)
+        .pass_merged(&job.id, pass + 1, spp, kept_from, &stats)
         .map_err(|e| e.to_string())?;
-    // A later pass of the job rewrites this pass's log in place (`store::ResultLogs`); a
-    // time-budget job's passes have no end.
-    let reused = r.pass_range(pass + 2).is_some();
-    app.result_logs.release(&app.paths, &job.id, pass, reused);
+    // The logs of the passes the checkpoints (or the final EXR) now hold are given up; a later
+    // pass of the job rewrites a log in place (`store::ResultLogs`); a time-budget job's passes
+    // have no end.
+    if checkpoints || last {
+        for p in held(&r, pass)..=pass {
+            let reused = r.pass_range(p + 2).is_some();
+            app.result_logs.release(&app.paths, &job.id, p, reused);
+        }
+    }
     rt.inputs = None;
     super::Metrics::add(&app.metrics.passes_merged, 1);
     super::Metrics::add(&app.metrics.merge_micros, t0.elapsed().as_micros() as u64);
@@ -922,7 +981,20 @@ pub(crate) fn finish_pass(
 /// tile checkpoints (a job whose last pass did not write it: a time-budget job).
 pub(crate) fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
     let r = &rt.resolved;
-    let passes = job.passes_done;
+    // The passes the checkpoints hold: those merged, unless the last merged wrote none (a
+    // cancelled job: its EXR then holds the passes checkpointed, none if none is).
+    let passes = held(r, job.passes_done);
+    if passes == 0 {
+        return Err(format!(
+            "no tile checkpoint holds any of its {} passes merged",
+            job.passes_done
+        ));
+    }
+    let job = &JobRow {
+        passes_done: passes,
+        spp_done: spp_after(r, passes - 1),
+        ..job.clone()
+    };
     let groups = band_groups(
         &r.grid(),
         &r.film_layout(),

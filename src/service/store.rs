@@ -125,12 +125,14 @@ struct LogCursor {
 }
 
 impl ResultLogs {
-    /// Writes `bytes`, a result of pass `pass` of job `job` (which has recorded `recorded`
-    /// passes), into its log and returns where they lie. They go after the pass's last record;
-    /// at the start of the log when the pass is the first to write it since the pass it held
-    /// was recorded; and at the end of the file when this process does not know the log (after
-    /// a restart) or the result is of an older pass than the log's (a stale attempt, which the
-    /// store will refuse). One write at a time: every log's cursor is held meanwhile.
+    /// Writes `bytes`, a result of pass `pass` of job `job` (whose tile checkpoints hold
+    /// `recorded` passes: no merge reads an earlier pass's results), into its log and returns
+    /// where they lie. They go after the pass's last record; at the start of the log when the
+    /// pass is the first to write it since the checkpoints hold the pass it held; and at the end
+    /// of the file when this process does not know the log (after a restart), when the pass it
+    /// holds is still read, or when the result is of an older pass than the log's (a stale
+    /// attempt, which the store will refuse, or a result rendered again because its record was
+    /// found damaged). One write at a time: every log's cursor is held meanwhile.
     pub fn write(
         &self,
         paths: &Paths,
@@ -579,12 +581,14 @@ pub(crate) trait JobStore: Send {
     /// True when `task_id` was ever issued (tasks of merged passes are deleted).
     fn task_existed(&self, task_id: i64) -> StoreResult<bool>;
     /// Records a merged pass and adds its work counters `stats` (once: only when the job had
-    /// merged `passes_done - 1` passes); the task rows of the pass are no longer needed.
+    /// merged `passes_done - 1` passes); the task rows of the passes before `held` (those the
+    /// tile checkpoints hold: no merge reads their results again) are no longer needed.
     fn pass_merged(
         &self,
         id: &str,
         passes_done: u32,
         spp_done: u32,
+        held: u32,
         stats: &crate::film::RayStats,
     ) -> StoreResult<()>;
     /// Records the relMSE point of a merged pass.
@@ -811,6 +815,7 @@ impl JobStore for SqliteStore {
         id: &str,
         passes_done: u32,
         spp_done: u32,
+        held: u32,
         stats: &crate::film::RayStats,
     ) -> StoreResult<()> {
         cached_exec(
@@ -830,7 +835,7 @@ impl JobStore for SqliteStore {
         cached_exec(
             &self.conn,
             "DELETE FROM tasks WHERE job_id = ?1 AND pass < ?2",
-            params![id, passes_done],
+            params![id, held.min(passes_done)],
         )?;
         Ok(())
     }
@@ -958,7 +963,8 @@ impl JobStore for SqliteStore {
     fn tasks_done(&self, id: &str) -> StoreResult<u32> {
         cached_row(
             &self.conn,
-            "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = ?2 AND kind = ?3",
+            "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = ?2 AND kind = ?3 \
+             AND pass >= (SELECT passes_done FROM jobs WHERE id = ?1)",
             params![id, T_DONE, K_RENDER],
             |r| r.get(0),
         )

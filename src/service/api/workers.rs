@@ -408,7 +408,13 @@ pub(crate) async fn upload_result(
         }
         let stored = a
             .result_logs
-            .write(&a.paths, &t.job_id, t.pass, job.passes_done, &body[..])
+            .write(
+                &a.paths,
+                &t.job_id,
+                t.pass,
+                merge::held(&r, job.passes_done),
+                &body[..],
+            )
             .map_err(ApiError::internal)?;
         Ok(Ok(stored))
     })
