@@ -348,13 +348,7 @@ fn unzip(zlib: &[u8], n: usize) -> Result<Vec<u8>, String> {
             Ok(k) => return Err(format!("the zlib stream holds {k} bytes, not {n}")),
             Err(e) => return Err(format!("not a zlib stream of {n} bytes: {e}")),
         }
-        let mut prev = 0u8;
-        for (i, d) in diffs.iter_mut().enumerate() {
-            if i > 0 {
-                *d = prev.wrapping_add(*d).wrapping_sub(128);
-            }
-            prev = *d;
-        }
+        undo_predictor(diffs);
         let (even, odd) = diffs.split_at(n.div_ceil(2));
         let mut out = vec![0u8; n];
         for (pair, (e, o)) in out.chunks_exact_mut(2).zip(even.iter().zip(odd)) {
@@ -366,6 +360,44 @@ fn unzip(zlib: &[u8], n: usize) -> Result<Vec<u8>, String> {
         }
         Ok(out)
     })
+}
+
+/// OpenEXR's ZIP predictor undone in place: every byte after the first is the one before plus
+/// itself, less 128 (OpenEXR's `ImfZip.cpp`). A running sum: 16 bytes at a time with SSE2 (it
+/// was a third of the time a coordinator spends checking a 1080p job's final EXR blocks).
+fn undo_predictor(d: &mut [u8]) {
+    let Some((&mut mut prev, rest)) = d.split_first_mut() else {
+        return;
+    };
+    #[cfg(target_arch = "x86_64")]
+    let tail = {
+        let mut chunks = rest.chunks_exact_mut(16);
+        for c in &mut chunks {
+            use std::arch::x86_64::*;
+            // SAFETY: SSE2 is part of every x86_64; the load and the store are of the 16 bytes of
+            // `c` (unaligned).
+            unsafe {
+                let p = c.as_mut_ptr() as *mut __m128i;
+                // The chunk's differences less 128, summed within the chunk (copies shifted by
+                // 1, 2, 4 and 8 bytes added in turn), plus the byte before the chunk.
+                let mut x = _mm_sub_epi8(_mm_loadu_si128(p), _mm_set1_epi8(i8::MIN));
+                x = _mm_add_epi8(x, _mm_slli_si128::<1>(x));
+                x = _mm_add_epi8(x, _mm_slli_si128::<2>(x));
+                x = _mm_add_epi8(x, _mm_slli_si128::<4>(x));
+                x = _mm_add_epi8(x, _mm_slli_si128::<8>(x));
+                x = _mm_add_epi8(x, _mm_set1_epi8(prev as i8));
+                _mm_storeu_si128(p, x);
+                prev = (_mm_extract_epi16::<7>(x) >> 8) as u8;
+            }
+        }
+        chunks.into_remainder()
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let tail = rest;
+    for b in tail {
+        *b = prev.wrapping_add(*b).wrapping_sub(128);
+        prev = *b;
+    }
 }
 
 /// `write_exr` with every sample stored as it is (no compression).
@@ -605,7 +637,7 @@ mod tests {
         // OpenEXR's ZIP of bytes of any length, odd ones too; a stream of the wrong length is
         // refused.
         let mut zip = libdeflater::Compressor::new(libdeflater::CompressionLvl::default());
-        for n in [1usize, 2, 3, 17, 1000, 1001] {
+        for n in [1usize, 2, 3, 16, 17, 18, 33, 1000, 1001, 4099] {
             let raw: Vec<u8> = (0..n).map(|i| (i * i % 253) as u8).collect();
             let mut t: Vec<u8> = raw
                 .iter()
