@@ -659,8 +659,8 @@ fn merge_first_pass(c: &Client, url: &str, settings: &Value) -> String {
     id
 }
 
-/// A path-traced job of `spp` in passes of 4 (no optimal-MIS systems: its checkpoints are
-/// written after every second pass).
+/// A path-traced job of `spp` in passes of 4 (its results hold only their own pixels: its
+/// checkpoints are written after every second pass).
 fn path_traced(spp: u32) -> Value {
     let mut s = settings(spp);
     s["integrator"] = json!("pt");
@@ -668,7 +668,7 @@ fn path_traced(spp: u32) -> Value {
     s
 }
 
-/// A light job's first pass is merged without checkpoints (the next merge reads its results
+/// A path-traced job's first pass is merged without checkpoints (the next merge reads its results
 /// again), so its results and their tasks must outlive its record: across a coordinator
 /// restart right after it, and with one of its records damaged on disk after it was merged
 /// (its tile is rendered again), the job ends with the in-process bits.
@@ -713,7 +713,23 @@ fn a_pass_merged_without_checkpoints_survives_a_restart_and_a_damaged_record() {
     );
 }
 
-/// The third pass of a light job writes the log its first pass wrote, while the merge of the
+/// Cancelled after a pass merged without checkpoints, a path-traced job's EXR still holds every pass
+/// merged: the beauty of its first pass, with the bits of a one-pass render.
+#[test]
+fn a_path_traced_job_cancelled_after_a_pass_without_checkpoints_keeps_that_pass() {
+    let dir = folder("cancel-light");
+    let (_server, url) = serve(&dir.join("data"), &["--exr-interval", "3600"]);
+    let c = http();
+    let id = merge_first_pass(&c, &url, &path_traced(8));
+    let (s, v) = post(&c, &format!("{url}/v1/jobs/{id}/cancel"), &json!({}));
+    assert_eq!(s, 200, "{v}");
+    assert_equal(
+        &download_exr(&c, &url, &id, &dir),
+        &in_process_settings(path_traced(4)),
+    );
+}
+
+/// The third pass of a path-traced job writes the log its first pass wrote, while the merge of the
 /// second still reads the first pass's results from it: they go after them, and nothing is
 /// rendered twice.
 #[test]

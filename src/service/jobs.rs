@@ -395,8 +395,8 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
     if ended {
         app.event(id, JobEvent::Cancelled(CancelledEvent {}));
         app.work.notify_waiters();
-        // The passes merged so far as image.exr with every layer: a pass rewrites it at most
-        // every `exr_interval_s`, so the last one may not have. The row is read again under the
+        // The passes merged so far as image.exr (`merge::write_cancelled`): a pass rewrites it
+        // at most every `exr_interval_s`, so the last one may not have. The row is read again under the
         // runtime's lock, which a pass holds while it is recorded: its count then matches the
         // checkpoints.
         let rt = runtime(app, &job)?;
@@ -406,7 +406,7 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
             j.passes_done > 0
                 && !rt.final_written
                 && !merge::final_in_exr(&rt.resolved, j.passes_done)
-        }) && let Err(e) = merge::write_final(app, &job, &rt)
+        }) && let Err(e) = merge::write_cancelled(app, &job, &rt)
         {
             tracing::warn!(
                 "job {id}: cancelled; its EXR of {} passes: {e}",

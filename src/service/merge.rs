@@ -4,7 +4,7 @@
 //! pass in task order, the parts of the results since them that land in the group, streamed
 //! from the result logs), merges with `film::merge::run` and uploads the group's new
 //! checkpoints and beauty (on the job's last pass: the final EXR's compressed blocks of its scan
-//! lines; on a pass after which a light job writes no checkpoints, `output_of`: the beauty
+//! lines; on a pass after which a path-traced job writes no checkpoints, `output_of`: the beauty
 //! alone); the coordinator checks them and writes the checkpoints into the tiles' slots. Once every group is in, the
 //! checkpoints are made durable, the pass is recorded and its outputs are written (the final
 //! EXR from the blocks as they came: the coordinator compresses nothing).
@@ -300,18 +300,24 @@ fn is_last(r: &Resolved, pass: u32) -> bool {
     r.spp.is_some() && r.pass_range(pass + 1).is_none()
 }
 
-/// What the merge of pass `pass` returns. A job with a sample count whose pixels hold no
-/// optimal-MIS systems (the path tracer, BDPT with the balance or power heuristic) writes tile
-/// checkpoints after every second pass only: a pass's results take a third to a half of a
-/// checkpoint's bytes, so merging pass p + 1 from the checkpoints before pass p and the
-/// results of both moves fewer bytes through the coordinator than writing the checkpoints of
-/// pass p, storing them and serving them back (1080p path tracing: BENCHMARKS.md #12, stop 38).
-/// The in-process bits stay: the tiles get the same additions in the same order.
+/// What the merge of pass `pass` returns. A job with a sample count whose results hold only
+/// their own pixels (no light-tracing splats, no optimal-MIS systems: the path tracer) writes
+/// tile checkpoints after every second pass only: a pass's results, packed, take a third of a
+/// checkpoint's bytes, so merging pass p + 1 from the checkpoints before pass p and the results
+/// of both moves fewer bytes through the coordinator than writing the checkpoints of pass p,
+/// storing them and serving them back (1080p: a quarter less coordinator CPU; BENCHMARKS.md
+/// #12, stop 38). BDPT's results carry splats routed across the frame, more bytes per pass than
+/// a checkpoint: reading them twice cost more than it saved. The in-process bits stay: the
+/// tiles get the same additions in the same order.
 fn output_of(r: &Resolved, pass: u32) -> MergeOut {
     let layout = r.film_layout();
     if is_last(r, pass) {
         MergeOut::Exr
-    } else if r.spp.is_some() && layout.optimal.is_none() && pass.is_multiple_of(2) {
+    } else if r.spp.is_some()
+        && !layout.splats
+        && layout.optimal.is_none()
+        && pass.is_multiple_of(2)
+    {
         MergeOut::Beauty
     } else {
         MergeOut::Checkpoints
@@ -975,6 +981,19 @@ pub(crate) fn finish_pass(
         rt.frame = Some(image);
     }
     Ok(true)
+}
+
+/// A cancelled job's EXR: every layer of the passes merged, from the checkpoints; when the last
+/// pass merged wrote none (a path-traced job's even pass) and its beauty is still in memory, that
+/// beauty (every pass merged, as the interim EXR is); else every layer of the passes the
+/// checkpoints hold.
+pub(crate) fn write_cancelled(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
+    match &rt.frame {
+        Some(frame) if held(&rt.resolved, job.passes_done) < job.passes_done => {
+            jobs::write_outputs(app, job, rt, frame, jobs::Exr::Interim)
+        }
+        _ => write_final(app, job, rt),
+    }
 }
 
 /// The final EXR with every layer the job keeps, assembled band group by band group from the
