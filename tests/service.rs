@@ -713,8 +713,8 @@ fn a_pass_merged_without_checkpoints_survives_a_restart_and_a_damaged_record() {
     );
 }
 
-/// Cancelled after a pass merged without checkpoints, a path-traced job's EXR still holds every pass
-/// merged: the beauty of its first pass, with the bits of a one-pass render.
+/// Cancelled after a pass merged without checkpoints, a path-traced job's EXR still holds every
+/// pass merged: the beauty of its first pass, with the bits of a one-pass render.
 #[test]
 fn a_path_traced_job_cancelled_after_a_pass_without_checkpoints_keeps_that_pass() {
     let dir = folder("cancel-light");

@@ -5,11 +5,11 @@
 //! what the task asks for ([`MergeOut`]): the tiles' new checkpoints and their beauty, or their
 //! beauty alone (the next merge takes this pass's results again), or, on a job's last pass,
 //! from which nothing continues, the group's scan lines of the final EXR, every layer, in
-//! compressed blocks (`exr_io::ExrLayout`). The coordinator only moves bytes: it streams the input from its result
-//! log and checkpoint slots, checks the output (inflating the EXR blocks) and writes the
-//! checkpoints in place, or the EXR from the blocks; the work that grows with the records
-//! (decoding, applying light-tracing records to the optimal systems, solving) and the EXR's
-//! compression run on the workers and scale with them.
+//! compressed blocks (`exr_io::ExrLayout`). The coordinator only moves bytes: it streams the
+//! input from its result logs and checkpoint slots, checks the output (inflating the EXR
+//! blocks) and writes the checkpoints in place, or the EXR from the blocks; the work that grows
+//! with the records (decoding, applying light-tracing records to the optimal systems, solving)
+//! and the EXR's compression run on the workers and scale with them.
 //!
 //! ```text
 //! input (coordinator -> worker), streamed:
@@ -18,8 +18,8 @@
 //!   (`MergeOut`: 0 checkpoints, 1 beauty, 2 the final EXR's blocks), results n u32
 //!   per tile of the bands, in tile order: present u8 (0: no checkpoint yet, pass 0),
 //!     [length u64, the tile checkpoint (wire::TileCheckpoint) holding `pass` passes]
-//!   per result, pass by pass, in task order: tile u32, own length u64, sections m u32, m x (band u32,
-//!     length u64), then the own part (the result without its splats and records; empty
+//!   per result, pass by pass, in task order: tile u32, own length u64, sections m u32,
+//!     m x (band u32, length u64), then the own part (the result without its splats and records; empty
 //!     unless its tile is in the group), then the m sections (wire::decode_section) back to
 //!     back, each part packed (film::pack), as the result log keeps them: the coordinator
 //!     copies both straight from it
@@ -28,8 +28,8 @@
 //!   checkpoints: tiles t u32, per tile: length u64, its checkpoint holding pass + merged
 //!     passes; then per tile: its beauty, pixels x 3 f32
 //!   beauty: tiles t u32, then per tile: its beauty, pixels x 3 f32
-//!   the final EXR's blocks: blocks k u32 (those of the group's scan lines, `exr_layout`), per block:
-//!     length u32, the block as the EXR stores it (ZIP-compressed, or stored)
+//!   the final EXR's blocks: blocks k u32 (those of the group's scan lines, `exr_layout`),
+//!     per block: length u32, the block as the EXR stores it (ZIP-compressed, or stored)
 //! ```
 
 use super::bands::BandGroup;

@@ -5,9 +5,10 @@
 //! from the result logs), merges with `film::merge::run` and uploads the group's new
 //! checkpoints and beauty (on the job's last pass: the final EXR's compressed blocks of its scan
 //! lines; on a pass after which a path-traced job writes no checkpoints, `output_of`: the beauty
-//! alone); the coordinator checks them and writes the checkpoints into the tiles' slots. Once every group is in, the
-//! checkpoints are made durable, the pass is recorded and its outputs are written (the final
-//! EXR from the blocks as they came: the coordinator compresses nothing).
+//! alone); the coordinator checks them and writes the checkpoints into the tiles' slots. Once
+//! every group is in, the checkpoints are made durable, the pass is recorded and its outputs
+//! are written (the final EXR from the blocks as they came: the coordinator compresses
+//! nothing).
 //!
 //! So the coordinator's work per pass is moving bytes: decoding results, adding light-tracing
 //! records into optimal systems and solving pixels (what grows with the samples) run on the
