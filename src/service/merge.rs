@@ -887,9 +887,14 @@ pub(crate) fn finish_pass(
         }
     };
     let spp = spp_after(&r, pass);
-    // The tasks of the passes whose results no merge reads again: those the checkpoints hold,
-    // all of them after the last pass.
-    let kept_from = if last { pass + 1 } else { held(&r, pass + 1) };
+    // The passes this merge read (since the checkpoints), and the first whose results a later
+    // merge reads again: none once new checkpoints (or the final EXR) hold them all.
+    let read_from = held(&r, pass);
+    let kept_from = if checkpoints || last {
+        pass + 1
+    } else {
+        read_from
+    };
     let blocks = images.take_blocks();
     let (image, _) = images.into_named(&r);
     if last {
@@ -912,11 +917,9 @@ pub(crate) fn finish_pass(
     // The logs of the passes the checkpoints (or the final EXR) now hold are given up; a later
     // pass of the job rewrites a log in place (`store::ResultLogs`); a time-budget job's passes
     // have no end.
-    if checkpoints || last {
-        for p in held(&r, pass)..=pass {
-            let reused = r.pass_range(p + 2).is_some();
-            app.result_logs.release(&app.paths, &job.id, p, reused);
-        }
+    for p in read_from..kept_from {
+        let reused = r.pass_range(p + 2).is_some();
+        app.result_logs.release(&app.paths, &job.id, p, reused);
     }
     rt.inputs = None;
     super::Metrics::add(&app.metrics.passes_merged, 1);
@@ -1004,16 +1007,22 @@ pub(crate) fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), S
     // The passes the checkpoints hold: those merged, unless the last merged wrote none (a
     // cancelled job: its EXR then holds the passes checkpointed, none if none is).
     let passes = held(r, job.passes_done);
-    if passes == 0 {
+    if passes == 0 && job.passes_done > 0 {
         return Err(format!(
             "no tile checkpoint holds any of its {} passes merged",
             job.passes_done
         ));
     }
-    let job = &JobRow {
-        passes_done: passes,
-        spp_done: spp_after(r, passes - 1),
-        ..job.clone()
+    let fewer;
+    let job = if passes < job.passes_done {
+        fewer = JobRow {
+            passes_done: passes,
+            spp_done: spp_after(r, passes - 1),
+            ..job.clone()
+        };
+        &fewer
+    } else {
+        job
     };
     let groups = band_groups(
         &r.grid(),
