@@ -476,10 +476,18 @@ mod tests {
     use super::*;
     use crate::sampler::Pcg32;
 
-    /// Flat queries and BVH traversal find the same distance, bit for bit, and the same
-    /// primitive unless two primitives lie at that distance (a shared edge); occlusion agrees.
-    #[test]
-    fn flat_queries_equal_bvh_traversal() {
+    /// A test scene of small scattered triangles, a quad split along its diagonal (rays through
+    /// the diagonal hit two triangles at once) and three spheres, with ids, and 40 000 rays:
+    /// every tenth aims at the quad's diagonal, every second is a segment ending at its target.
+    pub(super) struct TestScene {
+        pub tris: Vec<[Vec3; 3]>,
+        pub ids: Vec<u32>,
+        pub spheres: Vec<SphereGeom>,
+        pub sphere_ids: [u32; 3],
+        pub rays: Vec<Ray>,
+    }
+
+    pub(super) fn test_scene() -> TestScene {
         let mut rng = Pcg32::new(7, 1);
         let mut p = |s: f32| Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * s;
         let mut tris: Vec<[Vec3; 3]> = (0..45)
@@ -488,7 +496,6 @@ mod tests {
                 [c, c + p(1.0), c + p(1.0)]
             })
             .collect();
-        // A quad split along its diagonal: rays through the diagonal hit two triangles at once.
         let q = [
             Vec3::ZERO,
             Vec3::X * 4.0,
@@ -504,36 +511,57 @@ mod tests {
                 radius: 0.5,
             })
             .collect();
-        let sphere_ids = [7, 8, 9];
+        let rays = (0..40_000)
+            .map(|i| {
+                let o = p(6.0) - Vec3::splat(1.0);
+                let target = if i % 10 == 0 {
+                    let u = p(1.0).x;
+                    Vec3::new(4.0 * u, 4.0 * u, 0.0)
+                } else {
+                    p(4.0)
+                };
+                let tmax = if i % 2 == 0 {
+                    f32::INFINITY
+                } else {
+                    (target - o).length()
+                };
+                Ray {
+                    o,
+                    d: (target - o).normalize(),
+                    tmin: 1e-3,
+                    tmax,
+                }
+            })
+            .collect();
+        TestScene {
+            tris,
+            ids,
+            spheres,
+            sphere_ids: [7, 8, 9],
+            rays,
+        }
+    }
+
+    /// Flat queries and BVH traversal find the same distance, bit for bit, and the same
+    /// primitive unless two primitives lie at that distance (a shared edge); occlusion agrees.
+    #[test]
+    fn flat_queries_equal_bvh_traversal() {
+        let TestScene {
+            tris,
+            ids,
+            spheres,
+            sphere_ids,
+            rays,
+        } = test_scene();
         let flat = Accel::build_with(&tris, &ids, &spheres, &sphere_ids, true);
         let bvh = Accel::build_with(&tris, &ids, &spheres, &sphere_ids, false);
         assert!(flat.is_flat() && !bvh.is_flat());
         let (mut hits, mut ties, mut blocked) = (0, 0, 0);
-        for i in 0..40_000 {
-            let o = p(6.0) - Vec3::splat(1.0);
-            // Every tenth ray aims at the diagonal of the quad.
-            let target = if i % 10 == 0 {
-                let u = p(1.0).x;
-                Vec3::new(4.0 * u, 4.0 * u, 0.0)
-            } else {
-                p(4.0)
-            };
-            let d = (target - o).normalize();
-            let tmax = if i % 2 == 0 {
-                f32::INFINITY
-            } else {
-                (target - o).length()
-            };
-            let ray = Ray {
-                o,
-                d,
-                tmin: 1e-3,
-                tmax,
-            };
-            let (a, b) = (flat.intersect(&ray), bvh.intersect(&ray));
+        for (i, ray) in rays.iter().enumerate() {
+            let (a, b) = (flat.intersect(ray), bvh.intersect(ray));
             assert_eq!(a.is_some(), b.is_some(), "ray {i}");
-            assert_eq!(flat.occluded(&ray), bvh.occluded(&ray), "ray {i}");
-            blocked += flat.occluded(&ray) as u32;
+            assert_eq!(flat.occluded(ray), bvh.occluded(ray), "ray {i}");
+            blocked += flat.occluded(ray) as u32;
             let (Some(a), Some(b)) = (a, b) else { continue };
             hits += 1;
             assert_eq!(a.t.to_bits(), b.t.to_bits(), "ray {i}");
