@@ -114,6 +114,17 @@ impl Material {
         }
     }
 
+    /// Whether the lobe depends on the surface coordinates (a bitmap texture): hits on other
+    /// materials need no uv.
+    pub fn uses_uv(&self) -> bool {
+        match &self.kind {
+            MaterialKind::Lambert { albedo: t } | MaterialKind::Plastic { diffuse: t, .. } => {
+                matches!(t, Texture::Bitmap { .. })
+            }
+            _ => false,
+        }
+    }
+
     /// The lobe at surface coordinates `uv`.
     pub fn lobe(&self, uv: Vec2) -> Lobe {
         match &self.kind {

@@ -96,7 +96,8 @@ pub struct SurfaceHit {
     pub ng: Vec3,
     /// Shading normal (unit), on the same side as `ng`.
     pub ns: Vec3,
-    /// Surface parameterisation (mesh uvs, barycentrics without them, or spherical coordinates).
+    /// Surface parameterisation (mesh uvs, barycentrics without them, or spherical coordinates;
+    /// zero on a sphere whose material reads no texture).
     pub uv: Vec2,
     /// Index into [`Scene::materials`].
     pub material: u32,
@@ -250,10 +251,15 @@ impl Scene {
                 let mut n = (p - s.center).normalize();
                 // Re-project onto the surface to remove the intersection's error.
                 let p = s.center + n * s.radius;
-                let uv = Vec2::new(
-                    0.5 + n.z.atan2(n.x) * crate::geometry::INV_2PI,
-                    n.y.clamp(-1.0, 1.0).acos() * crate::geometry::INV_PI,
-                );
+                // Spherical coordinates cost an atan2 and an acos: only textures read them.
+                let uv = if self.materials[s.material as usize].uses_uv() {
+                    Vec2::new(
+                        0.5 + n.z.atan2(n.x) * crate::geometry::INV_2PI,
+                        n.y.clamp(-1.0, 1.0).acos() * crate::geometry::INV_PI,
+                    )
+                } else {
+                    Vec2::ZERO
+                };
                 if s.inward {
                     n = -n;
                 }
