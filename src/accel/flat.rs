@@ -6,10 +6,11 @@
 //! The triangle test is obvhs's `RtTriangle::intersect` (Möller and Trumbore, "Fast, Minimum
 //! Storage Ray/Triangle Intersection", JGT 1997, in the edge layout of
 //! madmann91's "An introduction to BVHs", 2021) with the same operations in the same order, lane
-//! by lane, so a triangle reports the same distance bit for bit whichever index finds it.
+//! by lane (glam's cross product included, which fuses a product where the build has FMA), so a
+//! triangle reports the same distance bit for bit whichever index finds it.
 
 use super::{Prim, SphereGeom};
-use crate::geometry::{Ray, Vec2, Vec3};
+use crate::geometry::{Ray, Vec2, Vec3, Vec3A};
 
 /// Triangles per block: one AVX register of f32, two SSE registers.
 const LANES: usize = 8;
@@ -28,6 +29,20 @@ struct Block {
     ng: [[f32; LANES]; 3],
 }
 
+/// a b - c d as glam's `Vec3A::cross` forms each component, which obvhs's triangle test uses:
+/// the second product fused into the subtraction where the build has FMA (x86-64-v3).
+#[inline(always)]
+fn cross_term(a: f32, b: f32, c: f32, d: f32) -> f32 {
+    #[cfg(target_feature = "fma")]
+    {
+        (-c).mul_add(d, a * b)
+    }
+    #[cfg(not(target_feature = "fma"))]
+    {
+        a * b - c * d
+    }
+}
+
 /// The distances of a ray to the eight triangles of a block: inside [tmin, tmax], else infinity.
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // lane loops index several arrays: the form that vectorises
@@ -35,10 +50,10 @@ fn block_distances(b: &Block, o: Vec3, d: Vec3, tmin: f32, tmax: f32) -> [f32; L
     let mut out = [f32::INFINITY; LANES];
     for i in 0..LANES {
         let (cx, cy, cz) = (b.v0[0][i] - o.x, b.v0[1][i] - o.y, b.v0[2][i] - o.z);
-        // r = d x c
-        let rx = d.y * cz - d.z * cy;
-        let ry = d.z * cx - d.x * cz;
-        let rz = d.x * cy - d.y * cx;
+        // r = d x c, as glam's Vec3A forms it
+        let rx = cross_term(d.y, cz, cy, d.z);
+        let ry = cross_term(d.z, cx, cz, d.x);
+        let rz = cross_term(d.x, cy, cx, d.y);
         let inv_det = 1.0 / (b.ng[0][i] * d.x + b.ng[1][i] * d.y + b.ng[2][i] * d.z);
         let u = (rx * b.e2[0][i] + ry * b.e2[1][i] + rz * b.e2[2][i]) * inv_det;
         let v = (rx * b.e1[0][i] + ry * b.e1[1][i] + rz * b.e1[2][i]) * inv_det;
@@ -80,7 +95,7 @@ impl Flat {
             let b = &mut blocks[k / LANES];
             let lane = k % LANES;
             let (e1, e2) = (t[0] - t[1], t[2] - t[0]);
-            let ng = e1.cross(e2);
+            let ng = Vec3::from(Vec3A::from(e1).cross(Vec3A::from(e2)));
             for a in 0..3 {
                 b.v0[a][lane] = t[0][a];
                 b.e1[a][lane] = e1[a];
@@ -221,8 +236,9 @@ impl Flat {
         let lane = found % LANES;
         let get = |m: &[[f32; LANES]; 3]| Vec3::new(m[0][lane], m[1][lane], m[2][lane]);
         // obvhs's `compute_barycentric`, operation for operation.
-        let r = d.cross(get(&b.v0) - o);
-        let bary = Vec2::new(r.dot(get(&b.e2)), r.dot(get(&b.e1))) / get(&b.ng).dot(d);
+        let r = Vec3A::from(d).cross(Vec3A::from(get(&b.v0) - o));
+        let (e1, e2) = (Vec3A::from(get(&b.e1)), Vec3A::from(get(&b.e2)));
+        let bary = Vec2::new(r.dot(e2), r.dot(e1)) / get(&b.ng).dot(d);
         Some((self.tri_prims[found], best, bary))
     }
 
@@ -284,6 +300,23 @@ mod avx2 {
         }
     }
 
+    /// `super::cross_term` eight lanes at a time.
+    #[cfg(target_feature = "fma")]
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn cross_term(a: __m256, b: __m256, c: __m256, d: __m256) -> __m256 {
+        // SAFETY: this build targets FMA (the cfg above).
+        unsafe { _mm256_fnmadd_ps(c, d, _mm256_mul_ps(a, b)) }
+    }
+
+    /// `super::cross_term` eight lanes at a time.
+    #[cfg(not(target_feature = "fma"))]
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn cross_term(a: __m256, b: __m256, c: __m256, d: __m256) -> __m256 {
+        _mm256_sub_ps(_mm256_mul_ps(a, b), _mm256_mul_ps(c, d))
+    }
+
     #[inline(always)]
     fn load(row: &[f32; LANES]) -> __m256 {
         // SAFETY: eight f32 in a 32-byte aligned block row; AVX2 is enabled by every caller.
@@ -302,9 +335,9 @@ mod avx2 {
             sub(load(&b.v0[1]), oy),
             sub(load(&b.v0[2]), oz),
         );
-        let rx = sub(mul(dy, cz), mul(dz, cy));
-        let ry = sub(mul(dz, cx), mul(dx, cz));
-        let rz = sub(mul(dx, cy), mul(dy, cx));
+        let rx = cross_term(dy, cz, cy, dz);
+        let ry = cross_term(dz, cx, cz, dx);
+        let rz = cross_term(dx, cy, cx, dy);
         let (ngx, ngy, ngz) = (load(&b.ng[0]), load(&b.ng[1]), load(&b.ng[2]));
         let det = add(add(mul(ngx, dx), mul(ngy, dy)), mul(ngz, dz));
         let inv_det = _mm256_div_ps(_mm256_set1_ps(1.0), det);
