@@ -53,6 +53,7 @@ FROM ${RUST_IMAGE} AS build
 WORKDIR /src
 # Only what `cargo build --release` needs (tests/, benches and scenes stay out of this stage).
 COPY Cargo.toml Cargo.lock ./
+# The build's processor target (x86-64-v3, see README): the image runs on AVX2 and FMA machines.
 COPY .cargo ./.cargo
 COPY src ./src
 # The registry and target caches survive between builds (BuildKit); the binary is copied out
