@@ -381,7 +381,7 @@ fn has_avx2() -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::accel::tests::{TestScene, test_scene};
+    use crate::accel::tests::test_scene;
 
     /// The AVX2 queries answer every ray as the portable ones do, bit for bit: the same
     /// primitive, distance and barycentrics, and the same occlusion.
@@ -389,18 +389,12 @@ mod tests {
     #[test]
     fn avx2_queries_equal_the_portable_ones() {
         assert!(has_avx2(), "this test needs a processor with AVX2");
-        let TestScene {
-            tris,
-            ids,
-            spheres,
-            sphere_ids,
-            rays,
-        } = test_scene();
-        let flat = Flat::new(&tris, &ids, &spheres, &sphere_ids);
+        let sc = test_scene();
+        let flat = Flat::new(&sc.tris, &sc.ids, &sc.spheres, &sc.sphere_ids);
         let bits =
             |h: Option<FlatHit>| h.map(|(p, t, b)| (p, t.to_bits(), b.x.to_bits(), b.y.to_bits()));
         let (mut hits, mut blocked) = (0, 0);
-        for (i, ray) in rays.iter().enumerate() {
+        for (i, ray) in sc.rays.iter().enumerate() {
             // SAFETY: AVX2 is present (asserted above).
             let (a, b) = unsafe { (flat.intersect_avx2(ray), flat.occluded_avx2(ray)) };
             assert_eq!(bits(a), bits(flat.intersect_any(ray)), "ray {i}");

@@ -546,18 +546,12 @@ mod tests {
     /// primitive unless two primitives lie at that distance (a shared edge); occlusion agrees.
     #[test]
     fn flat_queries_equal_bvh_traversal() {
-        let TestScene {
-            tris,
-            ids,
-            spheres,
-            sphere_ids,
-            rays,
-        } = test_scene();
-        let flat = Accel::build_with(&tris, &ids, &spheres, &sphere_ids, true);
-        let bvh = Accel::build_with(&tris, &ids, &spheres, &sphere_ids, false);
+        let sc = test_scene();
+        let build = |flat| Accel::build_with(&sc.tris, &sc.ids, &sc.spheres, &sc.sphere_ids, flat);
+        let (flat, bvh) = (build(true), build(false));
         assert!(flat.is_flat() && !bvh.is_flat());
         let (mut hits, mut ties, mut blocked) = (0, 0, 0);
-        for (i, ray) in rays.iter().enumerate() {
+        for (i, ray) in sc.rays.iter().enumerate() {
             let (a, b) = (flat.intersect(ray), bvh.intersect(ray));
             assert_eq!(a.is_some(), b.is_some(), "ray {i}");
             assert_eq!(flat.occluded(ray), bvh.occluded(ray), "ray {i}");
