@@ -65,9 +65,9 @@ pub struct Triangle {
     pub has_normals: bool,
     /// Vertex uvs are present for this triangle's mesh.
     pub has_uvs: bool,
-    /// Flip the geometric normal (set when a transform swaps handedness is *not* the reason:
-    /// normals are oriented to agree with the vertex normals, as pbrt does).
-    pub flip: bool,
+    /// Unit geometric normal, (p1 - p0) x (p2 - p0) normalised, turned to agree with the vertex
+    /// normals where they exist (as pbrt does): made once here, not per hit.
+    pub ng: Vec3,
 }
 
 /// A world-space sphere.
@@ -217,10 +217,7 @@ impl Scene {
                 let (b1, b2) = (bary.x, bary.y);
                 let b0 = 1.0 - b1 - b2;
                 let p = p0 * b0 + p1 * b1 + p2 * b2;
-                let mut ng = (p1 - p0).cross(p2 - p0).normalize();
-                if tri.flip {
-                    ng = -ng;
-                }
+                let ng = tri.ng;
                 let mut ns = ng;
                 if tri.has_normals {
                     let n = self.normals[a] * b0 + self.normals[b] * b1 + self.normals[c] * b2;
@@ -576,13 +573,14 @@ impl SceneBuilder {
                     + self.normals[v[2] as usize];
                 flip = ns.dot(ng) < 0.0;
             }
+            let ng = ng.normalize();
             self.triangles.push(Triangle {
                 v,
                 material,
                 light: NO_LIGHT,
                 has_normals,
                 has_uvs,
-                flip,
+                ng: if flip { -ng } else { ng },
             });
             self.tri_emission.push(emission.unwrap_or(Rgb::ZERO));
         }
@@ -665,11 +663,7 @@ impl SceneBuilder {
                 continue;
             }
             let [a, b, c] = tri.v.map(|k| self.positions[k as usize]);
-            let mut n = (b - a).cross(c - a).normalize();
-            if tri.flip {
-                n = -n;
-            }
-            if let Some(l) = Light::triangle(a, b, c, n, e) {
+            if let Some(l) = Light::triangle(a, b, c, tri.ng, e) {
                 tri.light = lights.len() as u32;
                 area_lights.push(tri.light);
                 emit_tris.push([a, b, c]);
