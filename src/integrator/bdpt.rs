@@ -42,7 +42,7 @@
 use crate::camera::Camera;
 use crate::film::RayStats;
 use crate::geometry::{Ray, Rgb, Vec2, Vec3};
-use crate::material::{Bsdf, Mode};
+use crate::material::{Bsdf, Mode, Outgoing};
 use crate::mis::{self, MisKind};
 use crate::sampler::Sampler;
 use crate::scene::{NO_LIGHT, Scene};
@@ -67,6 +67,9 @@ pub struct Vertex {
     /// Shading normal.
     ns: Vec3,
     bsdf: Bsdf,
+    /// The direction toward the predecessor in the subpath, made ready for the BSDF's queries
+    /// (zero at the endpoints): every connection from here evaluates the BSDF with it.
+    wo: Outgoing,
     /// Light index (light vertices and emissive surfaces), else NO_LIGHT.
     light: u32,
     /// Throughput up to and including this vertex's generation (f / p of the subpath so far).
@@ -101,6 +104,7 @@ impl Vertex {
             ng: n,
             ns: n,
             bsdf: Bsdf::new_black(),
+            wo: Outgoing::default(),
             light: NO_LIGHT,
             beta,
             pdf_fwd,
@@ -153,6 +157,11 @@ impl Vertex {
     /// The vertex's BSDF.
     pub(crate) fn bsdf(&self) -> &Bsdf {
         &self.bsdf
+    }
+
+    /// The direction toward the predecessor, made ready for the BSDF (zero at the endpoints).
+    pub(crate) fn outgoing(&self) -> &Outgoing {
+        &self.wo
     }
 
     /// Area density of this vertex from its predecessor in its subpath.
@@ -266,6 +275,7 @@ impl StoredVertex {
             ng: self.ng,
             ns: self.ns,
             bsdf,
+            wo: Outgoing::default(),
             light: self.light,
             beta: self.beta,
             pdf_fwd: self.pdf_fwd,
@@ -394,6 +404,7 @@ fn random_walk(
             ng: hit.ng,
             ns: hit.ns,
             bsdf,
+            wo: bsdf.outgoing(dir_to(hit.p, path[prev].p).0),
             light: hit.light,
             beta,
             pdf_fwd: 0.0,
@@ -675,6 +686,10 @@ impl Workspace {
         self.light.clear();
         self.light
             .extend(path.iter().enumerate().map(|(i, v)| v.load(scene, i == 0)));
+        for i in 1..self.light.len() {
+            let (y, yp) = (&self.light[i], &self.light[i - 1]);
+            self.light[i].wo = y.bsdf.outgoing(dir_to(y.p, yp.p).0);
+        }
     }
 
     /// The prepared partial sum S_j of light vertex j.
@@ -1039,7 +1054,7 @@ fn hit_emitter(
 ) -> bool {
     let z = &ws.cam[t - 1];
     let zp = &ws.cam[t - 2];
-    let (w_out, _) = dir_to(z.p, zp.p);
+    let w_out = z.wo.w;
     let contribution = if z.light == NO_LIGHT {
         Rgb::ZERO
     } else {
@@ -1105,8 +1120,7 @@ fn next_event(
         return false;
     };
     let zp = &ws.cam[t - 2];
-    let (wo, _) = dir_to(z.p, zp.p);
-    let (f, dirs) = z.bsdf.eval_local(wo, ls.wi, Mode::Radiance);
+    let (f, dirs) = z.bsdf.eval_local(&z.wo, ls.wi, Mode::Radiance);
     let contribution = z.beta * f * ls.le * (ls.wi.dot(z.ns).abs() / (pmf * ls.pdf));
     // Zero-contribution samples (occluded, or a zero BSDF / emission) are weighted as paths only
     // this technique could make (W = e_s): exact for occluded connections (every other technique
@@ -1172,10 +1186,8 @@ fn connect(
     if !(d2 > 0.0) {
         return false;
     }
-    let (wo_y, _) = dir_to(y.p, yp.p);
-    let (wo_z, _) = dir_to(z.p, zp.p);
-    let (fy, y_dirs) = y.bsdf.eval_local(wo_y, w_yz, Mode::Importance);
-    let (fz, z_dirs) = z.bsdf.eval_local(wo_z, -w_yz, Mode::Radiance);
+    let (fy, y_dirs) = y.bsdf.eval_local(&y.wo, w_yz, Mode::Importance);
+    let (fz, z_dirs) = z.bsdf.eval_local(&z.wo, -w_yz, Mode::Radiance);
     let g = w_yz.dot(y.ns).abs() * w_yz.dot(z.ns).abs() / d2;
     let contribution = y.beta * fy * fz * z.beta * g;
     // Zero-contribution samples (occluded, or a zero BSDF / emission) are weighted as paths only
@@ -1251,9 +1263,7 @@ fn connect_to_camera(
         let light = &scene.lights[y.light as usize];
         (light.le(y.ng, w_yc), y.abs_cos_ng(w_yc), None)
     } else {
-        let yp = &ws.light[s - 2];
-        let (wo_y, _) = dir_to(y.p, yp.p);
-        let (f, dirs) = y.bsdf.eval_local(wo_y, w_yc, Mode::Importance);
+        let (f, dirs) = y.bsdf.eval_local(&y.wo, w_yc, Mode::Importance);
         (f, w_yc.dot(y.ns).abs(), dirs)
     };
     let contribution = y.beta * f * (cos_y * we * cos_cam / d2);

@@ -173,10 +173,10 @@ pub fn pixel_sample(
     // w1 of the camera's own continuation past x_M (the weight of every merge at x_{M+1}).
     let mut w_next = 0.0f64;
     for j in 1..cam.len() {
-        let (z, zp) = (&cam[j], &cam[j - 1]);
-        let (wo, _) = bdpt::dir_to(z.position(), zp.position());
+        let z = &cam[j];
+        let wo = z.outgoing();
         if c == 0 && z.light_index() != NO_LIGHT {
-            let e = z.throughput() * scene.lights[z.light_index() as usize].le(z.normal(), wo);
+            let e = z.throughput() * scene.lights[z.light_index() as usize].le(z.normal(), wo.w);
             value += e;
             if let Some(pd) = per_depth.as_deref_mut() {
                 pd[j - 1] += e;
@@ -192,7 +192,7 @@ pub fn pixel_sample(
         if c == m
             && let Some(f) = frozen
         {
-            let mx = Mixing::new(scene, f, z, wo);
+            let mx = Mixing::new(scene, f, z, wo.w);
             if let Some(next) = cam.get(j + 1) {
                 w_next = mx.w1((next.position() - z.position()).normalize_or_zero());
             }
@@ -215,7 +215,7 @@ pub fn pixel_sample(
             if w == 0.0 {
                 return;
             }
-            let f = z.bsdf().eval(wo, ph.wi, Mode::Radiance);
+            let f = z.bsdf().eval_local(wo, ph.wi, Mode::Radiance).0;
             let v = f * ph.beta * w as f32;
             sum += v;
             if let Some(pd) = per_depth.as_deref_mut() {

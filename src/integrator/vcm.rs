@@ -402,8 +402,7 @@ impl<'a> Split<'a> {
         if x.is_black() {
             return None;
         }
-        let (wo, _) = bdpt::dir_to(x.position(), cam[at - 1].position());
-        let mixing = bpm::Mixing::new(scene, frozen, x, wo);
+        let mixing = bpm::Mixing::new(scene, frozen, x, x.outgoing().w);
         let w_next = cam.get(at + 1).map_or(0.0, |next| {
             mixing.w1((next.position() - x.position()).normalize_or_zero())
         });
@@ -437,7 +436,7 @@ fn merge(
         if z.is_delta() || z.is_black() {
             continue;
         }
-        let (wo, _) = bdpt::dir_to(z.position(), zp.position());
+        let wo = z.outgoing();
         let pe_z = z.pdf_fwd() as f64;
         map.query(z.position(), |ph| {
             let depth = ph.index + t as u32 - 2;

@@ -233,6 +233,17 @@ pub struct LocalPair {
     rev_ok: bool,
 }
 
+/// An outgoing direction made ready for many queries at one BSDF ([`Bsdf::outgoing`]): the world
+/// direction with its shading-frame coordinates and its cosine to the geometric normal, computed
+/// once instead of per query (a path vertex is evaluated toward every connection).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Outgoing {
+    /// The direction (unit, world space).
+    pub w: Vec3,
+    local: Vec3,
+    cos_g: f32,
+}
+
 /// A BSDF sample in world space.
 #[derive(Clone, Copy, Debug)]
 pub struct BsdfSample {
@@ -305,14 +316,24 @@ impl Bsdf {
     /// Local directions for a query, with reflection-only lobes flipped to wo's side of a
     /// two-sided surface; `None` when the query has no value (back of a one-sided surface, or
     /// geometric and shading normals disagree about the side of a direction).
+    /// `wo` in this BSDF's frames, for [`Bsdf::eval_from`] and [`Bsdf::eval_pdfs_from`].
     #[inline]
-    fn localize(&self, wo: Vec3, wi: Vec3) -> Option<(Vec3, Vec3)> {
-        let go = wo.dot(self.ng);
+    pub fn outgoing(&self, wo: Vec3) -> Outgoing {
+        Outgoing {
+            w: wo,
+            local: self.frame.to_local(wo),
+            cos_g: wo.dot(self.ng),
+        }
+    }
+
+    #[inline]
+    fn localize(&self, wo: &Outgoing, wi: Vec3) -> Option<(Vec3, Vec3)> {
+        let go = wo.cos_g;
         let gi = wi.dot(self.ng);
         if go == 0.0 || gi == 0.0 {
             return None;
         }
-        let mut lo = self.frame.to_local(wo);
+        let mut lo = wo.local;
         let mut li = self.frame.to_local(wi);
         if self.lobe.transmits() {
             // Geometric and shading classification of reflection vs transmission must agree.
@@ -337,18 +358,19 @@ impl Bsdf {
     /// Veach's adjoint correction for shading normals on importance-carrying paths
     /// (Veach 1997 eq. 5.19): |wo.ns| |wi.ng| / (|wo.ng| |wi.ns|).
     #[inline]
-    fn shading_correction(&self, wo: Vec3, wi: Vec3, mode: Mode) -> f32 {
+    fn shading_correction(&self, wo: &Outgoing, wi: Vec3, mode: Mode) -> f32 {
         if mode == Mode::Radiance {
             return 1.0;
         }
-        let num = wo.dot(self.frame.n).abs() * wi.dot(self.ng).abs();
-        let den = wo.dot(self.ng).abs() * wi.dot(self.frame.n).abs();
+        // wo.n and wo.ng, as `outgoing` computed them.
+        let num = wo.local.z.abs() * wi.dot(self.ng).abs();
+        let den = wo.cos_g.abs() * wi.dot(self.frame.n).abs();
         if den == 0.0 { 0.0 } else { num / den }
     }
 
     /// f(wo, wi) without the cosine. Zero for delta lobes; never negative, NaN or infinite.
     pub fn eval(&self, wo: Vec3, wi: Vec3, mode: Mode) -> Rgb {
-        self.eval_local(wo, wi, mode).0
+        self.eval_local(&self.outgoing(wo), wi, mode).0
     }
 
     /// `eval(wo, wi, mode)`, and the pair of directions in the shading frame from which
@@ -357,7 +379,7 @@ impl Bsdf {
     /// it unoccluded (computing them for occluded ones too cost 0.8 % more instructions on
     /// Veach's scene, BENCHMARKS.md #13 stop 24).
     #[inline]
-    pub fn eval_local(&self, wo: Vec3, wi: Vec3, mode: Mode) -> (Rgb, Option<LocalPair>) {
+    pub fn eval_local(&self, wo: &Outgoing, wi: Vec3, mode: Mode) -> (Rgb, Option<LocalPair>) {
         let Some((lo, li)) = self.localize(wo, wi) else {
             return (Rgb::ZERO, None);
         };
@@ -396,7 +418,7 @@ impl Bsdf {
     /// `(eval(wo, wi, mode), pdf(wo, wi), pdf(wi, wo))` bit for bit, in one change of frame
     /// (Phong's cos^n once): what a merge needs of a camera vertex.
     #[inline]
-    pub fn eval_pdfs(&self, wo: Vec3, wi: Vec3, mode: Mode) -> (Rgb, f32, f32) {
+    pub fn eval_pdfs(&self, wo: &Outgoing, wi: Vec3, mode: Mode) -> (Rgb, f32, f32) {
         let Some((lo, li)) = self.localize(wo, wi) else {
             return (Rgb::ZERO, 0.0, 0.0);
         };
@@ -430,7 +452,7 @@ impl Bsdf {
 
     /// Solid-angle density of sampling wi from wo. Zero for delta lobes; never negative or NaN.
     pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
-        match self.localize(wo, wi) {
+        match self.localize(&self.outgoing(wo), wi) {
             Some((lo, li)) => clean_pdf(self.lobe.pdf(lo, li)),
             None => 0.0,
         }
@@ -439,7 +461,7 @@ impl Bsdf {
     /// Discrete probability of the delta event taking wo to wi (1 for mirrors, F or 1 - F for
     /// smooth dielectrics); zero for non-delta lobes.
     pub fn delta_pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
-        match self.localize(wo, wi) {
+        match self.localize(&self.outgoing(wo), wi) {
             Some((lo, li)) => self.lobe.delta_pdf(lo, li),
             None => 0.0,
         }
@@ -448,11 +470,12 @@ impl Bsdf {
     /// Samples an incident direction for outgoing `wo` (world space) from the numbers `u_lobe`
     /// (lobe choice) and `u`; None when the sample is absorbed or invalid.
     pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2, mode: Mode) -> Option<BsdfSample> {
-        let go = wo.dot(self.ng);
+        let out = self.outgoing(wo);
+        let go = out.cos_g;
         if go == 0.0 {
             return None;
         }
-        let mut lo = self.frame.to_local(wo);
+        let mut lo = out.local;
         let flip = !self.lobe.transmits() && go < 0.0;
         if flip {
             if !self.two_sided {
@@ -467,8 +490,8 @@ impl Bsdf {
         }
         let wi = self.frame.to_world(li);
         // Reject samples whose geometric side contradicts the local one (keeps pdf consistent).
-        let (lo, li) = self.localize(wo, wi)?;
-        let f = s.f * self.shading_correction(wo, wi, mode);
+        let (lo, li) = self.localize(&out, wi)?;
+        let f = s.f * self.shading_correction(&out, wi, mode);
         if !(s.pdf > 0.0) || !s.pdf.is_finite() || !f.is_finite() {
             return None;
         }
