@@ -11,7 +11,7 @@
 
 use crate::film::RayStats;
 use crate::geometry::{Ray, Rgb, Vec3, max_component};
-use crate::material::{Bsdf, Mode};
+use crate::material::{Bsdf, Mode, Outgoing};
 use crate::mis::power_heuristic;
 use crate::sampler::Sampler;
 use crate::scene::{NO_LIGHT, Scene, SurfaceHit};
@@ -90,13 +90,15 @@ pub fn li(
         if bsdf.is_black() {
             break;
         }
+        // wo in the BSDF's frames, once for the light sample and the BSDF sample.
+        let out = bsdf.outgoing(wo);
         if !bsdf.is_delta() && strategy != DirectStrategy::Bsdf {
-            let v = beta * direct(scene, &hit, &bsdf, wo, sampler, strategy, stats);
+            let v = beta * direct(scene, &hit, &bsdf, &out, sampler, strategy, stats);
             add(&mut l, depth + 1, v);
         }
         let u_lobe = sampler.next_1d();
         let u = sampler.next_2d();
-        let Some(s) = bsdf.sample(wo, u_lobe, u, Mode::Radiance) else {
+        let Some(s) = bsdf.sample_from(&out, u_lobe, u, Mode::Radiance) else {
             break;
         };
         beta *= s.f * (s.wi.dot(hit.ns).abs() / s.pdf);
@@ -119,7 +121,7 @@ fn direct(
     scene: &Scene,
     hit: &SurfaceHit,
     bsdf: &Bsdf,
-    wo: Vec3,
+    wo: &Outgoing,
     sampler: &mut Sampler,
     strategy: DirectStrategy,
     stats: &mut RayStats,
@@ -133,7 +135,7 @@ fn direct(
     let Some(ls) = light.sample_li(hit.p, u) else {
         return Rgb::ZERO;
     };
-    let f = bsdf.eval(wo, ls.wi, Mode::Radiance);
+    let (f, pair) = bsdf.eval_local(wo, ls.wi, Mode::Radiance);
     if f == Rgb::ZERO {
         return Rgb::ZERO;
     }
@@ -166,7 +168,7 @@ fn direct(
         return Rgb::ZERO;
     }
     let w = match strategy {
-        DirectStrategy::Mis => power_heuristic(pdf_light, bsdf.pdf(wo, ls.wi)),
+        DirectStrategy::Mis => power_heuristic(pdf_light, bsdf.pdf_fwd(pair.as_ref())),
         _ => 1.0,
     };
     f * le * (cos * w / pdf_light)

@@ -406,6 +406,12 @@ impl Bsdf {
         (clean_pdf(fwd), if p.rev_ok { clean_pdf(rev) } else { 0.0 })
     }
 
+    /// `pdf(wo, wi)` alone of the directions `eval_local` returned (zero without them).
+    #[inline]
+    pub fn pdf_fwd(&self, pair: Option<&LocalPair>) -> f32 {
+        pair.map_or(0.0, |p| clean_pdf(self.lobe.pdf(p.lo, p.li)))
+    }
+
     /// `pdf(wi, wo)` alone of the directions `eval_local` returned (zero without them).
     #[inline]
     pub fn pdf_back(&self, pair: Option<&LocalPair>) -> f32 {
@@ -470,7 +476,17 @@ impl Bsdf {
     /// Samples an incident direction for outgoing `wo` (world space) from the numbers `u_lobe`
     /// (lobe choice) and `u`; None when the sample is absorbed or invalid.
     pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2, mode: Mode) -> Option<BsdfSample> {
-        let out = self.outgoing(wo);
+        self.sample_from(&self.outgoing(wo), u_lobe, u, mode)
+    }
+
+    /// [`Bsdf::sample`] for an outgoing direction already in this BSDF's frames.
+    pub fn sample_from(
+        &self,
+        out: &Outgoing,
+        u_lobe: f32,
+        u: Vec2,
+        mode: Mode,
+    ) -> Option<BsdfSample> {
         let go = out.cos_g;
         if go == 0.0 {
             return None;
@@ -490,8 +506,8 @@ impl Bsdf {
         }
         let wi = self.frame.to_world(li);
         // Reject samples whose geometric side contradicts the local one (keeps pdf consistent).
-        let (lo, li) = self.localize(&out, wi)?;
-        let f = s.f * self.shading_correction(&out, wi, mode);
+        let (lo, li) = self.localize(out, wi)?;
+        let f = s.f * self.shading_correction(out, wi, mode);
         if !(s.pdf > 0.0) || !s.pdf.is_finite() || !f.is_finite() {
             return None;
         }
