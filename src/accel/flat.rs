@@ -155,14 +155,8 @@ impl Flat {
             let block = _mm256_castsi256_ps(_mm256_set1_epi32(k as i32));
             lane_block = _mm256_blendv_ps(lane_block, block, nearer);
         }
-        let mut ts = [0.0f32; LANES];
-        let mut blocks = [0u32; LANES];
-        // SAFETY: both arrays hold eight 4-byte values; unaligned stores.
-        unsafe {
-            _mm256_storeu_ps(ts.as_mut_ptr(), lane_t);
-            _mm256_storeu_si256(blocks.as_mut_ptr().cast(), _mm256_castps_si256(lane_block));
-        }
-        self.closest_of(ray, &ts, &blocks)
+        let (best, found) = avx2::nearest_lane(lane_t, _mm256_castps_si256(lane_block), ray.tmax);
+        self.closest_of(ray, best, found)
     }
 
     /// `occluded_any` in AVX2 registers (see `intersect_avx2`).
@@ -198,28 +192,15 @@ impl Flat {
                 lane_block[i] = if nearer { k as u32 } else { lane_block[i] };
             }
         }
-        self.closest_of(ray, &lane_t, &lane_block)
+        let (best, found) = nearest_lane(&lane_t, &lane_block, ray.tmax);
+        self.closest_of(ray, best, found)
     }
 
-    /// The closest hit from each lane's nearest triangle distance and its block, then the
-    /// spheres; of triangles at the same distance, the first in the scene's order.
+    /// The closest hit given the nearest triangle (`best`, `found` as [`nearest_lane`] gives
+    /// them), then the spheres.
     #[inline(always)]
-    fn closest_of(
-        &self,
-        ray: &Ray,
-        lane_t: &[f32; LANES],
-        lane_block: &[u32; LANES],
-    ) -> Option<FlatHit> {
+    fn closest_of(&self, ray: &Ray, mut best: f32, found: usize) -> Option<FlatHit> {
         let (o, d) = (ray.o, ray.d);
-        let mut best = ray.tmax;
-        let mut found = usize::MAX;
-        for i in 0..LANES {
-            let index = lane_block[i] as usize * LANES + i;
-            if lane_t[i] < best || lane_t[i] == best && lane_t[i] < ray.tmax && index < found {
-                best = lane_t[i];
-                found = index;
-            }
-        }
         let mut sphere = None;
         for (s, prim) in &self.spheres {
             let t = s.intersect(o, d, ray.tmin, best);
@@ -261,6 +242,23 @@ impl Flat {
             .iter()
             .any(|(s, _)| s.intersect(ray.o, ray.d, ray.tmin, ray.tmax) < ray.tmax)
     }
+}
+
+/// The nearest of the lanes' distances (`tmax` when none is nearer) and its triangle, numbered
+/// `block * LANES + lane` (`usize::MAX` for none); of lanes at the same distance, the first
+/// triangle in the scene's order.
+#[inline(always)]
+fn nearest_lane(lane_t: &[f32; LANES], lane_block: &[u32; LANES], tmax: f32) -> (f32, usize) {
+    let mut best = tmax;
+    let mut found = usize::MAX;
+    for i in 0..LANES {
+        let index = lane_block[i] as usize * LANES + i;
+        if lane_t[i] < best || lane_t[i] == best && lane_t[i] < tmax && index < found {
+            best = lane_t[i];
+            found = index;
+        }
+    }
+    (best, found)
 }
 
 /// `block_distances` eight lanes per instruction.
@@ -321,6 +319,32 @@ mod avx2 {
     fn load(row: &[f32; LANES]) -> __m256 {
         // SAFETY: eight f32 in a 32-byte aligned block row; AVX2 is enabled by every caller.
         unsafe { _mm256_load_ps(row.as_ptr()) }
+    }
+
+    /// `super::nearest_lane` in registers: the minimum distance, then the smallest triangle
+    /// index among the lanes that hold it. No lane holds NaN (a NaN distance becomes infinity in
+    /// `block_distances`), so the minimum is exact and its lanes compare equal to it; the same
+    /// answer as the lane loop but for the sign of a zero distance (a ray starting exactly on a
+    /// triangle's plane with tmin 0), which `min` may take from either zero.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    pub(super) fn nearest_lane(lane_t: __m256, lane_block: __m256i, tmax: f32) -> (f32, usize) {
+        // Horizontal minimum: halves, then pairs, then neighbours.
+        let m = _mm256_min_ps(lane_t, _mm256_permute2f128_ps::<1>(lane_t, lane_t));
+        let m = _mm256_min_ps(m, _mm256_permute_ps::<0b01_00_11_10>(m));
+        let m = _mm256_min_ps(m, _mm256_permute_ps::<0b10_11_00_01>(m));
+        let best = _mm256_cvtss_f32(m);
+        if !(best < tmax) {
+            return (tmax, usize::MAX);
+        }
+        let lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        let index = _mm256_add_epi32(_mm256_slli_epi32::<3>(lane_block), lanes);
+        let at_best = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_EQ_OQ>(lane_t, m));
+        let index = _mm256_blendv_epi8(_mm256_set1_epi32(-1), index, at_best);
+        let i = _mm256_min_epu32(index, _mm256_permute2x128_si256::<1>(index, index));
+        let i = _mm256_min_epu32(i, _mm256_shuffle_epi32::<0b01_00_11_10>(i));
+        let i = _mm256_min_epu32(i, _mm256_shuffle_epi32::<0b10_11_00_01>(i));
+        (best, _mm256_cvtsi256_si32(i) as u32 as usize)
     }
 
     /// `super::block_distances`, operation for operation.
