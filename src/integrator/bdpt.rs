@@ -117,7 +117,8 @@ impl Vertex {
         }
     }
 
-    /// The vertex without its BSDF (80 bytes instead of 180), for keeping many light subpaths.
+    /// The vertex without its BSDF and outgoing direction (80 bytes instead of 208), for keeping
+    /// many light subpaths.
     pub(crate) fn stored(&self) -> StoredVertex {
         StoredVertex {
             p: self.p,

@@ -313,10 +313,8 @@ impl Bsdf {
         self.lobe.is_black()
     }
 
-    /// Local directions for a query, with reflection-only lobes flipped to wo's side of a
-    /// two-sided surface; `None` when the query has no value (back of a one-sided surface, or
-    /// geometric and shading normals disagree about the side of a direction).
-    /// `wo` in this BSDF's frames, for [`Bsdf::eval_from`] and [`Bsdf::eval_pdfs_from`].
+    /// `wo` in this BSDF's frames, for [`Bsdf::eval_local`], [`Bsdf::eval_pdfs`] and
+    /// [`Bsdf::sample_from`].
     #[inline]
     pub fn outgoing(&self, wo: Vec3) -> Outgoing {
         Outgoing {
@@ -326,6 +324,9 @@ impl Bsdf {
         }
     }
 
+    /// Local directions for a query, with reflection-only lobes flipped to wo's side of a
+    /// two-sided surface; `None` when the query has no value (back of a one-sided surface, or
+    /// geometric and shading normals disagree about the side of a direction).
     #[inline]
     fn localize(&self, wo: &Outgoing, wi: Vec3) -> Option<(Vec3, Vec3)> {
         let go = wo.cos_g;
