@@ -338,6 +338,13 @@ fn auto_optimal_depth_is_chosen_once_the_same_way_in_both_modes_and_reported() {
     let (ja, jb) = (last_json(&a), last_json(&b));
     let choice = &jb["optimal_depth"];
     assert!(choice["chosen"].is_u64(), "{jb}");
+    // 24x20 at 8 spp is 3840 pixel samples: the pilot takes its smallest frame (256 pixels at
+    // most, the job's aspect), not the full 48x48 of a large or time-budgeted job.
+    assert_eq!(
+        choice["pilot_resolution"],
+        serde_json::json!([17, 14]),
+        "{jb}"
+    );
     assert_eq!(
         choice["relmse"].as_array().map(|v| v.len()),
         Some(6),

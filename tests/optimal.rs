@@ -1229,7 +1229,7 @@ fn auto_depth_predicts_the_variance_of_independent_renders_and_keeps_optimal_whe
         ..optimal(16, 5, 1)
     };
     let eps = 0.01;
-    let c = optimal_depth::choose(&mut scene, &s, eps);
+    let c = optimal_depth::choose(&mut scene, &s, eps, None);
     assert_eq!(
         (scene.camera.width, scene.camera.height),
         (96, 80),
@@ -1243,7 +1243,7 @@ fn auto_depth_predicts_the_variance_of_independent_renders_and_keeps_optimal_whe
     assert_eq!(c.relmse.len(), 6, "{c:?}");
     assert!(c.time.windows(2).all(|t| t[1] > t[0]), "{c:?}");
     // Deterministic: the same job gives the same choice.
-    assert_eq!(optimal_depth::choose(&mut scene, &s, eps), c);
+    assert_eq!(optimal_depth::choose(&mut scene, &s, eps, None), c);
 
     // Independent renders at the pilot's resolution and spp, D_opt 1: balance at depth 1, and
     // depth 1 weighted with the optimal weights solved from the next render's systems (the
@@ -1343,7 +1343,7 @@ fn auto_depth_is_not_fooled_by_weights_fitted_to_the_pilots_own_samples() {
         sampler: SamplerKind::Sobol,
         ..optimal(16, 5, 1)
     };
-    let c = optimal_depth::choose(&mut scene, &s, 0.01);
+    let c = optimal_depth::choose(&mut scene, &s, 0.01, None);
     eprintln!("{}", c.summary());
     assert!(c.relmse[3] >= 0.97 * c.relmse[2], "{c:?}");
     assert!(c.chosen <= 2, "{c:?}");

@@ -235,7 +235,8 @@ pub fn run(a: CompareArgs) -> Result<()> {
                     .any(|m| matches!(m, Method::Bdpt(k) if k.is_optimal())))
             .then(|| {
                 let cpu0 = super::procstat::cpu_seconds(None);
-                let c = pool.install(|| optimal_depth::choose(&mut scene, &s, a.eps));
+                // The full pilot: its time is kept out of the comparison's budgets.
+                let c = pool.install(|| optimal_depth::choose(&mut scene, &s, a.eps, None));
                 pilot_cpu += super::procstat::cpu_seconds(None) - cpu0;
                 eprintln!("seed {seed}: {}", c.summary());
                 c

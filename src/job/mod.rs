@@ -553,8 +553,11 @@ impl JobSettings {
                 .roulette
                 .unwrap_or(self.integrator == IntegratorKind::Vcm),
         };
-        let optimal_depth = (self.optimal_max_depth.is_none() && render.optimal_applies())
-            .then(|| optimal_depth::choose(scene, &render, self.eps));
+        let optimal_depth =
+            (self.optimal_max_depth.is_none() && render.optimal_applies()).then(|| {
+                let samples = spp.map(|s| width as u64 * height as u64 * s as u64);
+                optimal_depth::choose(scene, &render, self.eps, samples)
+            });
         if let Some(c) = &optimal_depth {
             render.optimal_max_depth = c.chosen;
         }

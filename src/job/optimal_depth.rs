@@ -6,8 +6,12 @@
 //! and tile checkpoint, so it must be known before the first task; and it must be a function of
 //! the job alone (scene, settings, seed), so that in-process and distributed renders, tilings and
 //! retries all make the same choice and keep the same bits. The pilot is deterministic (fixed
-//! seeds, its counters instead of clocks) and small (`PILOT_PIXELS` pixels, `PILOT_REPLICAS`
-//! renders of `PILOT_SPP` samples: about 37k pixel samples, whatever the job's size).
+//! seeds, its counters instead of clocks) and small: `PILOT_REPLICAS` renders of `PILOT_SPP`
+//! samples of at most `PILOT_PIXELS` pixels (about 37k pixel samples), and at most `PILOT_SHARE`
+//! of a job of known spp (its cost is the job's, and at equal time a pilot larger than the gain
+//! it finds makes optimal MIS lose to balance: Veach MIS at 64x64 and 128 spp took 1.118x
+//! balance's time with the full pilot, 1.032x without, for 0.92-0.94x its error; BENCHMARKS.md
+//! #14, stop 41), but never under `MIN_PILOT_PIXELS`.
 //!
 //! The estimates: the pilot renders the whole frame at a reduced resolution (same camera, same
 //! field of view; the techniques' relative densities per pixel do not depend on the resolution,
@@ -42,6 +46,10 @@ use serde::{Deserialize, Serialize};
 pub const AUTO_MAX_DEPTH: u32 = 5;
 /// Pixels of the pilot frame (at most; the job's frame when smaller).
 pub const PILOT_PIXELS: u32 = 48 * 48;
+/// The pilot's pixel samples are at most this share of a job of known spp...
+pub const PILOT_SHARE: f64 = 1.0 / 64.0;
+/// ...but its frame has at least this many pixels (or the job's, when smaller).
+pub const MIN_PILOT_PIXELS: u32 = 16 * 16;
 /// Independent pilot renders.
 pub const PILOT_REPLICAS: u32 = 4;
 /// Samples per pixel of each pilot render.
@@ -107,13 +115,24 @@ impl DepthChoice {
     }
 }
 
-/// The pilot frame of a `width` x `height` job: the same aspect, at most `PILOT_PIXELS` pixels.
-pub fn pilot_resolution(width: u32, height: u32) -> [u32; 2] {
+/// Most pixels of the pilot frame for a job of `job_samples` pixel samples (None: not known in
+/// advance, a time budget): `PILOT_SHARE` of them, within `MIN_PILOT_PIXELS ..= PILOT_PIXELS`.
+pub fn pilot_pixels(job_samples: Option<u64>) -> u32 {
+    let Some(n) = job_samples else {
+        return PILOT_PIXELS;
+    };
+    let per_pixel = (PILOT_REPLICAS * PILOT_SPP) as f64;
+    let share = (n as f64 * PILOT_SHARE / per_pixel).floor();
+    share.clamp(MIN_PILOT_PIXELS as f64, PILOT_PIXELS as f64) as u32
+}
+
+/// The pilot frame of a `width` x `height` job: the same aspect, at most `max_pixels` pixels.
+pub fn pilot_resolution(width: u32, height: u32, max_pixels: u32) -> [u32; 2] {
     let pixels = width as u64 * height as u64;
-    if pixels <= PILOT_PIXELS as u64 {
+    if pixels <= max_pixels as u64 {
         return [width, height];
     }
-    let scale = (PILOT_PIXELS as f64 / pixels as f64).sqrt();
+    let scale = (max_pixels as f64 / pixels as f64).sqrt();
     let w = ((width as f64 * scale).floor() as u32).clamp(1, width);
     let h = ((height as f64 * scale).floor() as u32).clamp(1, height);
     [w, h]
@@ -222,10 +241,20 @@ fn cross_fitted(k: &Replica, j: &Replica, dmax: u32, kappa: f64) -> Vec<[f64; 3]
 }
 
 /// Chooses D_opt for rendering `scene` (camera at the job's resolution) with `settings`, relMSE
-/// measured with `eps`. Renders on the current rayon pool; the same inputs give the same choice.
-pub fn choose(scene: &mut Scene, settings: &RenderSettings, eps: f64) -> DepthChoice {
+/// measured with `eps`, for a job of `job_samples` pixel samples (None where a time budget ends
+/// it). Renders on the current rayon pool; the same inputs give the same choice.
+pub fn choose(
+    scene: &mut Scene,
+    settings: &RenderSettings,
+    eps: f64,
+    job_samples: Option<u64>,
+) -> DepthChoice {
     let dmax = AUTO_MAX_DEPTH.min(settings.max_depth);
-    let [w, h] = pilot_resolution(scene.camera.width, scene.camera.height);
+    let [w, h] = pilot_resolution(
+        scene.camera.width,
+        scene.camera.height,
+        pilot_pixels(job_samples),
+    );
     let mut choice = DepthChoice {
         chosen: 0,
         pilot_resolution: [w, h],
@@ -314,4 +343,44 @@ pub fn choose(scene: &mut Scene, settings: &RenderSettings, eps: f64) -> DepthCh
     }
     choice.chosen = best as u32;
     choice
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The pilot is at most `PILOT_SHARE` of a job of known size, within its bounds, and full
+    /// for a time budget; its frame keeps the job's aspect within that many pixels.
+    #[test]
+    fn the_pilot_is_a_bounded_share_of_the_job() {
+        let per_pixel = (PILOT_REPLICAS * PILOT_SPP) as u64;
+        assert_eq!(pilot_pixels(None), PILOT_PIXELS);
+        assert_eq!(pilot_pixels(Some(1920 * 1080 * 64)), PILOT_PIXELS);
+        // 64x64 at 128 spp: 512 pixels of 16 samples, 1/64 of the job.
+        let job = 64 * 64 * 128;
+        assert_eq!(pilot_pixels(Some(job)), 512);
+        assert!(512 * per_pixel * 64 <= job);
+        assert_eq!(pilot_pixels(Some(1000)), MIN_PILOT_PIXELS);
+        assert_eq!(pilot_pixels(Some(0)), MIN_PILOT_PIXELS);
+        assert_eq!(pilot_pixels(Some(u64::MAX)), PILOT_PIXELS);
+        for (w, h, max) in [
+            (64, 64, 512),
+            (1920, 1080, 2304),
+            (24, 20, 256),
+            (10, 10, 256),
+        ] {
+            let [pw, ph] = pilot_resolution(w, h, max);
+            assert!(
+                pw * ph <= max || (pw, ph) == (w, h),
+                "{w}x{h} in {max}: {pw}x{ph}"
+            );
+            let aspect = |a: u32, b: u32| a as f64 / b as f64;
+            assert!(
+                (aspect(pw, ph) / aspect(w, h) - 1.0).abs() < 0.1,
+                "{w}x{h}: {pw}x{ph}"
+            );
+        }
+        assert_eq!(pilot_resolution(64, 64, 512), [22, 22]);
+        assert_eq!(pilot_resolution(10, 10, 256), [10, 10]);
+    }
 }
