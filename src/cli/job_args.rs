@@ -35,8 +35,8 @@ pub struct JobArgs {
     #[arg(long)]
     pub depth_layers: bool,
     /// Optimal MIS: weight depths 1..=D optimally, balance above; `auto`: a pilot render of
-    /// about 37k pixel samples (at most 1/64 of the job's, at least 4k) measures which depths
-    /// pay at equal time.
+    /// about 37k pixel samples (at most 1/64 of the job's, at least 4k or the whole frame when
+    /// smaller) measures which depths pay at equal time.
     #[arg(long, default_value_t = OptimalDepthArg(None))]
     pub optimal_max_depth: OptimalDepthArg,
     /// Optimal MIS: regularisation toward the balance solution, in pseudo-samples (0 = the

@@ -555,7 +555,8 @@ impl JobSettings {
         };
         let optimal_depth =
             (self.optimal_max_depth.is_none() && render.optimal_applies()).then(|| {
-                let samples = spp.map(|s| width as u64 * height as u64 * s as u64);
+                let pixels = width as u64 * height as u64;
+                let samples = spp.map(|s| pixels.saturating_mul(s as u64));
                 optimal_depth::choose(scene, &render, self.eps, samples)
             });
         if let Some(c) = &optimal_depth {

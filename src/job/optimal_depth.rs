@@ -126,7 +126,9 @@ pub fn pilot_pixels(job_samples: Option<u64>) -> u32 {
     share.clamp(MIN_PILOT_PIXELS as f64, PILOT_PIXELS as f64) as u32
 }
 
-/// The pilot frame of a `width` x `height` job: the same aspect, at most `max_pixels` pixels.
+/// The pilot frame of a `width` x `height` job: the same aspect, at most `max_pixels` pixels
+/// (and at least one row and column: a frame narrower than the scaled one keeps its one pixel
+/// and gives the other side fewer).
 pub fn pilot_resolution(width: u32, height: u32, max_pixels: u32) -> [u32; 2] {
     let pixels = width as u64 * height as u64;
     if pixels <= max_pixels as u64 {
@@ -135,6 +137,9 @@ pub fn pilot_resolution(width: u32, height: u32, max_pixels: u32) -> [u32; 2] {
     let scale = (max_pixels as f64 / pixels as f64).sqrt();
     let w = ((width as f64 * scale).floor() as u32).clamp(1, width);
     let h = ((height as f64 * scale).floor() as u32).clamp(1, height);
+    let max = max_pixels.max(1);
+    let w = w.min(max / h).max(1);
+    let h = h.min(max / w).max(1);
     [w, h]
 }
 
@@ -379,6 +384,20 @@ mod tests {
                 (aspect(pw, ph) / aspect(w, h) - 1.0).abs() < 0.1,
                 "{w}x{h}: {pw}x{ph}"
             );
+        }
+        // Frames one pixel high or wide: within the bound all the same.
+        for (w, h, max) in [
+            (4000, 1, 256),
+            (1, 16384, 2304),
+            (16384, 2, 256),
+            (3, 100_000, 1),
+        ] {
+            let [pw, ph] = pilot_resolution(w, h, max);
+            assert!(
+                pw >= 1 && ph >= 1 && pw <= w && ph <= h,
+                "{w}x{h}: {pw}x{ph}"
+            );
+            assert!(pw * ph <= max, "{w}x{h} in {max}: {pw}x{ph}");
         }
         assert_eq!(pilot_resolution(64, 64, 512), [22, 22]);
         assert_eq!(pilot_resolution(10, 10, 256), [10, 10]);
