@@ -358,35 +358,29 @@ mod tests {
     /// for a time budget; its frame keeps the job's aspect within that many pixels.
     #[test]
     fn the_pilot_is_a_bounded_share_of_the_job() {
-        let per_pixel = (PILOT_REPLICAS * PILOT_SPP) as u64;
+        let per_pixel = (PILOT_REPLICAS * PILOT_SPP) as f64;
         assert_eq!(pilot_pixels(None), PILOT_PIXELS);
         assert_eq!(pilot_pixels(Some(1920 * 1080 * 64)), PILOT_PIXELS);
         // 64x64 at 128 spp: 512 pixels of 16 samples, 1/64 of the job.
-        let job = 64 * 64 * 128;
-        assert_eq!(pilot_pixels(Some(job)), 512);
-        assert!(512 * per_pixel * 64 <= job);
+        assert_eq!(pilot_pixels(Some(64 * 64 * 128)), 512);
         assert_eq!(pilot_pixels(Some(1000)), MIN_PILOT_PIXELS);
         assert_eq!(pilot_pixels(Some(0)), MIN_PILOT_PIXELS);
         assert_eq!(pilot_pixels(Some(u64::MAX)), PILOT_PIXELS);
+        // Between the bounds, the share and no less than a pixel short of it.
+        for job in (1..40).map(|k| 3u64.pow(k / 2) << (k % 2)) {
+            let px = pilot_pixels(Some(job)) as f64;
+            let share = job as f64 * PILOT_SHARE / per_pixel;
+            if px > MIN_PILOT_PIXELS as f64 && px < PILOT_PIXELS as f64 {
+                assert!(px <= share && px > share - 1.0, "job {job}: {px} pixels");
+            }
+        }
+        // The frame: at most that many pixels (or the whole frame), at least one row and column,
+        // and the job's aspect where the frame is not a line.
         for (w, h, max) in [
             (64, 64, 512),
             (1920, 1080, 2304),
             (24, 20, 256),
             (10, 10, 256),
-        ] {
-            let [pw, ph] = pilot_resolution(w, h, max);
-            assert!(
-                pw * ph <= max || (pw, ph) == (w, h),
-                "{w}x{h} in {max}: {pw}x{ph}"
-            );
-            let aspect = |a: u32, b: u32| a as f64 / b as f64;
-            assert!(
-                (aspect(pw, ph) / aspect(w, h) - 1.0).abs() < 0.1,
-                "{w}x{h}: {pw}x{ph}"
-            );
-        }
-        // Frames one pixel high or wide: within the bound all the same.
-        for (w, h, max) in [
             (4000, 1, 256),
             (1, 16384, 2304),
             (16384, 2, 256),
@@ -397,7 +391,15 @@ mod tests {
                 pw >= 1 && ph >= 1 && pw <= w && ph <= h,
                 "{w}x{h}: {pw}x{ph}"
             );
-            assert!(pw * ph <= max, "{w}x{h} in {max}: {pw}x{ph}");
+            assert!(
+                pw * ph <= max || (pw, ph) == (w, h),
+                "{w}x{h} in {max}: {pw}x{ph}"
+            );
+            let aspect = |a: u32, b: u32| a as f64 / b as f64;
+            assert!(
+                w.min(h) < 10 || (aspect(pw, ph) / aspect(w, h) - 1.0).abs() < 0.1,
+                "{w}x{h}: {pw}x{ph}"
+            );
         }
         assert_eq!(pilot_resolution(64, 64, 512), [22, 22]);
         assert_eq!(pilot_resolution(10, 10, 256), [10, 10]);

@@ -677,9 +677,13 @@ fn fuzz_one(bsdf: &Bsdf, fz: &mut Fuzz) -> Result<(), String> {
         let (fl, pair) = bsdf.eval_local(&bsdf.outgoing(wo), wi, mode);
         let (fwd, rev) = bsdf.pdfs(pair.as_ref());
         let back = bsdf.pdf_back(pair.as_ref());
-        if bits((fl, fwd, rev)) != bits(apart) || back.to_bits() != apart.2.to_bits() {
+        let ahead = bsdf.pdf_fwd(pair.as_ref());
+        if bits((fl, fwd, rev)) != bits(apart)
+            || back.to_bits() != apart.2.to_bits()
+            || ahead.to_bits() != apart.1.to_bits()
+        {
             return Err(format!(
-                "eval_local {mode:?} = {:?}, pdfs ({fwd}, {rev}), pdf_back {back}; apart {apart:?} at {}",
+                "eval_local {mode:?} = {:?}, pdfs ({fwd}, {rev}), pdf_back {back}, pdf_fwd {ahead}; apart {apart:?} at {}",
                 fl,
                 ctx()
             ));
