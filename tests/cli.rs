@@ -542,8 +542,9 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
         assert!(p["spp"].as_u64().expect("spp") >= 1, "{p}");
         let wall = p["seconds"].as_f64().expect("seconds");
         let cpu = p["cpu_seconds"].as_f64().expect("cpu_seconds");
-        // At least the budget of wall time; one thread, so CPU time cannot exceed it by much.
-        assert!(wall >= 0.3 && cpu > 0.0 && cpu <= wall * 1.5 + 0.1, "{p}");
+        // About the budget of wall time (the last pass is fitted to the time left, so it may
+        // end a little before it); one thread, so CPU time cannot exceed it by much.
+        assert!(wall >= 0.2 && cpu > 0.0 && cpu <= wall * 1.5 + 0.1, "{p}");
     }
     for f in [
         "relmse_vs_spp.svg",

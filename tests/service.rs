@@ -1393,14 +1393,38 @@ fn a_time_budget_job_renders_passes_until_its_time_is_up() {
     let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
     let spp = st["spp_done"].as_u64().expect("spp");
     assert!(spp >= 8 && spp.is_multiple_of(4), "{st}");
+    // The last pass is fitted to the time left at the rate so far: the job ends near its
+    // budget, before it or after.
     assert!(
-        start.elapsed() >= Duration::from_millis(900),
+        start.elapsed() >= Duration::from_millis(700),
         "ended early: {st}"
     );
     assert_eq!(
         st["series"].as_array().map(|a| a.len() as u64),
         Some(spp / 4)
     );
+    // Growing passes (1, 2, 4, ... 64 samples): a fitted last pass is whole first passes, it
+    // is the job's sample target once planned, and its merge writes the final EXR.
+    let id = submit_settings(
+        &c,
+        &url,
+        json!({ "resolution": [40, 32], "time_budget_s": 1.0, "pass_size": 1, "max_pass_size": 64 }),
+    );
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    let spp = st["spp_done"].as_u64().expect("spp");
+    assert!(
+        st["spp_target"].is_null() || st["spp_target"].as_u64() == Some(spp),
+        "{st}"
+    );
+    let series = st["series"].as_array().expect("series");
+    assert_eq!(series.last().map(|p| p["spp"].as_u64()), Some(Some(spp)));
+    assert!(
+        series
+            .windows(2)
+            .all(|w| w[0]["spp"].as_u64() < w[1]["spp"].as_u64())
+    );
+    let image = download_exr(&c, &url, &id, &dir);
+    assert_eq!((image.width, image.height), (40, 32));
     // The in-process render honours a time budget too.
     let exr = dir.join("budget.exr");
     let out = Command::new(EXE)

@@ -12,7 +12,8 @@ pub struct JobArgs {
     /// Samples per pixel (default: the scene's, else 16).
     #[arg(long)]
     pub spp: Option<u32>,
-    /// Render passes for this many seconds instead (with --spp: whichever ends first).
+    /// Render passes for this many seconds instead (with --spp: whichever ends first); the last
+    /// pass is fitted to the time left at the rate so far, so the render ends near the budget.
     #[arg(long)]
     pub time_budget: Option<f64>,
     /// Maximum path depth in bounces: 0 = emitters seen directly, 1 = direct light (default: the

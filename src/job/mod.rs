@@ -257,6 +257,10 @@ pub struct Resolved {
     pub spp: Option<u32>,
     /// Wall-clock budget in seconds, if any.
     pub time_budget_s: Option<f64>,
+    /// A time-budget job's last sample per pixel, set when its last pass is fitted to the time
+    /// left (`fit_to_budget`); None until then, and for jobs without a budget.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub budget_spp: Option<u32>,
     /// Tile edge in pixels.
     pub tile_size: u32,
     /// Samples of the first pass.
@@ -568,6 +572,7 @@ impl JobSettings {
             render,
             spp,
             time_budget_s: self.time_budget_s,
+            budget_spp: None,
             tile_size,
             pass_size,
             max_pass_size: Some(max_pass_size),
@@ -723,6 +728,7 @@ mod tests {
             render: RenderSettings::default(),
             spp: Some(40),
             time_budget_s: None,
+            budget_spp: None,
             tile_size: 2,
             pass_size: 16,
             max_pass_size: None,
@@ -769,6 +775,126 @@ mod tests {
         r.spp = None;
         r.max_pass_size = Some(65536);
         assert_eq!(r.pass_range(u32::MAX), None);
+    }
+
+    /// A time-budget job rendered at a steady `seconds_per_spp`, pass after pass as the runners
+    /// do: its samples per pixel and the seconds it took.
+    fn budget_run(r: &Resolved, seconds_per_spp: f64) -> (u32, f64) {
+        let mut job = r.clone();
+        let (mut spp, mut t, mut p) = (0, 0.0, 0);
+        while let Some(range) = job.fit_to_budget(p, t, spp as f64) {
+            assert_eq!(range.start, spp, "passes follow one another");
+            t += seconds_per_spp * (range.end - range.start) as f64;
+            spp = range.end;
+            p += 1;
+        }
+        // A fitted pass is the last.
+        assert!(job.budget_spp.is_none_or(|b| b == spp));
+        (spp, t)
+    }
+
+    #[test]
+    fn the_last_pass_is_fitted_to_the_time_budget() {
+        let mut r = Resolved {
+            width: 4,
+            height: 4,
+            render: RenderSettings::default(),
+            spp: None,
+            time_budget_s: Some(1.0),
+            budget_spp: None,
+            tile_size: 2,
+            pass_size: 1,
+            max_pass_size: Some(256),
+            eps: 0.01,
+            optimal_depth: None,
+        };
+        for (pass_size, max) in [(1, 256), (1, 4), (4, 64), (3, 48), (16, 16)] {
+            r.pass_size = pass_size;
+            r.max_pass_size = Some(max);
+            for spp_in_budget in [0.3, 1.0, 1.6, 7.0, 100.0, 300.0, 511.0, 1000.5, 1e5] {
+                let (spp, t) = budget_run(&r, 1.0 / spp_in_budget);
+                let block = pass_size as f64 / spp_in_budget;
+                if spp_in_budget <= pass_size as f64 {
+                    // The first pass is rendered whatever the budget.
+                    assert_eq!(spp, pass_size, "{pass_size} {max} {spp_in_budget}");
+                } else {
+                    // The end nearest the budget that whole blocks allow.
+                    assert!(
+                        (t - 1.0).abs() <= block / 2.0 + 1e-9,
+                        "{pass_size} {max} {spp_in_budget}: {spp} spp, {t} s"
+                    );
+                }
+                // With a sample count as well, whichever comes first ends the job.
+                let capped = Resolved {
+                    spp: Some(50),
+                    ..r.clone()
+                };
+                let (spp_c, _) = budget_run(&capped, 1.0 / spp_in_budget);
+                assert_eq!(spp_c, spp.min(50).max(pass_size.min(50)));
+            }
+        }
+        // A budget that the passes so far have used up begins no further pass.
+        r.pass_size = 1;
+        r.max_pass_size = Some(256);
+        assert_eq!(r.clone().fit_to_budget(3, 1.0, 7.0), None);
+        assert_eq!(r.clone().fit_to_budget(0, 5.0, 0.0), Some(0..1));
+        // Without a budget, or before any sample, the pass is the planned one.
+        assert_eq!(r.clone().fit_to_budget(3, 0.0, 0.0), Some(7..15));
+        let fixed = Resolved {
+            time_budget_s: None,
+            spp: Some(100),
+            ..r.clone()
+        };
+        assert_eq!(fixed.clone().fit_to_budget(3, 10.0, 7.0), Some(7..15));
+        // The fitted count is stored only where it is set.
+        let json = serde_json::to_string(&r).expect("serialises");
+        assert!(!json.contains("budget_spp"), "{json}");
+        let mut fitted = r.clone();
+        assert_eq!(fitted.fit_to_budget(3, 0.5, 7.0), Some(7..14));
+        assert_eq!(fitted.budget_spp, Some(14));
+        assert_eq!(fitted.total_passes(), Some(4));
+        let back: Resolved =
+            serde_json::from_str(&serde_json::to_string(&fitted).expect("serialises"))
+                .expect("parses");
+        assert_eq!(back, fitted);
+    }
+
+    #[test]
+    fn the_in_process_runner_fits_its_last_pass_to_the_budget() {
+        let mut scene = crate::scene::Scene::load(std::path::Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/scenes/cornell-box.json"
+        )))
+        .expect("the Cornell box");
+        scene.camera = scene.camera.with_resolution(8, 8).expect("8x8");
+        let settings = RenderSettings {
+            max_depth: 2,
+            ..RenderSettings::default()
+        };
+        // Passes of 1, 2, 4, ..., 64 samples; a clock that counts one second per sample per
+        // pixel rendered (from the tasks done: the runner reads it between passes).
+        let job = Resolved {
+            max_pass_size: Some(64),
+            ..Resolved::timed(&scene, &settings, 4, 1, 100.0)
+        };
+        let tiles = job.tiles().len();
+        let tasks = std::sync::atomic::AtomicUsize::new(0);
+        let clock = || {
+            let passes = tasks.load(std::sync::atomic::Ordering::Relaxed) / tiles;
+            passes
+                .checked_sub(1)
+                .and_then(|p| job.pass_range(p as u32))
+                .map_or(0.0, |r| r.end as f64)
+        };
+        let out = job.render_in_process_clocked(
+            &scene,
+            &|n| {
+                tasks.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+            },
+            &clock,
+        );
+        // Not 127 (the pass of 64 begun at 63 s run to its end).
+        assert_eq!(out.spp, 100);
     }
 
     #[test]

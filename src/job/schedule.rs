@@ -28,7 +28,7 @@ pub struct RenderOutput {
     pub stats: RayStats,
     /// Wall time.
     pub seconds: f64,
-    /// Samples per pixel rendered (a time-budget job stops after a whole pass).
+    /// Samples per pixel rendered (a time-budget job ends with a pass fitted to its budget).
     pub spp: u32,
 }
 
@@ -60,6 +60,7 @@ impl Resolved {
             render: settings.clone(),
             spp: Some(settings.spp),
             time_budget_s: None,
+            budget_spp: None,
             tile_size,
             pass_size,
             max_pass_size: None,
@@ -120,16 +121,68 @@ impl Resolved {
         let s0 = base * ((1u64 << doubling) - 1) + (p - doubling) as u64 * (base << steps);
         let s1 = s0 + self.pass_len(p) as u64;
         let (s0, s1) = (u32::try_from(s0).ok()?, u32::try_from(s1).ok()?);
-        match self.spp {
+        match self.spp_limit() {
             Some(spp) if s0 >= spp => None,
             Some(spp) => Some(s0..s1.min(spp)),
             None => Some(s0..s1),
         }
     }
 
-    /// Number of passes of a fixed-spp job.
+    /// The sample per pixel that ends the job: its spp, or the one its time budget was fitted to
+    /// (`budget_spp`), whichever is less; None while a time budget alone ends it.
+    pub fn spp_limit(&self) -> Option<u32> {
+        match (self.spp, self.budget_spp) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    /// The samples of pass `p`, not yet begun, of a job `elapsed` seconds into its time budget
+    /// with `spp_done` samples per pixel rendered (counting the passes in flight pro rata):
+    /// - the pass as planned where the budget allows it at the rate so far, or where that rate is
+    ///   not known yet (nothing rendered) or the job has no budget;
+    /// - the pass shortened to whole first passes (`pass_size`, the sampler's blocks) so that
+    ///   the job ends as near the budget as such a block allows, recorded in `budget_spp` (which
+    ///   ends the job with that pass);
+    /// - None where the time is up, or where stopping now is nearer the budget than one more
+    ///   block.
+    ///
+    /// Without it a pass begun at the end of the budget ran to completion, and passes double up
+    /// to `max_pass_size`: the budget was overrun by up to its own length.
+    pub fn fit_to_budget(&mut self, p: u32, elapsed: f64, spp_done: f64) -> Option<Range<u32>> {
+        let range = self.pass_range(p)?;
+        let Some(budget) = self.time_budget_s else {
+            return Some(range);
+        };
+        // The first pass is always rendered.
+        if p > 0 && elapsed >= budget {
+            return None;
+        }
+        if !(spp_done > 0.0 && elapsed > 0.0) {
+            return Some(range);
+        }
+        // Samples per pixel the budget holds at the rate so far.
+        let fits = budget * spp_done / elapsed;
+        if fits >= range.end as f64 {
+            return Some(range);
+        }
+        let base = self.pass_size.max(1);
+        let blocks = ((fits - range.start as f64) / base as f64).round();
+        if blocks < 1.0 {
+            return None;
+        }
+        // Fewer blocks than the pass has: `fits` < range.end.
+        let end = range.start + (blocks as u32).saturating_mul(base);
+        if end >= range.end {
+            return Some(range);
+        }
+        self.budget_spp = Some(end);
+        self.pass_range(p)
+    }
+
+    /// Number of passes of a job with a sample count (fixed, or fitted to its time budget).
     pub fn total_passes(&self) -> Option<u32> {
-        let spp = self.spp?;
+        let spp = self.spp_limit()?;
         let full = self.pass_len(u32::MAX);
         let mut p = 0;
         // The doubling passes (at most 16 of them), then whole full-length passes.
@@ -175,6 +228,8 @@ impl Resolved {
         let mut stats = RayStats::default();
         let mut spp = 0;
         let mut p = 0;
+        // The last pass is fitted to the time left (`fit_to_budget`).
+        let mut job = self.clone();
         // VCM: the photon maps of a pass's iterations, built once (in parallel) and shared by
         // its tasks.
         let vcm = matches!(
@@ -186,7 +241,7 @@ impl Resolved {
         } else {
             1
         });
-        while let Some(range) = self.pass_range(p) {
+        while let Some(range) = job.fit_to_budget(p, clock(), spp as f64) {
             if vcm {
                 range.clone().into_par_iter().for_each(|i| {
                     cache.get(scene, &self.render, i);
@@ -205,9 +260,6 @@ impl Resolved {
             film.end_pass();
             spp = range.end;
             p += 1;
-            if self.time_budget_s.is_some_and(|b| clock() >= b) {
-                break;
-            }
         }
         RenderOutput {
             film,

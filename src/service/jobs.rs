@@ -12,6 +12,7 @@ use crate::film::Tile;
 use crate::film::merge as film_merge;
 use crate::film::{Image, exr_io, metrics, plot, png};
 use crate::job::Resolved;
+use std::ops::Range;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 
@@ -105,25 +106,57 @@ pub(crate) fn tile_rect(r: &Resolved, i: u32) -> Option<Tile> {
     ((i as usize) < g.len()).then(|| g.tile(i as usize))
 }
 
+/// Samples per pixel a job has rendered: its merged passes, and the finished tiles of the
+/// passes since pro rata, at the length of the next pass to merge (`tiles_done`: the done render
+/// tasks of its unmerged passes).
+pub(crate) fn progress_spp(job: &JobRow, r: &Resolved, tiles_done: u32) -> f64 {
+    job.spp_done as f64
+        + tiles_done as f64 / tile_count(r).max(1) as f64 * r.pass_len(job.passes_done) as f64
+}
+
+/// The samples of pass `p`, none of whose tasks exist yet: a time-budget job's pass is fitted to
+/// the time left at the job's rate so far (`Resolved::fit_to_budget`), and the settings it
+/// fitted are stored before any task of the pass exists (so a restart reads them back). None:
+/// no such pass.
+fn plan_pass(
+    app: &App,
+    job: &JobRow,
+    r: &mut Resolved,
+    p: u32,
+) -> store::StoreResult<Option<Range<u32>>> {
+    let (Some(_), Some(started)) = (r.time_budget_s, job.started_at) else {
+        return Ok(r.pass_range(p));
+    };
+    let done = progress_spp(job, r, app.db().tasks_done(&job.id)?);
+    let mut fitted = r.clone();
+    let range = fitted.fit_to_budget(p, store::now() - started, done);
+    if fitted != *r {
+        let json = serde_json::to_string(&fitted).map_err(|e| store::StoreError(e.to_string()))?;
+        if !app.db().set_job_resolved(&job.id, &json)? {
+            return Ok(None);
+        }
+        *r = fitted;
+    }
+    Ok(range)
+}
+
 /// Makes sure the job's next two passes (`passes_done` and the one after) have their tasks, so
-/// workers never wait on a merge; a time-budget job starts no new pass once its time is up (a
-/// pass begun is completed). Tasks are created in chunks of `TASK_CHUNK`, each its own
+/// workers never wait on a merge; a time-budget job's next pass is fitted to the time it has
+/// left, or not begun (`plan_pass`). Tasks are created in chunks of `TASK_CHUNK`, each its own
 /// transaction, the store unlocked in between and workers woken after each; it stops early when
 /// the job ends or the coordinator stops. Idempotent: called at creation, after every merge and
 /// after a restart.
-pub(crate) fn ensure_passes(app: &App, job: &JobRow, r: &Resolved) -> store::StoreResult<()> {
-    let within_time = r
-        .time_budget_s
-        .is_none_or(|b| job.started_at.is_none_or(|s| store::now() - s < b));
+pub(crate) fn ensure_passes(app: &App, job: &JobRow, r: &mut Resolved) -> store::StoreResult<()> {
     let tiles = tile_count(r);
     for p in job.passes_done..job.passes_done + 2 {
-        let Some(range) = r.pass_range(p) else {
-            continue;
+        // The store's guard must be gone before `plan_pass` locks it again.
+        let last = app.db().last_tile(&job.id, p)?;
+        let (mut next, range) = match last {
+            Some(last) => (last + 1, r.pass_range(p)),
+            None => (0, plan_pass(app, job, r, p)?),
         };
-        let mut next = match app.db().last_tile(&job.id, p)? {
-            Some(last) => last + 1,
-            None if within_time => 0,
-            None => continue,
+        let Some(range) = range else {
+            continue;
         };
         while next < tiles {
             if app.stopping.load(Ordering::Relaxed) {
@@ -220,7 +253,7 @@ fn advance_inner(app: &App, id: &str) -> Result<(), String> {
             drop_runtime(app, id);
             return Ok(());
         }
-        ensure_passes(app, &job, &rt.resolved).map_err(|e| e.to_string())?;
+        ensure_passes(app, &job, &mut rt.resolved).map_err(|e| e.to_string())?;
         app.work.notify_waiters();
         let pass = job.passes_done;
         let (last, open) = {

@@ -294,11 +294,12 @@ fn light_paths(r: &Resolved, spp: u32) -> u64 {
     r.width as u64 * r.height as u64 * spp as u64
 }
 
-/// Whether pass `pass` is the job's last (a job with a sample count): its merge returns every
-/// layer and no checkpoints (the job ends with it and its tile files are removed), and its
-/// outputs are the final EXR.
+/// Whether pass `pass` is the job's last (a job with a sample count, or a time-budget job once its
+/// last pass is fitted, `Resolved::fit_to_budget`): its merge returns every layer and no
+/// checkpoints (the job ends with it and its tile files are removed), and its outputs are the
+/// final EXR.
 fn is_last(r: &Resolved, pass: u32) -> bool {
-    r.spp.is_some() && r.pass_range(pass + 1).is_none()
+    r.spp_limit().is_some() && r.pass_range(pass + 1).is_none()
 }
 
 /// What the merge of pass `pass` returns. A job with a sample count whose results hold only

@@ -442,7 +442,8 @@ pub struct JobStatus {
     pub width: u32,
     /// Image height in pixels.
     pub height: u32,
-    /// Total samples per pixel; None for a time budget without spp.
+    /// Total samples per pixel: the job's, or the one its time budget's last pass was fitted to
+    /// once it is planned; None while a time budget alone ends the job.
     pub spp_target: Option<u32>,
     /// Wall-clock budget in seconds, if the job has one.
     pub time_budget_s: Option<f64>,

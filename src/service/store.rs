@@ -576,6 +576,9 @@ pub(crate) trait JobStore: Send {
     /// Moves an active (queued or running) job to `state`; false when the job had already
     /// ended (a cancelled job stays cancelled).
     fn set_job_state(&self, id: &str, state: JobState, error: Option<&str>) -> StoreResult<bool>;
+    /// Replaces an active job's resolved settings (a time-budget job's fitted last pass,
+    /// `Resolved::fit_to_budget`); false when the job had ended.
+    fn set_job_resolved(&self, id: &str, resolved: &str) -> StoreResult<bool>;
     /// Gives back every task a worker holds (it said it is leaving).
     fn release_worker(&self, worker: &str) -> StoreResult<usize>;
     /// True when `task_id` was ever issued (tasks of merged passes are deleted).
@@ -787,6 +790,14 @@ impl JobStore for SqliteStore {
              finished_at = COALESCE(?4, finished_at) WHERE id = ?1 \
              AND state IN (?5, ?6)",
             params![id, state, error, finished, J_QUEUED, J_RUNNING],
+        )?;
+        Ok(n == 1)
+    }
+    fn set_job_resolved(&self, id: &str, resolved: &str) -> StoreResult<bool> {
+        let n = cached_exec(
+            &self.conn,
+            "UPDATE jobs SET resolved = ?2 WHERE id = ?1 AND state IN (?3, ?4)",
+            params![id, resolved, J_QUEUED, J_RUNNING],
         )?;
         Ok(n == 1)
     }

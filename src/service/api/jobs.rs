@@ -116,13 +116,10 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         .started_at
         .map(|s| job.finished_at.unwrap_or(now) - s)
         .unwrap_or(0.0);
-    // Samples per pixel done, counting finished tiles of unmerged passes pro rata (at the length
-    // of the next pass to merge).
-    let progress_spp = job.spp_done as f64
-        + tiles_done as f64 / tiles.max(1) as f64 * r.pass_len(job.passes_done) as f64;
+    let progress_spp = jobs::progress_spp(job, &r, tiles_done);
     let eta = if !active {
         Some(0.0)
-    } else if let Some(spp) = r.spp {
+    } else if let Some(spp) = r.spp_limit() {
         (progress_spp > 0.0)
             .then(|| elapsed / progress_spp * (spp as f64 - progress_spp).max(0.0))
             .map(|e| match r.time_budget_s {
@@ -144,7 +141,7 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         settings,
         width: r.width,
         height: r.height,
-        spp_target: r.spp,
+        spp_target: r.spp_limit(),
         time_budget_s: r.time_budget_s,
         spp_done: job.spp_done,
         passes_done: job.passes_done,
