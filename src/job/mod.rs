@@ -782,7 +782,7 @@ mod tests {
     fn budget_run(r: &Resolved, seconds_per_spp: f64) -> (u32, f64) {
         let mut job = r.clone();
         let (mut spp, mut t, mut p) = (0, 0.0, 0);
-        while let Some(range) = job.fit_to_budget(p, t, spp as f64) {
+        while let Some(range) = job.fit_to_budget(p, t, spp as f64, seconds_per_spp) {
             assert_eq!(range.start, spp, "passes follow one another");
             t += seconds_per_spp * (range.end - range.start) as f64;
             spp = range.end;
@@ -836,21 +836,24 @@ mod tests {
         // A budget that the passes so far have used up begins no further pass.
         r.pass_size = 1;
         r.max_pass_size = Some(256);
-        assert_eq!(r.clone().fit_to_budget(3, 1.0, 7.0), None);
-        assert_eq!(r.clone().fit_to_budget(0, 5.0, 0.0), Some(0..1));
+        assert_eq!(r.clone().fit_to_budget(3, 1.0, 7.0, 1.0 / 7.0), None);
+        assert_eq!(r.clone().fit_to_budget(0, 5.0, 0.0, 0.0), Some(0..1));
         // Without a budget, or before any sample, the pass is the planned one.
-        assert_eq!(r.clone().fit_to_budget(3, 0.0, 0.0), Some(7..15));
+        assert_eq!(r.clone().fit_to_budget(3, 0.0, 0.0, 0.0), Some(7..15));
         let fixed = Resolved {
             time_budget_s: None,
             spp: Some(100),
             ..r.clone()
         };
-        assert_eq!(fixed.clone().fit_to_budget(3, 10.0, 7.0), Some(7..15));
+        assert_eq!(
+            fixed.clone().fit_to_budget(3, 10.0, 7.0, 10.0 / 7.0),
+            Some(7..15)
+        );
         // The fitted count is stored only where it is set.
         let json = serde_json::to_string(&r).expect("serialises");
         assert!(!json.contains("budget_spp"), "{json}");
         let mut fitted = r.clone();
-        assert_eq!(fitted.fit_to_budget(3, 0.5, 7.0), Some(7..14));
+        assert_eq!(fitted.fit_to_budget(3, 0.5, 7.0, 0.5 / 7.0), Some(7..14));
         assert_eq!(fitted.budget_spp, Some(14));
         assert_eq!(fitted.total_passes(), Some(4));
         let back: Resolved =

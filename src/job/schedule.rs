@@ -138,9 +138,10 @@ impl Resolved {
     }
 
     /// The samples of pass `p`, not yet begun, of a job `elapsed` seconds into its time budget
-    /// with `spp_done` samples per pixel rendered (counting the passes in flight pro rata):
-    /// - the pass as planned where the budget allows it at the rate so far, or where that rate is
-    ///   not known yet (nothing rendered) or the job has no budget;
+    /// with `spp_done` samples per pixel rendered (counting the passes in flight pro rata) at
+    /// `seconds_per_spp` (the rate so far):
+    /// - the pass as planned where the budget allows it at that rate, or where the rate is not
+    ///   known yet (nothing rendered) or the job has no budget;
     /// - the pass shortened to whole first passes (`pass_size`, the sampler's blocks) so that
     ///   the job ends as near the budget as such a block allows, recorded in `budget_spp` (which
     ///   ends the job with that pass);
@@ -149,7 +150,13 @@ impl Resolved {
     ///
     /// Without it a pass begun at the end of the budget ran to completion, and passes double up
     /// to `max_pass_size`: the budget was overrun by up to its own length.
-    pub fn fit_to_budget(&mut self, p: u32, elapsed: f64, spp_done: f64) -> Option<Range<u32>> {
+    pub fn fit_to_budget(
+        &mut self,
+        p: u32,
+        elapsed: f64,
+        spp_done: f64,
+        seconds_per_spp: f64,
+    ) -> Option<Range<u32>> {
         let range = self.pass_range(p)?;
         let Some(budget) = self.time_budget_s else {
             return Some(range);
@@ -158,11 +165,11 @@ impl Resolved {
         if p > 0 && elapsed >= budget {
             return None;
         }
-        if !(spp_done > 0.0 && elapsed > 0.0) {
+        if !(spp_done > 0.0 && seconds_per_spp > 0.0) {
             return Some(range);
         }
-        // Samples per pixel the budget holds at the rate so far.
-        let fits = budget * spp_done / elapsed;
+        // Samples per pixel the budget holds at that rate.
+        let fits = spp_done + (budget - elapsed) / seconds_per_spp;
         if fits >= range.end as f64 {
             return Some(range);
         }
@@ -241,7 +248,12 @@ impl Resolved {
         } else {
             1
         });
-        while let Some(range) = job.fit_to_budget(p, clock(), spp as f64) {
+        loop {
+            let elapsed = clock();
+            let Some(range) = job.fit_to_budget(p, elapsed, spp as f64, elapsed / spp as f64)
+            else {
+                break;
+            };
             if vcm {
                 range.clone().into_par_iter().for_each(|i| {
                     cache.get(scene, &self.render, i);

@@ -128,8 +128,25 @@ fn plan_pass(
         return Ok(r.pass_range(p));
     };
     let done = progress_spp(job, r, app.db().tasks_done(&job.id)?);
+    let elapsed = store::now() - started;
+    // The rate between the last two merges where two passes are merged: the passes overlap
+    // (two are queued at a time), so the merges come as fast as the workers render and merge,
+    // and the last pass is the longest, its fixed costs the least per sample. Before that, the
+    // rate since the start, which counts the start-up and the tiles in hand as time without
+    // samples: slower than the workers are (the job ends early, not late).
+    let series = app.db().series(&job.id)?;
+    let last_two = series
+        .len()
+        .checked_sub(2)
+        .map(|i| (&series[i], &series[i + 1]));
+    let seconds_per_spp = match last_two {
+        Some((a, b)) if b.spp > a.spp && b.seconds > a.seconds => {
+            (b.seconds - a.seconds) / (b.spp - a.spp) as f64
+        }
+        _ => elapsed / done,
+    };
     let mut fitted = r.clone();
-    let range = fitted.fit_to_budget(p, store::now() - started, done);
+    let range = fitted.fit_to_budget(p, elapsed, done, seconds_per_spp);
     if fitted != *r {
         let json = serde_json::to_string(&fitted).map_err(|e| store::StoreError(e.to_string()))?;
         if !app.db().set_job_resolved(&job.id, &json)? {
