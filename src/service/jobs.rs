@@ -438,6 +438,9 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
     if !job.state.is_active() {
         return Ok(false);
     }
+    // Taken before the job ends: a merge that sees it ended drops the job's runtime, and a new
+    // one would not have the last pass's beauty (`Runtime::frame`) that the EXR below may need.
+    let rt = runtime(app, &job)?;
     let ended = app
         .db()
         .set_job_state(id, JobState::Cancelled, None)
@@ -449,7 +452,6 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
         // at most every `exr_interval_s`, so the last one may not have. The row is read again under the
         // runtime's lock, which a pass holds while it is recorded: its count then matches the
         // checkpoints.
-        let rt = runtime(app, &job)?;
         let rt = rt.lock().unwrap_or_else(|e| e.into_inner());
         let now = app.db().job(id).map_err(|e| e.to_string())?;
         if let Some(job) = now.filter(|j| {
