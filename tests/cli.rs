@@ -595,7 +595,8 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
     let p = &j["equal_time"][0];
     let cpu = p["cpu_seconds"].as_f64().expect("cpu_seconds");
     let wall = p["seconds"].as_f64().expect("seconds");
-    assert!(cpu >= 0.3 && wall > 0.0, "{p}");
+    // About the budget of CPU time (the last pass fitted to the time left).
+    assert!(cpu >= 0.2 && wall > 0.0, "{p}");
     // The flag without the mode it sets is refused.
     let out = omis(&[
         "compare",

@@ -14,6 +14,7 @@ pub struct JobArgs {
     pub spp: Option<u32>,
     /// Render passes for this many seconds instead (with --spp: whichever ends first); the last
     /// pass is fitted to the time left at the rate so far, so the render ends near the budget.
+    /// The automatic D_opt pilot's time counts against it.
     #[arg(long)]
     pub time_budget: Option<f64>,
     /// Maximum path depth in bounces: 0 = emitters seen directly, 1 = direct light (default: the

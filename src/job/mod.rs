@@ -44,8 +44,9 @@ pub struct JobSettings {
     pub resolution: Option<[u32; 2]>,
     /// Samples per pixel; default: the scene's, else 16 (unless a time budget is given).
     pub spp: Option<u32>,
-    /// Render passes until this many seconds have passed (at least one pass). With `spp` too,
-    /// whichever comes first ends the job.
+    /// Render passes until this many seconds have passed (at least one pass; the last one
+    /// fitted to the time left, `Resolved::fit_to_budget`; the D_opt pilot's time counted). With
+    /// `spp` too, whichever comes first ends the job.
     pub time_budget_s: Option<f64>,
     /// Which integrator renders the job.
     pub integrator: IntegratorKind,
@@ -261,6 +262,10 @@ pub struct Resolved {
     /// left (`fit_to_budget`); None until then, and for jobs without a budget.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub budget_spp: Option<u32>,
+    /// Wall seconds the D_opt pilot took, where it ran (`optimal_depth`): a time budget counts
+    /// them, so that a job with the pilot takes no more time than one without.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pilot_s: Option<f64>,
     /// Tile edge in pixels.
     pub tile_size: u32,
     /// Samples of the first pass.
@@ -557,12 +562,16 @@ impl JobSettings {
                 .roulette
                 .unwrap_or(self.integrator == IntegratorKind::Vcm),
         };
+        let pilot_start = std::time::Instant::now();
         let optimal_depth =
             (self.optimal_max_depth.is_none() && render.optimal_applies()).then(|| {
                 let pixels = width as u64 * height as u64;
                 let samples = spp.map(|s| pixels.saturating_mul(s as u64));
                 optimal_depth::choose(scene, &render, self.eps, samples)
             });
+        let pilot_s = optimal_depth
+            .is_some()
+            .then(|| pilot_start.elapsed().as_secs_f64());
         if let Some(c) = &optimal_depth {
             render.optimal_max_depth = c.chosen;
         }
@@ -573,6 +582,7 @@ impl JobSettings {
             spp,
             time_budget_s: self.time_budget_s,
             budget_spp: None,
+            pilot_s,
             tile_size,
             pass_size,
             max_pass_size: Some(max_pass_size),
@@ -729,6 +739,7 @@ mod tests {
             spp: Some(40),
             time_budget_s: None,
             budget_spp: None,
+            pilot_s: None,
             tile_size: 2,
             pass_size: 16,
             max_pass_size: None,
@@ -802,6 +813,7 @@ mod tests {
             spp: None,
             time_budget_s: Some(1.0),
             budget_spp: None,
+            pilot_s: None,
             tile_size: 2,
             pass_size: 1,
             max_pass_size: Some(256),
@@ -836,6 +848,14 @@ mod tests {
         // A budget that the passes so far have used up begins no further pass.
         r.pass_size = 1;
         r.max_pass_size = Some(256);
+        // The pilot's seconds count against the budget: a quarter of it leaves three quarters
+        // for the passes.
+        let piloted = Resolved {
+            pilot_s: Some(0.25),
+            ..r.clone()
+        };
+        let (spp, t) = budget_run(&piloted, 1.0 / 1000.0);
+        assert!((t - 0.75).abs() <= 0.5 / 1000.0 + 1e-9, "{spp} spp, {t} s");
         assert_eq!(r.clone().fit_to_budget(3, 1.0, 7.0, 1.0 / 7.0), None);
         assert_eq!(r.clone().fit_to_budget(0, 5.0, 0.0, 0.0), Some(0..1));
         // Without a budget, or before any sample, the pass is the planned one.

@@ -61,6 +61,7 @@ impl Resolved {
             spp: Some(settings.spp),
             time_budget_s: None,
             budget_spp: None,
+            pilot_s: None,
             tile_size,
             pass_size,
             max_pass_size: None,
@@ -137,9 +138,9 @@ impl Resolved {
         }
     }
 
-    /// The samples of pass `p`, not yet begun, of a job `elapsed` seconds into its time budget
-    /// with `spp_done` samples per pixel rendered (counting the passes in flight pro rata) at
-    /// `seconds_per_spp` (the rate so far):
+    /// The samples of pass `p`, not yet begun, of a job `elapsed` seconds into its rendering with
+    /// `spp_done` samples per pixel rendered (counting the passes in flight pro rata) at
+    /// `seconds_per_spp` (the rate so far); its time budget also counts the pilot's `pilot_s`:
     /// - the pass as planned where the budget allows it at that rate, or where the rate is not
     ///   known yet (nothing rendered) or the job has no budget;
     /// - the pass shortened to whole first passes (`pass_size`, the sampler's blocks) so that
@@ -161,6 +162,8 @@ impl Resolved {
         let Some(budget) = self.time_budget_s else {
             return Some(range);
         };
+        // The pilot's time was spent on the job too.
+        let elapsed = elapsed + self.pilot_s.unwrap_or(0.0);
         // The first pass is always rendered.
         if p > 0 && elapsed >= budget {
             return None;
@@ -248,12 +251,16 @@ impl Resolved {
         } else {
             1
         });
+        // When the last pass began, and at which sample: its rate, the longest pass's, is the
+        // budget's measure (the first passes' fixed costs weigh more per sample).
+        let mut last_pass = (0.0, 0);
         loop {
             let elapsed = clock();
-            let Some(range) = job.fit_to_budget(p, elapsed, spp as f64, elapsed / spp as f64)
-            else {
+            let rate = (elapsed - last_pass.0) / (spp - last_pass.1) as f64;
+            let Some(range) = job.fit_to_budget(p, elapsed, spp as f64, rate) else {
                 break;
             };
+            last_pass = (elapsed, spp);
             if vcm {
                 range.clone().into_par_iter().for_each(|i| {
                     cache.get(scene, &self.render, i);
