@@ -799,8 +799,6 @@ mod tests {
             spp = range.end;
             p += 1;
         }
-        // A fitted pass is the last.
-        assert!(job.budget_spp.is_none_or(|b| b == spp));
         (spp, t)
     }
 
@@ -845,7 +843,6 @@ mod tests {
                 assert_eq!(spp_c, spp.min(50).max(pass_size.min(50)));
             }
         }
-        // A budget that the passes so far have used up begins no further pass.
         r.pass_size = 1;
         r.max_pass_size = Some(256);
         // The pilot's seconds count against the budget: a quarter of it leaves three quarters
@@ -856,6 +853,7 @@ mod tests {
         };
         let (spp, t) = budget_run(&piloted, 1.0 / 1000.0);
         assert!((t - 0.75).abs() <= 0.5 / 1000.0 + 1e-9, "{spp} spp, {t} s");
+        // A budget that the passes so far have used up begins no further pass.
         assert_eq!(r.clone().fit_to_budget(3, 1.0, 7.0, 1.0 / 7.0), None);
         assert_eq!(r.clone().fit_to_budget(0, 5.0, 0.0, 0.0), Some(0..1));
         // Without a budget, or before any sample, the pass is the planned one.
@@ -880,6 +878,11 @@ mod tests {
             serde_json::from_str(&serde_json::to_string(&fitted).expect("serialises"))
                 .expect("parses");
         assert_eq!(back, fitted);
+        // A fit whose pass was never begun (its tasks never made) is withdrawn when the pass is
+        // not begun after all: the job's target is where it ends.
+        assert_eq!(fitted.fit_to_budget(3, 1.5, 7.0, 0.5 / 7.0), None);
+        assert_eq!(fitted.budget_spp, None);
+        assert_eq!(fitted.total_passes(), None);
     }
 
     #[test]

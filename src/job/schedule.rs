@@ -28,7 +28,8 @@ pub struct RenderOutput {
     pub stats: RayStats,
     /// Wall time.
     pub seconds: f64,
-    /// Samples per pixel rendered (a time-budget job ends with a pass fitted to its budget).
+    /// Samples per pixel rendered (a time-budget job's last pass may be shortened to fit its
+    /// budget, `Resolved::fit_to_budget`).
     pub spp: u32,
 }
 
@@ -143,11 +144,11 @@ impl Resolved {
     /// `seconds_per_spp` (the rate so far); its time budget also counts the pilot's `pilot_s`:
     /// - the pass as planned where the budget allows it at that rate, or where the rate is not
     ///   known yet (nothing rendered) or the job has no budget;
-    /// - the pass shortened to whole first passes (`pass_size`, the sampler's blocks) so that
-    ///   the job ends as near the budget as such a block allows, recorded in `budget_spp` (which
-    ///   ends the job with that pass);
+    /// - the pass shortened to whole first passes (`pass_size` samples, the blocks a
+    ///   time-budget job's sampler stratifies over) so that the job ends as near the budget as
+    ///   such a block allows, recorded in `budget_spp` (which ends the job with that pass);
     /// - None where the time is up, or where stopping now is nearer the budget than one more
-    ///   block.
+    ///   block (`not_begun`).
     ///
     /// Without it a pass begun at the end of the budget ran to completion, and passes double up
     /// to `max_pass_size`: the budget was overrun by up to its own length.
@@ -166,7 +167,7 @@ impl Resolved {
         let elapsed = elapsed + self.pilot_s.unwrap_or(0.0);
         // The first pass is always rendered.
         if p > 0 && elapsed >= budget {
-            return None;
+            return self.not_begun(&range);
         }
         if !(spp_done > 0.0 && seconds_per_spp > 0.0) {
             return Some(range);
@@ -179,7 +180,7 @@ impl Resolved {
         let base = self.pass_size.max(1);
         let blocks = ((fits - range.start as f64) / base as f64).round();
         if blocks < 1.0 {
-            return None;
+            return self.not_begun(&range);
         }
         // Fewer blocks than the pass has: `fits` < range.end.
         let end = range.start + (blocks as u32).saturating_mul(base);
@@ -188,6 +189,16 @@ impl Resolved {
         }
         self.budget_spp = Some(end);
         self.pass_range(p)
+    }
+
+    /// `fit_to_budget`'s answer for a pass it does not begin: a fit recorded for that pass
+    /// whose tasks were never made (the coordinator stopped between the two) is withdrawn, so
+    /// that the job's sample target is where it ends.
+    fn not_begun(&mut self, range: &Range<u32>) -> Option<Range<u32>> {
+        if self.budget_spp.is_some_and(|b| b > range.start) {
+            self.budget_spp = None;
+        }
+        None
     }
 
     /// Number of passes of a job with a sample count (fixed, or fitted to its time budget).

@@ -170,6 +170,8 @@ pub(crate) fn ensure_passes(app: &App, job: &JobRow, r: &mut Resolved) -> store:
         let last = app.db().last_tile(&job.id, p)?;
         let (mut next, range) = match last {
             Some(last) => (last + 1, r.pass_range(p)),
+            // No fit is stored for a pass that a stopping coordinator would not begin.
+            None if app.stopping.load(Ordering::Relaxed) => return Ok(()),
             None => (0, plan_pass(app, job, r, p)?),
         };
         let Some(range) = range else {
@@ -440,7 +442,8 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
     }
     // Taken before the job ends: a merge that sees it ended drops the job's runtime, and a new
     // one would not have the last pass's beauty (`Runtime::frame`) that the EXR below may need.
-    let rt = runtime(app, &job)?;
+    // One that cannot be made (its reference unreadable) does not keep the job from ending.
+    let early = runtime(app, &job);
     let ended = app
         .db()
         .set_job_state(id, JobState::Cancelled, None)
@@ -448,6 +451,7 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
     if ended {
         app.event(id, JobEvent::Cancelled(CancelledEvent {}));
         app.work.notify_waiters();
+        let rt = early.or_else(|_| runtime(app, &job))?;
         // The passes merged so far as image.exr (`merge::write_cancelled`): a pass rewrites it
         // at most every `exr_interval_s`, so the last one may not have. The row is read again under the
         // runtime's lock, which a pass holds while it is recorded: its count then matches the

@@ -117,17 +117,18 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         .map(|s| job.finished_at.unwrap_or(now) - s)
         .unwrap_or(0.0);
     let progress_spp = jobs::progress_spp(job, &r, tiles_done);
+    // The budget left: the pilot's seconds count against it (`Resolved::fit_to_budget`).
+    let budget_left = r
+        .time_budget_s
+        .map(|b| (b - r.pilot_s.unwrap_or(0.0) - elapsed).max(0.0));
     let eta = if !active {
         Some(0.0)
     } else if let Some(spp) = r.spp_limit() {
         (progress_spp > 0.0)
             .then(|| elapsed / progress_spp * (spp as f64 - progress_spp).max(0.0))
-            .map(|e| match r.time_budget_s {
-                Some(b) => e.min((b - elapsed).max(0.0)),
-                None => e,
-            })
+            .map(|e| budget_left.map_or(e, |left| e.min(left)))
     } else {
-        r.time_budget_s.map(|b| (b - elapsed).max(0.0))
+        budget_left
     };
     Ok(JobStatus {
         id: job.id.clone(),
