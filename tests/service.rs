@@ -1412,18 +1412,11 @@ fn a_time_budget_job_renders_passes_until_its_time_is_up() {
     );
     let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
     let spp = st["spp_done"].as_u64().expect("spp");
-    // A fitted last pass is the job's sample target once planned, and its merge writes the
-    // final EXR.
+    // A fitted last pass is the job's sample target once planned (a fit withdrawn or never
+    // made leaves none), and its merge writes the final EXR.
     assert!(
         st["spp_target"].is_null() || st["spp_target"].as_u64() == Some(spp),
         "{st}"
-    );
-    let series = st["series"].as_array().expect("series");
-    assert_eq!(series.last().map(|p| p["spp"].as_u64()), Some(Some(spp)));
-    assert!(
-        series
-            .windows(2)
-            .all(|w| w[0]["spp"].as_u64() < w[1]["spp"].as_u64())
     );
     let image = download_exr(&c, &url, &id, &dir);
     assert_eq!((image.width, image.height), (40, 32));

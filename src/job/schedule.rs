@@ -182,7 +182,7 @@ impl Resolved {
         if blocks < 1.0 {
             return self.not_begun(&range);
         }
-        // Fewer blocks than the pass has: `fits` < range.end.
+        // `fits` < range.end, but rounding to whole blocks may give the whole pass back.
         let end = range.start + (blocks as u32).saturating_mul(base);
         if end >= range.end {
             return Some(range);
