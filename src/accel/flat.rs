@@ -17,30 +17,35 @@ const LANES: usize = 8;
 /// Triangles per wide block: one AVX-512 register of f32.
 const WIDE: usize = 16;
 
-/// Eight triangles, structure of arrays. Unused lanes are all zero: their determinant is 0, so
-/// their distance is 0 * inf = NaN, which fails every range test.
-#[derive(Clone, Copy, Default)]
-#[repr(C, align(32))]
-struct Block {
-    v0: [[f32; LANES]; 3],
+/// `N` triangles, structure of arrays: eight for the portable and AVX2 queries ([`Block`]),
+/// sixteen for the AVX-512 ones ([`WideBlock`]); triangle `k` in block `k / N`, lane `k % N`.
+/// Unused lanes are all zero: their determinant is 0, so their distance is 0 * inf = NaN, which
+/// fails every range test.
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct Rows<const N: usize> {
+    v0: [[f32; N]; 3],
     /// v0 - v1.
-    e1: [[f32; LANES]; 3],
+    e1: [[f32; N]; 3],
     /// v2 - v0.
-    e2: [[f32; LANES]; 3],
+    e2: [[f32; N]; 3],
     /// e1 x e2.
-    ng: [[f32; LANES]; 3],
+    ng: [[f32; N]; 3],
 }
 
-/// Sixteen triangles, as [`Block`]: the layout of the AVX-512 queries, triangle `k` in block
-/// `k / WIDE`, lane `k % WIDE`.
-#[derive(Clone, Copy, Default)]
-#[repr(C, align(64))]
-struct WideBlock {
-    v0: [[f32; WIDE]; 3],
-    e1: [[f32; WIDE]; 3],
-    e2: [[f32; WIDE]; 3],
-    ng: [[f32; WIDE]; 3],
+impl<const N: usize> Rows<N> {
+    const ZERO: Self = Rows {
+        v0: [[0.0; N]; 3],
+        e1: [[0.0; N]; 3],
+        e2: [[0.0; N]; 3],
+        ng: [[0.0; N]; 3],
+    };
 }
+
+/// Eight triangles: one AVX register of f32 per row.
+type Block = Rows<LANES>;
+/// Sixteen triangles: one AVX-512 register of f32 per row.
+type WideBlock = Rows<WIDE>;
 
 /// a b - c d as glam's `Vec3A::cross` forms each component, which obvhs's triangle test uses:
 /// the second product fused into the subtraction where the build has FMA (x86-64-v3).
@@ -113,7 +118,7 @@ impl Flat {
         spheres: &[SphereGeom],
         sphere_ids: &[u32],
     ) -> Flat {
-        let mut blocks = vec![Block::default(); triangles.len().div_ceil(LANES)];
+        let mut blocks = vec![Block::ZERO; triangles.len().div_ceil(LANES)];
         for (k, t) in triangles.iter().enumerate() {
             let b = &mut blocks[k / LANES];
             let lane = k % LANES;
@@ -129,7 +134,7 @@ impl Flat {
         let isa = detect_isa();
         let mut wide = Vec::new();
         if isa == Isa::Avx512 {
-            wide = vec![WideBlock::default(); triangles.len().div_ceil(WIDE)];
+            wide = vec![WideBlock::ZERO; triangles.len().div_ceil(WIDE)];
             for (k, b) in blocks.iter().enumerate() {
                 let w = &mut wide[k * LANES / WIDE];
                 let at = k * LANES % WIDE;
@@ -190,7 +195,7 @@ impl Flat {
     #[target_feature(enable = "avx2")]
     fn intersect_avx2(&self, ray: &Ray) -> Option<FlatHit> {
         use std::arch::x86_64::*;
-        let r = avx2::RayLanes::new(ray);
+        let r = avx2::ray_lanes(ray);
         let mut lane_t = _mm256_set1_ps(ray.tmax);
         let mut lane_block = _mm256_setzero_ps();
         for (k, b) in self.blocks.iter().enumerate() {
@@ -214,7 +219,7 @@ impl Flat {
         if self.spheres_occlude(ray) {
             return true;
         }
-        let r = avx2::RayLanes::new(ray);
+        let r = avx2::ray_lanes(ray);
         self.blocks.iter().any(|b| {
             let ts = avx2::block_distances(b, &r);
             _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(ts, r.tmax)) != 0
@@ -226,7 +231,7 @@ impl Flat {
     #[target_feature(enable = "avx512f")]
     fn intersect_avx512(&self, ray: &Ray) -> Option<FlatHit> {
         use std::arch::x86_64::*;
-        let r = avx512::RayLanes::new(ray);
+        let r = avx512::ray_lanes(ray);
         let mut lane_t = _mm512_set1_ps(ray.tmax);
         let mut lane_block = _mm512_setzero_si512();
         for (k, b) in self.wide.iter().enumerate() {
@@ -247,7 +252,7 @@ impl Flat {
         if self.spheres_occlude(ray) {
             return true;
         }
-        let r = avx512::RayLanes::new(ray);
+        let r = avx512::ray_lanes(ray);
         self.wide.iter().any(|b| {
             let ts = avx512::block_distances(b, &r);
             _mm512_cmp_ps_mask::<_CMP_LT_OQ>(ts, r.tmax) != 0
@@ -339,6 +344,69 @@ fn nearest_lane(lane_t: &[f32; LANES], lane_block: &[u32; LANES], tmax: f32) -> 
     (best, found)
 }
 
+/// The triangle test's arithmetic on a block of rows (`super::block_distances`, operation for
+/// operation) with one instruction set's vector operations: `$load` a row, `$splat` a constant,
+/// `$add`, `$sub`, `$mul`, `$div`, and `$cross` (`super::cross_term`). Gives (inv_det, u, v, w,
+/// t) per lane.
+#[cfg(target_arch = "x86_64")]
+macro_rules! triangle_lanes {
+    ($b:expr, $r:expr, $load:ident, $splat:ident, $add:ident, $sub:ident, $mul:ident, $div:ident,
+     $cross:ident) => {{
+        let (b, r) = ($b, $r);
+        let [ox, oy, oz] = r.o;
+        let [dx, dy, dz] = r.d;
+        let (cx, cy, cz) = (
+            $sub($load(&b.v0[0]), ox),
+            $sub($load(&b.v0[1]), oy),
+            $sub($load(&b.v0[2]), oz),
+        );
+        let rx = $cross(dy, cz, cy, dz);
+        let ry = $cross(dz, cx, cz, dx);
+        let rz = $cross(dx, cy, cx, dy);
+        let (ngx, ngy, ngz) = ($load(&b.ng[0]), $load(&b.ng[1]), $load(&b.ng[2]));
+        let det = $add($add($mul(ngx, dx), $mul(ngy, dy)), $mul(ngz, dz));
+        let inv_det = $div($splat(1.0), det);
+        let dot = |x: &[[f32; _]; 3]| {
+            $add(
+                $add($mul(rx, $load(&x[0])), $mul(ry, $load(&x[1]))),
+                $mul(rz, $load(&x[2])),
+            )
+        };
+        let u = $mul(dot(&b.e2), inv_det);
+        let v = $mul(dot(&b.e1), inv_det);
+        let w = $sub($sub($splat(1.0), u), v);
+        let t = $mul(
+            $add($add($mul(ngx, cx), $mul(ngy, cy)), $mul(ngz, cz)),
+            inv_det,
+        );
+        (inv_det, u, v, w, t)
+    }};
+}
+
+/// A ray broadcast to every lane of a vector type `V`.
+#[cfg(target_arch = "x86_64")]
+struct RayLanes<V> {
+    o: [V; 3],
+    d: [V; 3],
+    tmin: V,
+    tmax: V,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl<V> RayLanes<V> {
+    /// Every component of `ray` through `splat`.
+    #[inline(always)]
+    fn splat(ray: &Ray, splat: impl Fn(f32) -> V) -> RayLanes<V> {
+        let (o, d) = (ray.o, ray.d);
+        RayLanes {
+            o: [splat(o.x), splat(o.y), splat(o.z)],
+            d: [splat(d.x), splat(d.y), splat(d.z)],
+            tmin: splat(ray.tmin),
+            tmax: splat(ray.tmax),
+        }
+    }
+}
+
 /// `block_distances` eight lanes per instruction.
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
@@ -347,33 +415,13 @@ mod avx2 {
     use std::arch::x86_64::*;
 
     /// A ray broadcast to every lane.
-    pub(super) struct RayLanes {
-        o: [__m256; 3],
-        d: [__m256; 3],
-        tmin: __m256,
-        pub(super) tmax: __m256,
-    }
+    pub(super) type RayLanes = super::RayLanes<__m256>;
 
-    impl RayLanes {
-        #[inline]
-        #[target_feature(enable = "avx2")]
-        pub(super) fn new(ray: &Ray) -> RayLanes {
-            let (o, d) = (ray.o, ray.d);
-            RayLanes {
-                o: [
-                    _mm256_set1_ps(o.x),
-                    _mm256_set1_ps(o.y),
-                    _mm256_set1_ps(o.z),
-                ],
-                d: [
-                    _mm256_set1_ps(d.x),
-                    _mm256_set1_ps(d.y),
-                    _mm256_set1_ps(d.z),
-                ],
-                tmin: _mm256_set1_ps(ray.tmin),
-                tmax: _mm256_set1_ps(ray.tmax),
-            }
-        }
+    /// `ray` broadcast to every lane.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    pub(super) fn ray_lanes(ray: &Ray) -> RayLanes {
+        RayLanes::splat(ray, |x| _mm256_set1_ps(x))
     }
 
     /// `super::cross_term` eight lanes at a time.
@@ -429,30 +477,17 @@ mod avx2 {
     #[inline]
     #[target_feature(enable = "avx2")]
     pub(super) fn block_distances(b: &Block, r: &RayLanes) -> __m256 {
-        let (mul, sub, add) = (_mm256_mul_ps, _mm256_sub_ps, _mm256_add_ps);
-        let [ox, oy, oz] = r.o;
-        let [dx, dy, dz] = r.d;
-        let (cx, cy, cz) = (
-            sub(load(&b.v0[0]), ox),
-            sub(load(&b.v0[1]), oy),
-            sub(load(&b.v0[2]), oz),
+        let (inv_det, u, v, w, t) = triangle_lanes!(
+            b,
+            r,
+            load,
+            _mm256_set1_ps,
+            _mm256_add_ps,
+            _mm256_sub_ps,
+            _mm256_mul_ps,
+            _mm256_div_ps,
+            cross_term
         );
-        let rx = cross_term(dy, cz, cy, dz);
-        let ry = cross_term(dz, cx, cz, dx);
-        let rz = cross_term(dx, cy, cx, dy);
-        let (ngx, ngy, ngz) = (load(&b.ng[0]), load(&b.ng[1]), load(&b.ng[2]));
-        let det = add(add(mul(ngx, dx), mul(ngy, dy)), mul(ngz, dz));
-        let inv_det = _mm256_div_ps(_mm256_set1_ps(1.0), det);
-        let dot = |x: &[[f32; LANES]; 3]| {
-            add(
-                add(mul(rx, load(&x[0])), mul(ry, load(&x[1]))),
-                mul(rz, load(&x[2])),
-            )
-        };
-        let u = mul(dot(&b.e2), inv_det);
-        let v = mul(dot(&b.e1), inv_det);
-        let w = sub(sub(_mm256_set1_ps(1.0), u), v);
-        let t = mul(add(add(mul(ngx, cx), mul(ngy, cy)), mul(ngz, cz)), inv_det);
         // `inv_det != 0.0` is true for NaN: unordered or not equal.
         let valid = _mm256_and_ps(
             _mm256_cmp_ps::<_CMP_NEQ_UQ>(inv_det, _mm256_setzero_ps()),
@@ -476,33 +511,13 @@ mod avx512 {
     use std::arch::x86_64::*;
 
     /// A ray broadcast to every lane.
-    pub(super) struct RayLanes {
-        o: [__m512; 3],
-        d: [__m512; 3],
-        tmin: __m512,
-        pub(super) tmax: __m512,
-    }
+    pub(super) type RayLanes = super::RayLanes<__m512>;
 
-    impl RayLanes {
-        #[inline]
-        #[target_feature(enable = "avx512f")]
-        pub(super) fn new(ray: &Ray) -> RayLanes {
-            let (o, d) = (ray.o, ray.d);
-            RayLanes {
-                o: [
-                    _mm512_set1_ps(o.x),
-                    _mm512_set1_ps(o.y),
-                    _mm512_set1_ps(o.z),
-                ],
-                d: [
-                    _mm512_set1_ps(d.x),
-                    _mm512_set1_ps(d.y),
-                    _mm512_set1_ps(d.z),
-                ],
-                tmin: _mm512_set1_ps(ray.tmin),
-                tmax: _mm512_set1_ps(ray.tmax),
-            }
-        }
+    /// `ray` broadcast to every lane.
+    #[inline]
+    #[target_feature(enable = "avx512f")]
+    pub(super) fn ray_lanes(ray: &Ray) -> RayLanes {
+        RayLanes::splat(ray, |x| _mm512_set1_ps(x))
     }
 
     /// `super::cross_term` sixteen lanes at a time.
@@ -548,30 +563,17 @@ mod avx512 {
     #[inline]
     #[target_feature(enable = "avx512f")]
     pub(super) fn block_distances(b: &WideBlock, r: &RayLanes) -> __m512 {
-        let (mul, sub, add) = (_mm512_mul_ps, _mm512_sub_ps, _mm512_add_ps);
-        let [ox, oy, oz] = r.o;
-        let [dx, dy, dz] = r.d;
-        let (cx, cy, cz) = (
-            sub(load(&b.v0[0]), ox),
-            sub(load(&b.v0[1]), oy),
-            sub(load(&b.v0[2]), oz),
+        let (inv_det, u, v, w, t) = triangle_lanes!(
+            b,
+            r,
+            load,
+            _mm512_set1_ps,
+            _mm512_add_ps,
+            _mm512_sub_ps,
+            _mm512_mul_ps,
+            _mm512_div_ps,
+            cross_term
         );
-        let rx = cross_term(dy, cz, cy, dz);
-        let ry = cross_term(dz, cx, cz, dx);
-        let rz = cross_term(dx, cy, cx, dy);
-        let (ngx, ngy, ngz) = (load(&b.ng[0]), load(&b.ng[1]), load(&b.ng[2]));
-        let det = add(add(mul(ngx, dx), mul(ngy, dy)), mul(ngz, dz));
-        let inv_det = _mm512_div_ps(_mm512_set1_ps(1.0), det);
-        let dot = |x: &[[f32; WIDE]; 3]| {
-            add(
-                add(mul(rx, load(&x[0])), mul(ry, load(&x[1]))),
-                mul(rz, load(&x[2])),
-            )
-        };
-        let u = mul(dot(&b.e2), inv_det);
-        let v = mul(dot(&b.e1), inv_det);
-        let w = sub(sub(_mm512_set1_ps(1.0), u), v);
-        let t = mul(add(add(mul(ngx, cx), mul(ngy, cy)), mul(ngz, cz)), inv_det);
         // `inv_det != 0.0` is true for NaN: unordered or not equal. A sign bit on any
         // barycentric (-0.0 included) is a miss: the bits as an integer are negative.
         let signs = _mm512_or_si512(
