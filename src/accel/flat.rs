@@ -7,7 +7,11 @@
 //! Storage Ray/Triangle Intersection", JGT 1997, in the edge layout of
 //! madmann91's "An introduction to BVHs", 2021) with the same operations in the same order, lane
 //! by lane (glam's cross product included, which fuses a product where the build has FMA), so a
-//! triangle reports the same distance bit for bit whichever index finds it.
+//! triangle reports the same distance bit for bit whichever index finds it. The barycentrics of
+//! the hit are the lane's own (u and v times 1 / det), kept beside the nearest distance: no
+//! second computation after the query, on the walk's path from one hit to the next. The BVH's
+//! hits take theirs from the same formula (`barycentrics`), not from obvhs's
+//! `compute_barycentric` (which divides), so both still report the same hit.
 
 use super::{Prim, SphereGeom};
 use crate::geometry::{Ray, Vec2, Vec3, Vec3A};
@@ -61,27 +65,54 @@ fn cross_term(a: f32, b: f32, c: f32, d: f32) -> f32 {
     }
 }
 
-/// The distances of a ray to the eight triangles of a block: inside [tmin, tmax], else infinity.
+/// One triangle (`v0`, `e1` = v0 - v1, `e2` = v2 - v0, `ng` = e1 x e2) against a ray: 1 / det,
+/// the barycentrics u (of v1), v (of v2) and w = 1 - u - v, and the distance t, by obvhs's
+/// `RtTriangle::intersect` operation for operation. Every form of the flat queries computes a
+/// lane this way, and the BVH's hits take their barycentrics from it (`barycentrics`).
+#[inline(always)]
+fn triangle_terms(v0: Vec3, e1: Vec3, e2: Vec3, ng: Vec3, o: Vec3, d: Vec3) -> [f32; 5] {
+    let (cx, cy, cz) = (v0.x - o.x, v0.y - o.y, v0.z - o.z);
+    // r = d x c, as glam's Vec3A forms it
+    let rx = cross_term(d.y, cz, cy, d.z);
+    let ry = cross_term(d.z, cx, cz, d.x);
+    let rz = cross_term(d.x, cy, cx, d.y);
+    let inv_det = 1.0 / (ng.x * d.x + ng.y * d.y + ng.z * d.z);
+    let u = (rx * e2.x + ry * e2.y + rz * e2.z) * inv_det;
+    let v = (rx * e1.x + ry * e1.y + rz * e1.z) * inv_det;
+    let w = 1.0 - u - v;
+    let t = (ng.x * cx + ng.y * cy + ng.z * cz) * inv_det;
+    [inv_det, u, v, w, t]
+}
+
+/// The barycentrics (of vertices 1 and 2) at which a ray crosses a triangle's plane, as the flat
+/// queries find them (`triangle_terms`): the BVH's hits use them too, so that both report the
+/// same hit bit for bit.
+#[inline]
+pub(super) fn barycentrics(v0: Vec3, e1: Vec3, e2: Vec3, ng: Vec3, o: Vec3, d: Vec3) -> Vec2 {
+    let [_, u, v, _, _] = triangle_terms(v0, e1, e2, ng, o, d);
+    Vec2::new(u, v)
+}
+
+/// What a block of triangles gives a ray, per lane: the distance inside [tmin, tmax] (else
+/// infinity) and the barycentrics u and v there.
+type LaneHits = [[f32; LANES]; 3];
+
+/// The distances of a ray to the eight triangles of a block, and their barycentrics.
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // lane loops index several arrays: the form that vectorises
-fn block_distances(b: &Block, o: Vec3, d: Vec3, tmin: f32, tmax: f32) -> [f32; LANES] {
-    let mut out = [f32::INFINITY; LANES];
+fn block_distances(b: &Block, o: Vec3, d: Vec3, tmin: f32, tmax: f32) -> LaneHits {
+    let mut out = [[f32::INFINITY; LANES], [0.0; LANES], [0.0; LANES]];
     for i in 0..LANES {
-        let (cx, cy, cz) = (b.v0[0][i] - o.x, b.v0[1][i] - o.y, b.v0[2][i] - o.z);
-        // r = d x c, as glam's Vec3A forms it
-        let rx = cross_term(d.y, cz, cy, d.z);
-        let ry = cross_term(d.z, cx, cz, d.x);
-        let rz = cross_term(d.x, cy, cx, d.y);
-        let inv_det = 1.0 / (b.ng[0][i] * d.x + b.ng[1][i] * d.y + b.ng[2][i] * d.z);
-        let u = (rx * b.e2[0][i] + ry * b.e2[1][i] + rz * b.e2[2][i]) * inv_det;
-        let v = (rx * b.e1[0][i] + ry * b.e1[1][i] + rz * b.e1[2][i]) * inv_det;
-        let w = 1.0 - u - v;
-        let t = (b.ng[0][i] * cx + b.ng[1][i] * cy + b.ng[2][i] * cz) * inv_det;
+        let row = |m: &[[f32; LANES]; 3]| Vec3::new(m[0][i], m[1][i], m[2][i]);
+        let [inv_det, u, v, w, t] =
+            triangle_terms(row(&b.v0), row(&b.e1), row(&b.e2), row(&b.ng), o, d);
         // As obvhs: a sign bit on any barycentric (-0.0 included) is a miss.
         let inside = (u.to_bits() | v.to_bits() | w.to_bits()) & 0x8000_0000 == 0;
         if inv_det != 0.0 && inside && t >= tmin && t <= tmax {
-            out[i] = t;
+            out[0][i] = t;
         }
+        out[1][i] = u;
+        out[2][i] = v;
     }
     out
 }
@@ -198,15 +229,28 @@ impl Flat {
         let r = avx2::ray_lanes(ray);
         let mut lane_t = _mm256_set1_ps(ray.tmax);
         let mut lane_block = _mm256_setzero_ps();
+        let (mut lane_u, mut lane_v) = (_mm256_setzero_ps(), _mm256_setzero_ps());
         for (k, b) in self.blocks.iter().enumerate() {
-            let ts = avx2::block_distances(b, &r);
+            let (ts, u, v) = avx2::block_distances(b, &r);
             let nearer = _mm256_cmp_ps::<_CMP_LT_OQ>(ts, lane_t);
             lane_t = _mm256_blendv_ps(lane_t, ts, nearer);
+            lane_u = _mm256_blendv_ps(lane_u, u, nearer);
+            lane_v = _mm256_blendv_ps(lane_v, v, nearer);
             let block = _mm256_castsi256_ps(_mm256_set1_epi32(k as i32));
             lane_block = _mm256_blendv_ps(lane_block, block, nearer);
         }
         let (best, found) = avx2::nearest_lane(lane_t, _mm256_castps_si256(lane_block), ray.tmax);
-        self.closest_of(ray, best, found)
+        let bary = || {
+            let (mut us, mut vs) = ([0.0f32; LANES], [0.0f32; LANES]);
+            // SAFETY: eight f32 each; AVX2 is enabled here.
+            unsafe {
+                _mm256_storeu_ps(us.as_mut_ptr(), lane_u);
+                _mm256_storeu_ps(vs.as_mut_ptr(), lane_v);
+            }
+            let lane = found % LANES;
+            Vec2::new(us[lane], vs[lane])
+        };
+        self.closest_of(ray, best, found, bary)
     }
 
     /// `occluded_any` in AVX2 registers (see `intersect_avx2`).
@@ -221,7 +265,7 @@ impl Flat {
         }
         let r = avx2::ray_lanes(ray);
         self.blocks.iter().any(|b| {
-            let ts = avx2::block_distances(b, &r);
+            let (ts, _, _) = avx2::block_distances(b, &r);
             _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(ts, r.tmax)) != 0
         })
     }
@@ -234,14 +278,27 @@ impl Flat {
         let r = avx512::ray_lanes(ray);
         let mut lane_t = _mm512_set1_ps(ray.tmax);
         let mut lane_block = _mm512_setzero_si512();
+        let (mut lane_u, mut lane_v) = (_mm512_setzero_ps(), _mm512_setzero_ps());
         for (k, b) in self.wide.iter().enumerate() {
-            let ts = avx512::block_distances(b, &r);
+            let (ts, u, v) = avx512::block_distances(b, &r);
             let nearer = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(ts, lane_t);
             lane_t = _mm512_mask_mov_ps(lane_t, nearer, ts);
+            lane_u = _mm512_mask_mov_ps(lane_u, nearer, u);
+            lane_v = _mm512_mask_mov_ps(lane_v, nearer, v);
             lane_block = _mm512_mask_mov_epi32(lane_block, nearer, _mm512_set1_epi32(k as i32));
         }
         let (best, found) = avx512::nearest_lane(lane_t, lane_block, ray.tmax);
-        self.closest_of(ray, best, found)
+        let bary = || {
+            let (mut us, mut vs) = ([0.0f32; WIDE], [0.0f32; WIDE]);
+            // SAFETY: sixteen f32 each; AVX-512 is enabled here.
+            unsafe {
+                _mm512_storeu_ps(us.as_mut_ptr(), lane_u);
+                _mm512_storeu_ps(vs.as_mut_ptr(), lane_v);
+            }
+            let lane = found % WIDE;
+            Vec2::new(us[lane], vs[lane])
+        };
+        self.closest_of(ray, best, found, bary)
     }
 
     /// `occluded_any` in AVX-512 registers (see `occluded_avx2`).
@@ -254,7 +311,7 @@ impl Flat {
         }
         let r = avx512::ray_lanes(ray);
         self.wide.iter().any(|b| {
-            let ts = avx512::block_distances(b, &r);
+            let (ts, _, _) = avx512::block_distances(b, &r);
             _mm512_cmp_ps_mask::<_CMP_LT_OQ>(ts, r.tmax) != 0
         })
     }
@@ -267,22 +324,32 @@ impl Flat {
         // Per lane, the nearest distance and its block: a select per lane, no branch.
         let mut lane_t = [ray.tmax; LANES];
         let mut lane_block = [0u32; LANES];
+        let (mut lane_u, mut lane_v) = ([0.0; LANES], [0.0; LANES]);
         for (k, b) in self.blocks.iter().enumerate() {
-            let ts = block_distances(b, o, d, ray.tmin, ray.tmax);
+            let [ts, us, vs] = block_distances(b, o, d, ray.tmin, ray.tmax);
             for i in 0..LANES {
                 let nearer = ts[i] < lane_t[i];
                 lane_t[i] = if nearer { ts[i] } else { lane_t[i] };
+                lane_u[i] = if nearer { us[i] } else { lane_u[i] };
+                lane_v[i] = if nearer { vs[i] } else { lane_v[i] };
                 lane_block[i] = if nearer { k as u32 } else { lane_block[i] };
             }
         }
         let (best, found) = nearest_lane(&lane_t, &lane_block, ray.tmax);
-        self.closest_of(ray, best, found)
+        let bary = || Vec2::new(lane_u[found % LANES], lane_v[found % LANES]);
+        self.closest_of(ray, best, found, bary)
     }
 
     /// The closest hit given the nearest triangle (`best`, `found` as [`nearest_lane`] gives
-    /// them), then the spheres.
+    /// them, `bary` its barycentrics from the lanes), then the spheres.
     #[inline(always)]
-    fn closest_of(&self, ray: &Ray, mut best: f32, found: usize) -> Option<FlatHit> {
+    fn closest_of(
+        &self,
+        ray: &Ray,
+        mut best: f32,
+        found: usize,
+        bary: impl FnOnce() -> Vec2,
+    ) -> Option<FlatHit> {
         let (o, d) = (ray.o, ray.d);
         let mut sphere = None;
         for (s, prim) in &self.spheres {
@@ -298,14 +365,7 @@ impl Flat {
         if found == usize::MAX {
             return None;
         }
-        let b = &self.blocks[found / LANES];
-        let lane = found % LANES;
-        let get = |m: &[[f32; LANES]; 3]| Vec3::new(m[0][lane], m[1][lane], m[2][lane]);
-        // obvhs's `compute_barycentric`, operation for operation.
-        let r = Vec3A::from(d).cross(Vec3A::from(get(&b.v0) - o));
-        let (e1, e2) = (Vec3A::from(get(&b.e1)), Vec3A::from(get(&b.e2)));
-        let bary = Vec2::new(r.dot(e2), r.dot(e1)) / get(&b.ng).dot(d);
-        Some((self.tri_prims[found], best, bary))
+        Some((self.tri_prims[found], best, bary()))
     }
 
     /// `occluded` for whatever instruction set it is compiled for.
@@ -314,7 +374,7 @@ impl Flat {
         let (o, d) = (ray.o, ray.d);
         self.spheres_occlude(ray)
             || self.blocks.iter().any(|b| {
-                let ts = block_distances(b, o, d, ray.tmin, ray.tmax);
+                let [ts, _, _] = block_distances(b, o, d, ray.tmin, ray.tmax);
                 ts.iter().any(|&t| t < ray.tmax)
             })
     }
@@ -476,7 +536,7 @@ mod avx2 {
     /// `super::block_distances`, operation for operation.
     #[inline]
     #[target_feature(enable = "avx2")]
-    pub(super) fn block_distances(b: &Block, r: &RayLanes) -> __m256 {
+    pub(super) fn block_distances(b: &Block, r: &RayLanes) -> (__m256, __m256, __m256) {
         let (inv_det, u, v, w, t) = triangle_lanes!(
             b,
             r,
@@ -499,7 +559,8 @@ mod avx2 {
         let inf = _mm256_set1_ps(f32::INFINITY);
         let hit = _mm256_blendv_ps(inf, t, valid);
         // A sign bit on any barycentric (-0.0 included) is a miss: blendv reads the sign bit.
-        _mm256_blendv_ps(hit, inf, _mm256_or_ps(_mm256_or_ps(u, v), w))
+        let t = _mm256_blendv_ps(hit, inf, _mm256_or_ps(_mm256_or_ps(u, v), w));
+        (t, u, v)
     }
 }
 
@@ -562,7 +623,7 @@ mod avx512 {
     /// `super::block_distances`, operation for operation.
     #[inline]
     #[target_feature(enable = "avx512f")]
-    pub(super) fn block_distances(b: &WideBlock, r: &RayLanes) -> __m512 {
+    pub(super) fn block_distances(b: &WideBlock, r: &RayLanes) -> (__m512, __m512, __m512) {
         let (inv_det, u, v, w, t) = triangle_lanes!(
             b,
             r,
@@ -584,7 +645,8 @@ mod avx512 {
             & _mm512_cmp_ps_mask::<_CMP_GE_OQ>(t, r.tmin)
             & _mm512_cmp_ps_mask::<_CMP_LE_OQ>(t, r.tmax)
             & !_mm512_cmplt_epi32_mask(signs, _mm512_setzero_si512());
-        _mm512_mask_mov_ps(_mm512_set1_ps(f32::INFINITY), valid, t)
+        let t = _mm512_mask_mov_ps(_mm512_set1_ps(f32::INFINITY), valid, t);
+        (t, u, v)
     }
 }
 

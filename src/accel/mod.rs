@@ -432,9 +432,10 @@ impl Accel {
         let slot = hit.primitive_id as usize;
         let bary = match self.slots[slot] {
             Prim::Triangle(_) => {
-                let hr = BvhRay::new(r.origin, r.direction, r.tmin, r.tmax);
-                let b = self.tris[slot].compute_barycentric(&hr);
-                Vec2::new(b.x, b.y)
+                // The flat queries' barycentrics, so that both report the same hit.
+                let t = &self.tris[slot];
+                let v = |a: crate::geometry::Vec3A| Vec3::from(a);
+                flat::barycentrics(v(t.v0), v(t.e1), v(t.e2), v(t.ng), ray.o, ray.d)
             }
             Prim::Sphere(_) => Vec2::ZERO,
         };
