@@ -240,17 +240,14 @@ impl Flat {
             lane_block = _mm256_blendv_ps(lane_block, block, nearer);
         }
         let (best, found) = avx2::nearest_lane(lane_t, _mm256_castps_si256(lane_block), ray.tmax);
-        let bary = || {
-            let (mut us, mut vs) = ([0.0f32; LANES], [0.0f32; LANES]);
-            // SAFETY: eight f32 each; AVX2 is enabled here.
-            unsafe {
-                _mm256_storeu_ps(us.as_mut_ptr(), lane_u);
-                _mm256_storeu_ps(vs.as_mut_ptr(), lane_v);
-            }
-            let lane = found % LANES;
-            Vec2::new(us[lane], vs[lane])
-        };
-        self.closest_of(ray, best, found, bary)
+        let (mut us, mut vs) = ([0.0f32; LANES], [0.0f32; LANES]);
+        // SAFETY: eight f32 each; AVX2 is enabled here.
+        unsafe {
+            _mm256_storeu_ps(us.as_mut_ptr(), lane_u);
+            _mm256_storeu_ps(vs.as_mut_ptr(), lane_v);
+        }
+        let lane = found % LANES;
+        self.closest_of(ray, best, found, Vec2::new(us[lane], vs[lane]))
     }
 
     /// `occluded_any` in AVX2 registers (see `intersect_avx2`).
@@ -288,17 +285,14 @@ impl Flat {
             lane_block = _mm512_mask_mov_epi32(lane_block, nearer, _mm512_set1_epi32(k as i32));
         }
         let (best, found) = avx512::nearest_lane(lane_t, lane_block, ray.tmax);
-        let bary = || {
-            let (mut us, mut vs) = ([0.0f32; WIDE], [0.0f32; WIDE]);
-            // SAFETY: sixteen f32 each; AVX-512 is enabled here.
-            unsafe {
-                _mm512_storeu_ps(us.as_mut_ptr(), lane_u);
-                _mm512_storeu_ps(vs.as_mut_ptr(), lane_v);
-            }
-            let lane = found % WIDE;
-            Vec2::new(us[lane], vs[lane])
-        };
-        self.closest_of(ray, best, found, bary)
+        let (mut us, mut vs) = ([0.0f32; WIDE], [0.0f32; WIDE]);
+        // SAFETY: sixteen f32 each; AVX-512 is enabled here.
+        unsafe {
+            _mm512_storeu_ps(us.as_mut_ptr(), lane_u);
+            _mm512_storeu_ps(vs.as_mut_ptr(), lane_v);
+        }
+        let lane = found % WIDE;
+        self.closest_of(ray, best, found, Vec2::new(us[lane], vs[lane]))
     }
 
     /// `occluded_any` in AVX-512 registers (see `occluded_avx2`).
@@ -336,20 +330,15 @@ impl Flat {
             }
         }
         let (best, found) = nearest_lane(&lane_t, &lane_block, ray.tmax);
-        let bary = || Vec2::new(lane_u[found % LANES], lane_v[found % LANES]);
-        self.closest_of(ray, best, found, bary)
+        let lane = found % LANES;
+        self.closest_of(ray, best, found, Vec2::new(lane_u[lane], lane_v[lane]))
     }
 
     /// The closest hit given the nearest triangle (`best`, `found` as [`nearest_lane`] gives
-    /// them, `bary` its barycentrics from the lanes), then the spheres.
+    /// them, `bary` its barycentrics from the lanes, meaningless where none was found), then the
+    /// spheres.
     #[inline(always)]
-    fn closest_of(
-        &self,
-        ray: &Ray,
-        mut best: f32,
-        found: usize,
-        bary: impl FnOnce() -> Vec2,
-    ) -> Option<FlatHit> {
+    fn closest_of(&self, ray: &Ray, mut best: f32, found: usize, bary: Vec2) -> Option<FlatHit> {
         let (o, d) = (ray.o, ray.d);
         let mut sphere = None;
         for (s, prim) in &self.spheres {
@@ -365,7 +354,7 @@ impl Flat {
         if found == usize::MAX {
             return None;
         }
-        Some((self.tri_prims[found], best, bary()))
+        Some((self.tri_prims[found], best, bary))
     }
 
     /// `occluded` for whatever instruction set it is compiled for.
