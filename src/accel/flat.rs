@@ -99,7 +99,7 @@ type LaneHits = [[f32; LANES]; 3];
 
 /// The distances of a ray to the eight triangles of a block, and their barycentrics.
 #[inline(always)]
-#[allow(clippy::needless_range_loop)] // lane loops index several arrays: the form that vectorises
+#[allow(clippy::needless_range_loop)] // lane loops index several arrays (the portable form, off x86-64)
 fn block_distances(b: &Block, o: Vec3, d: Vec3, tmin: f32, tmax: f32) -> LaneHits {
     let mut out = [[f32::INFINITY; LANES], [0.0; LANES], [0.0; LANES]];
     for i in 0..LANES {

@@ -10,7 +10,7 @@
 
 mod flat;
 
-use crate::geometry::{Ray, Vec2, Vec3};
+use crate::geometry::{Ray, Vec2, Vec3, Vec3A};
 use obvhs::{
     Boundable, BvhBuildParams,
     aabb::Aabb,
@@ -434,7 +434,7 @@ impl Accel {
             Prim::Triangle(_) => {
                 // The flat queries' barycentrics, so that both report the same hit.
                 let t = &self.tris[slot];
-                let v = |a: crate::geometry::Vec3A| Vec3::from(a);
+                let v = |a: Vec3A| Vec3::from(a);
                 flat::barycentrics(v(t.v0), v(t.e1), v(t.e2), v(t.ng), ray.o, ray.d)
             }
             Prim::Sphere(_) => Vec2::ZERO,
