@@ -12,7 +12,12 @@
 //! second computation after the query, on the walk's path from one hit to the next. The BVH's
 //! hits take theirs from the same formula (`barycentrics`), not from obvhs's
 //! `compute_barycentric` (which divides), so both still report the same hit.
+//!
+//! In a closed room the walls, floor and ceiling (`hull::Hull`) cannot block a shadow ray
+//! between two points of the room: their triangles are kept in blocks of their own, after the
+//! rest, and shadow rays test them only when the segment may reach them.
 
+use super::hull::Hull;
 use super::{Prim, SphereGeom};
 use crate::geometry::{Ray, Vec2, Vec3, Vec3A};
 
@@ -119,12 +124,21 @@ fn block_distances(b: &Block, o: Vec3, d: Vec3, tmin: f32, tmax: f32) -> LaneHit
 
 /// A flat list of a small scene's primitives.
 pub(super) struct Flat {
+    /// The triangles eight to a block: those inside the room first (`inner` blocks), then
+    /// those on its boundary (`hull`), each in the scene's order.
     blocks: Vec<Block>,
-    /// The same triangles sixteen to a block, where the processor has AVX-512 (else empty).
+    /// The same triangles sixteen to a block, where the processor has AVX-512 (else empty):
+    /// `inner_wide` blocks inside, then the boundary's.
     wide: Vec<WideBlock>,
-    /// The primitive of each triangle lane (block * LANES + lane).
+    inner: usize,
+    inner_wide: usize,
+    /// The primitive of each triangle lane (block * LANES + lane; padding: never found).
     tri_prims: Vec<Prim>,
+    /// The primitive of each wide lane (block * WIDE + lane).
+    wide_prims: Vec<Prim>,
     spheres: Vec<(SphereGeom, Prim)>,
+    /// The planes the boundary's triangles lie on.
+    hull: Hull,
     /// The widest instructions the processor offers for the same arithmetic.
     isa: Isa,
 }
@@ -141,6 +155,34 @@ enum Isa {
 /// barycentrics (b1, b2) of vertices 1 and 2.
 pub(super) type FlatHit = (Prim, f32, Vec2);
 
+/// `triangles` (indices into `all`, in order) into blocks of `N` lanes; `prims` gets each lane's
+/// primitive (padding: a triangle id no scene has, never found since padding never hits).
+fn fill<const N: usize>(
+    all: &[[Vec3; 3]],
+    ids: &[u32],
+    triangles: &[usize],
+    blocks: &mut Vec<Rows<N>>,
+    prims: &mut Vec<Prim>,
+) {
+    let first = blocks.len();
+    blocks.resize(first + triangles.len().div_ceil(N), Rows::ZERO);
+    prims.resize(blocks.len() * N, Prim::Triangle(u32::MAX));
+    for (k, &i) in triangles.iter().enumerate() {
+        let t = &all[i];
+        let b = &mut blocks[first + k / N];
+        let lane = k % N;
+        let (e1, e2) = (t[0] - t[1], t[2] - t[0]);
+        let ng = Vec3::from(Vec3A::from(e1).cross(Vec3A::from(e2)));
+        for a in 0..3 {
+            b.v0[a][lane] = t[0][a];
+            b.e1[a][lane] = e1[a];
+            b.e2[a][lane] = e2[a];
+            b.ng[a][lane] = ng[a];
+        }
+        prims[first * N + k] = Prim::Triangle(ids[i]);
+    }
+}
+
 impl Flat {
     /// `triangles[i]` is scene triangle `tri_ids[i]`; likewise the spheres.
     pub(super) fn new(
@@ -149,49 +191,58 @@ impl Flat {
         spheres: &[SphereGeom],
         sphere_ids: &[u32],
     ) -> Flat {
-        let mut blocks = vec![Block::ZERO; triangles.len().div_ceil(LANES)];
-        for (k, t) in triangles.iter().enumerate() {
-            let b = &mut blocks[k / LANES];
-            let lane = k % LANES;
-            let (e1, e2) = (t[0] - t[1], t[2] - t[0]);
-            let ng = Vec3::from(Vec3A::from(e1).cross(Vec3A::from(e2)));
-            for a in 0..3 {
-                b.v0[a][lane] = t[0][a];
-                b.e1[a][lane] = e1[a];
-                b.e2[a][lane] = e2[a];
-                b.ng[a][lane] = ng[a];
-            }
-        }
+        Flat::with_hull(triangles, tri_ids, spheres, sphere_ids, true)
+    }
+
+    /// As `new`, with the room's boundary found (`Hull::find`) or not (every shadow ray tests
+    /// every triangle).
+    fn with_hull(
+        triangles: &[[Vec3; 3]],
+        tri_ids: &[u32],
+        spheres: &[SphereGeom],
+        sphere_ids: &[u32],
+        find_hull: bool,
+    ) -> Flat {
         let isa = detect_isa();
-        let mut wide = Vec::new();
+        let (hull, on_hull) = if find_hull {
+            Hull::find(triangles, spheres)
+        } else {
+            (Hull::NONE, vec![false; triangles.len()])
+        };
+        let (inside, boundary): (Vec<usize>, Vec<usize>) =
+            (0..triangles.len()).partition(|&i| !on_hull[i]);
+        let (mut blocks, mut tri_prims) = (Vec::new(), Vec::new());
+        fill(triangles, tri_ids, &inside, &mut blocks, &mut tri_prims);
+        let inner = blocks.len();
+        fill(triangles, tri_ids, &boundary, &mut blocks, &mut tri_prims);
+        let (mut wide, mut wide_prims) = (Vec::new(), Vec::new());
         if isa == Isa::Avx512 {
-            wide = vec![WideBlock::ZERO; triangles.len().div_ceil(WIDE)];
-            for (k, b) in blocks.iter().enumerate() {
-                let w = &mut wide[k * LANES / WIDE];
-                let at = k * LANES % WIDE;
-                for a in 0..3 {
-                    w.v0[a][at..at + LANES].copy_from_slice(&b.v0[a]);
-                    w.e1[a][at..at + LANES].copy_from_slice(&b.e1[a]);
-                    w.e2[a][at..at + LANES].copy_from_slice(&b.e2[a]);
-                    w.ng[a][at..at + LANES].copy_from_slice(&b.ng[a]);
-                }
-            }
+            fill(triangles, tri_ids, &inside, &mut wide, &mut wide_prims);
+        }
+        let inner_wide = wide.len();
+        if isa == Isa::Avx512 {
+            fill(triangles, tri_ids, &boundary, &mut wide, &mut wide_prims);
         }
         Flat {
             blocks,
             wide,
-            tri_prims: tri_ids.iter().map(|&i| Prim::Triangle(i)).collect(),
+            inner,
+            inner_wide,
+            tri_prims,
+            wide_prims,
             spheres: spheres
                 .iter()
                 .zip(sphere_ids)
                 .map(|(s, &i)| (*s, Prim::Sphere(i)))
                 .collect(),
+            hull,
             isa,
         }
     }
 
     /// Closest hit with t in [tmin, tmax) (a hit exactly at tmax is a miss, as in obvhs); of
-    /// triangles at the same distance, the first in the scene's order.
+    /// triangles at the same distance, the first in the flat's order (the room's inside, then
+    /// its boundary, each in the scene's order).
     #[inline]
     pub(super) fn intersect(&self, ray: &Ray) -> Option<FlatHit> {
         #[cfg(target_arch = "x86_64")]
@@ -247,7 +298,13 @@ impl Flat {
             _mm256_storeu_ps(vs.as_mut_ptr(), lane_v);
         }
         let lane = found % LANES;
-        self.closest_of(ray, best, found, Vec2::new(us[lane], vs[lane]))
+        self.closest_of(
+            ray,
+            best,
+            found,
+            Vec2::new(us[lane], vs[lane]),
+            &self.tri_prims,
+        )
     }
 
     /// `occluded_any` in AVX2 registers (see `intersect_avx2`).
@@ -261,7 +318,10 @@ impl Flat {
             return true;
         }
         let r = avx2::ray_lanes(ray);
-        self.blocks.iter().any(|b| {
+        let end = tested(self.inner, self.blocks.len(), || {
+            self.hull.clear_avx2(ray.o, ray.d, ray.tmax)
+        });
+        self.blocks[..end].iter().any(|b| {
             let (ts, _, _) = avx2::block_distances(b, &r);
             _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(ts, r.tmax)) != 0
         })
@@ -292,7 +352,13 @@ impl Flat {
             _mm512_storeu_ps(vs.as_mut_ptr(), lane_v);
         }
         let lane = found % WIDE;
-        self.closest_of(ray, best, found, Vec2::new(us[lane], vs[lane]))
+        self.closest_of(
+            ray,
+            best,
+            found,
+            Vec2::new(us[lane], vs[lane]),
+            &self.wide_prims,
+        )
     }
 
     /// `occluded_any` in AVX-512 registers (see `occluded_avx2`).
@@ -304,7 +370,10 @@ impl Flat {
             return true;
         }
         let r = avx512::ray_lanes(ray);
-        self.wide.iter().any(|b| {
+        let end = tested(self.inner_wide, self.wide.len(), || {
+            self.hull.clear_avx2(ray.o, ray.d, ray.tmax)
+        });
+        self.wide[..end].iter().any(|b| {
             let (ts, _, _) = avx512::block_distances(b, &r);
             _mm512_cmp_ps_mask::<_CMP_LT_OQ>(ts, r.tmax) != 0
         })
@@ -331,14 +400,27 @@ impl Flat {
         }
         let (best, found) = nearest_lane(&lane_t, &lane_block, ray.tmax);
         let lane = found % LANES;
-        self.closest_of(ray, best, found, Vec2::new(lane_u[lane], lane_v[lane]))
+        self.closest_of(
+            ray,
+            best,
+            found,
+            Vec2::new(lane_u[lane], lane_v[lane]),
+            &self.tri_prims,
+        )
     }
 
     /// The closest hit given the nearest triangle (`best`, `found` as [`nearest_lane`] gives
-    /// them, `bary` its barycentrics from the lanes, meaningless where none was found), then the
-    /// spheres.
+    /// them, numbering the lanes of `prims`; `bary` its barycentrics from the lanes, meaningless
+    /// where none was found), then the spheres.
     #[inline(always)]
-    fn closest_of(&self, ray: &Ray, mut best: f32, found: usize, bary: Vec2) -> Option<FlatHit> {
+    fn closest_of(
+        &self,
+        ray: &Ray,
+        mut best: f32,
+        found: usize,
+        bary: Vec2,
+        prims: &[Prim],
+    ) -> Option<FlatHit> {
         let (o, d) = (ray.o, ray.d);
         let mut sphere = None;
         for (s, prim) in &self.spheres {
@@ -354,15 +436,18 @@ impl Flat {
         if found == usize::MAX {
             return None;
         }
-        Some((self.tri_prims[found], best, bary))
+        Some((prims[found], best, bary))
     }
 
     /// `occluded` for whatever instruction set it is compiled for.
     #[inline(always)]
     fn occluded_any(&self, ray: &Ray) -> bool {
         let (o, d) = (ray.o, ray.d);
+        let end = tested(self.inner, self.blocks.len(), || {
+            self.hull.clear(o, d, ray.tmax)
+        });
         self.spheres_occlude(ray)
-            || self.blocks.iter().any(|b| {
+            || self.blocks[..end].iter().any(|b| {
                 let [ts, _, _] = block_distances(b, o, d, ray.tmin, ray.tmax);
                 ts.iter().any(|&t| t < ray.tmax)
             })
@@ -376,9 +461,16 @@ impl Flat {
     }
 }
 
+/// How many blocks a shadow ray tests, of `inner` inside the room and `all` in all: the room's
+/// boundary only when the segment may reach it (`clear` is false).
+#[inline(always)]
+fn tested(inner: usize, all: usize, clear: impl FnOnce() -> bool) -> usize {
+    if inner == all || clear() { inner } else { all }
+}
+
 /// The nearest of the lanes' distances (`tmax` when none is nearer) and its triangle, numbered
 /// `block * LANES + lane` (`usize::MAX` for none); of lanes at the same distance, the first
-/// triangle in the scene's order.
+/// triangle in the flat's order.
 #[inline(always)]
 fn nearest_lane(lane_t: &[f32; LANES], lane_block: &[u32; LANES], tmax: f32) -> (f32, usize) {
     let mut best = tmax;
@@ -684,6 +776,7 @@ mod tests {
             if avx512 { Isa::Avx512 } else { Isa::Avx2 },
             "the queries run the widest form the processor has"
         );
+        assert_eq!(flat.inner, flat.blocks.len(), "no boundary in this scene");
         assert_eq!(flat.wide.len(), if avx512 { 3 } else { 0 });
         let bits =
             |h: Option<FlatHit>| h.map(|(p, t, b)| (p, t.to_bits(), b.x.to_bits(), b.y.to_bits()));
@@ -710,6 +803,95 @@ mod tests {
         assert!(
             hits > 10_000 && blocked > 10_000 && ties > 100,
             "{hits} hits, {blocked} blocked, {ties} ties"
+        );
+    }
+
+    /// In a room, shadow rays that leave out the boundary's triangles (`Hull`) get the answers
+    /// of rays that test every triangle, in every form, and so do closest-hit queries (the
+    /// triangles are only reordered); most shadow rays between points of the room leave them
+    /// out. The rays run between points on every surface, lifted off them as the integrators'
+    /// are (`Ray::between`), from outside the room, and to infinity.
+    #[test]
+    fn leaving_out_the_rooms_boundary_changes_no_answer() {
+        use crate::sampler::Pcg32;
+        let (tris, spheres) = crate::accel::hull::tests::room();
+        let ids: Vec<u32> = (0..tris.len() as u32).collect();
+        let sphere_ids = [50];
+        let flat = Flat::with_hull(&tris, &ids, &spheres, &sphere_ids, true);
+        let every = Flat::with_hull(&tris, &ids, &spheres, &sphere_ids, false);
+        assert_eq!((flat.inner, flat.blocks.len()), (1, 3));
+        assert_eq!(every.inner, every.blocks.len());
+        let mut rng = Pcg32::new(11, 3);
+        // A point on a random surface and its normal.
+        let surface = |rng: &mut Pcg32| {
+            let k = (rng.next_f32() * 17.0) as usize;
+            let (u, v) = (rng.next_f32(), rng.next_f32());
+            if k >= tris.len() {
+                let s = spheres[0];
+                let z = 1.0 - 2.0 * u;
+                let r = (1.0 - z * z).max(0.0).sqrt();
+                let phi = std::f32::consts::TAU * v;
+                let n = Vec3::new(r * phi.cos(), r * phi.sin(), z);
+                return (s.center + n * s.radius, n);
+            }
+            let t = tris[k];
+            let (u, v) = if u + v > 1.0 {
+                (1.0 - u, 1.0 - v)
+            } else {
+                (u, v)
+            };
+            let n = (t[1] - t[0]).cross(t[2] - t[0]).normalize();
+            (t[0] + (t[1] - t[0]) * u + (t[2] - t[0]) * v, n)
+        };
+        let bits =
+            |h: Option<FlatHit>| h.map(|(p, t, b)| (p, t.to_bits(), b.x.to_bits(), b.y.to_bits()));
+        let (mut clear, mut blocked, mut open) = (0, 0, 0);
+        for i in 0..20_000 {
+            let (from, n_from) = surface(&mut rng);
+            let (to, n_to) = match i % 4 {
+                // The camera, before the open front; above the ceiling.
+                0 => (Vec3::new(0.3 * rng.next_f32(), 1.0, 5.0), Vec3::ZERO),
+                1 if i % 8 == 1 => (Vec3::new(0.0, 3.0, 0.2), Vec3::ZERO),
+                _ => surface(&mut rng),
+            };
+            let Some(mut ray) = Ray::between(from, n_from, to, n_to) else {
+                continue;
+            };
+            if i % 16 == 2 {
+                ray.tmax = f32::INFINITY;
+            }
+            clear += flat.hull.clear(ray.o, ray.d, ray.tmax) as u32;
+            let occluded = every.occluded_any(&ray);
+            let closest = bits(every.intersect_any(&ray));
+            blocked += occluded as u32;
+            open += !occluded as u32;
+            assert_eq!(flat.occluded_any(&ray), occluded, "ray {i}");
+            assert_eq!(bits(flat.intersect_any(&ray)), closest, "ray {i}");
+            #[cfg(target_arch = "x86_64")]
+            {
+                assert_eq!(
+                    flat.hull.clear(ray.o, ray.d, ray.tmax),
+                    // SAFETY: omis requires AVX2 (`wide_queries_equal_the_portable_ones`).
+                    unsafe { flat.hull.clear_avx2(ray.o, ray.d, ray.tmax) },
+                    "ray {i}"
+                );
+                // SAFETY: as above.
+                unsafe {
+                    assert_eq!(flat.occluded_avx2(&ray), occluded, "ray {i}, AVX2");
+                    assert_eq!(bits(flat.intersect_avx2(&ray)), closest, "ray {i}, AVX2");
+                }
+                if flat.isa == Isa::Avx512 {
+                    // SAFETY: the processor has AVX-512 (`detect_isa`).
+                    unsafe {
+                        assert_eq!(flat.occluded_avx512(&ray), occluded, "ray {i}, AVX-512");
+                        assert_eq!(bits(flat.intersect_avx512(&ray)), closest, "ray {i}");
+                    }
+                }
+            }
+        }
+        assert!(
+            clear > 10_000 && blocked > 2_000 && open > 10_000,
+            "{clear} clear of the boundary, {blocked} blocked, {open} open"
         );
     }
 }

@@ -9,6 +9,7 @@
 //! `omis bench` measures the bare ray rates.
 
 mod flat;
+mod hull;
 
 use crate::geometry::{Ray, Vec2, Vec3, Vec3A};
 use obvhs::{

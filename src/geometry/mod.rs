@@ -59,6 +59,27 @@ impl Ray {
     pub fn at(&self, t: f32) -> Vec3 {
         self.o + self.d * t
     }
+
+    /// The shadow ray of the open segment from `from` to `to` (world points): its origin lifted
+    /// off the surface of normal `n_from`, its end pulled back from `to`'s surface (normal
+    /// `n_to`, zero for a point with no surface) and shortened by 1e-4 of its length. `None`
+    /// when the two points coincide.
+    #[inline]
+    pub fn between(from: Vec3, n_from: Vec3, to: Vec3, n_to: Vec3) -> Option<Self> {
+        let d = to - from;
+        let o = offset_origin(from, n_from, d);
+        let target = if n_to == Vec3::ZERO {
+            to
+        } else {
+            offset_origin(to, n_to, -d)
+        };
+        let seg = target - o;
+        let len = seg.length();
+        if !(len > 0.0) {
+            return None;
+        }
+        Some(Ray::segment(o, seg / len, len * (1.0 - 1e-4)))
+    }
 }
 
 /// Orthonormal frame; `n` is the local +z axis.

@@ -279,20 +279,7 @@ impl Scene {
     /// surface (normal `n_to`, zero for a point light).
     #[inline]
     pub fn occluded(&self, from: Vec3, n_from: Vec3, to: Vec3, n_to: Vec3) -> bool {
-        let d = to - from;
-        let o = offset_origin(from, n_from, d);
-        let target = if n_to == Vec3::ZERO {
-            to
-        } else {
-            offset_origin(to, n_to, -d)
-        };
-        let seg = target - o;
-        let len = seg.length();
-        if !(len > 0.0) {
-            return false;
-        }
-        let ray = Ray::segment(o, seg / len, len * (1.0 - 1e-4));
-        self.accel.occluded(&ray)
+        Ray::between(from, n_from, to, n_to).is_some_and(|ray| self.accel.occluded(&ray))
     }
 
     /// Ray leaving surface point `p` (geometric normal `ng`) in direction `d`.
