@@ -318,13 +318,12 @@ impl Flat {
             return true;
         }
         let r = avx2::ray_lanes(ray);
-        let end = tested(self.inner, self.blocks.len(), || {
-            self.hull.clear_avx2(ray.o, ray.d, ray.tmax)
-        });
-        self.blocks[..end].iter().any(|b| {
+        let hits = |b: &Block| {
             let (ts, _, _) = avx2::block_distances(b, &r);
             _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(ts, r.tmax)) != 0
-        })
+        };
+        let clear = || self.hull.clear_avx2(ray.o, ray.d, ray.tmax);
+        blocked(&self.blocks, self.inner, hits, clear)
     }
 
     /// `intersect_any` in AVX-512 registers, sixteen triangles per block (see `intersect_avx2`).
@@ -370,13 +369,12 @@ impl Flat {
             return true;
         }
         let r = avx512::ray_lanes(ray);
-        let end = tested(self.inner_wide, self.wide.len(), || {
-            self.hull.clear_avx2(ray.o, ray.d, ray.tmax)
-        });
-        self.wide[..end].iter().any(|b| {
+        let hits = |b: &WideBlock| {
             let (ts, _, _) = avx512::block_distances(b, &r);
             _mm512_cmp_ps_mask::<_CMP_LT_OQ>(ts, r.tmax) != 0
-        })
+        };
+        let clear = || self.hull.clear_avx2(ray.o, ray.d, ray.tmax);
+        blocked(&self.wide, self.inner_wide, hits, clear)
     }
 
     /// `intersect` for whatever instruction set it is compiled for.
@@ -443,14 +441,12 @@ impl Flat {
     #[inline(always)]
     fn occluded_any(&self, ray: &Ray) -> bool {
         let (o, d) = (ray.o, ray.d);
-        let end = tested(self.inner, self.blocks.len(), || {
-            self.hull.clear(o, d, ray.tmax)
-        });
-        self.spheres_occlude(ray)
-            || self.blocks[..end].iter().any(|b| {
-                let [ts, _, _] = block_distances(b, o, d, ray.tmin, ray.tmax);
-                ts.iter().any(|&t| t < ray.tmax)
-            })
+        let hits = |b: &Block| {
+            let [ts, _, _] = block_distances(b, o, d, ray.tmin, ray.tmax);
+            ts.iter().any(|&t| t < ray.tmax)
+        };
+        let clear = || self.hull.clear(o, d, ray.tmax);
+        self.spheres_occlude(ray) || blocked(&self.blocks, self.inner, hits, clear)
     }
 
     #[inline(always)]
@@ -461,11 +457,18 @@ impl Flat {
     }
 }
 
-/// How many blocks a shadow ray tests, of `inner` inside the room and `all` in all: the room's
-/// boundary only when the segment may reach it (`clear` is false).
+/// Whether some block of `blocks` (the first `inner` inside the room, the rest on its boundary)
+/// blocks a shadow ray (`hits`): the boundary's only when the segment may reach it (`clear` is
+/// false), which is decided after the inside's tests, beside them rather than before.
 #[inline(always)]
-fn tested(inner: usize, all: usize, clear: impl FnOnce() -> bool) -> usize {
-    if inner == all || clear() { inner } else { all }
+fn blocked<B>(
+    blocks: &[B],
+    inner: usize,
+    hits: impl Fn(&B) -> bool,
+    clear: impl FnOnce() -> bool,
+) -> bool {
+    let (inside, boundary) = blocks.split_at(inner);
+    inside.iter().any(&hits) || !boundary.is_empty() && !clear() && boundary.iter().any(hits)
 }
 
 /// The nearest of the lanes' distances (`tmax` when none is nearer) and its triangle, numbered
