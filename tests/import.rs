@@ -670,11 +670,12 @@ fn pbrt_emission_side_follows_winding_normals_and_reverse_orientation() {
 // Mitsuba 0.5: elements.
 
 fn write_obj(d: &Path) {
-    // A unit quad in the xy plane facing +z, with uvs (v = 0 at the bottom).
+    // A unit quad in the xy plane facing +z, with uvs (v = 0 at the bottom) and normals that
+    // lean towards +y along its right edge.
     common::write(
         d,
         "quad.obj",
-        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvn 0 0 1\nf 1/1/1 2/2/1 3/3/1 4/4/1\n",
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvn 0 0 1\nvn 0 0.6 0.8\nf 1/1/1 2/2/2 3/3/2 4/4/1\n",
     );
 }
 
@@ -877,7 +878,8 @@ fn mitsuba_elements_build_the_expected_scene() {
             .iter()
             .any(|p| (*p - Vec3::new(1.0, 2.0, 1.0)).length() < 1e-5)
     );
-    // faceNormals dropped the first OBJ's normals; the second keeps them.
+    // faceNormals dropped the first OBJ's normals; the second keeps them (they are not the
+    // geometric normal, which flat normals would be taken as).
     assert!(!s.triangles[0].has_normals);
     assert!(s.triangles[2].has_normals);
     // OBJ uvs: Mitsuba's default flipTexCoords is the usual OBJ convention, ours (kept);

@@ -220,6 +220,61 @@ fn obj_and_ply_meshes_load() {
     assert_has(&load_err(&p), &["shapes[0].file", "broken.ply"]);
 }
 
+/// Vertex normals that are the geometric normal (a flat mesh exported with normals) shade as
+/// the geometric normal does, without interpolation; curved ones are interpolated. Uvs are kept
+/// only where the material reads them.
+#[test]
+fn flat_vertex_normals_are_the_geometric_normal() {
+    use omis::geometry::{Ray, Vec3};
+    let d = folder("flat-normals");
+    // The same quad at z = 0 twice: normals along +z (flat) and tilted apart (curved).
+    std::fs::write(
+        d.join("flat.obj"),
+        "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nvn 0 0 1\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nf 1/1/1 2/2/1 3/3/1 4/4/1\n",
+    )
+    .unwrap();
+    std::fs::write(
+        d.join("curved.obj"),
+        "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nvn -0.6 0 0.8\nvn 0.6 0 0.8\nf 1//1 2//2 3//2 4//1\n",
+    )
+    .unwrap();
+    let p = scene_with_shapes(
+        &d,
+        r#"{"type": "mesh", "file": "flat.obj", "material": "m"},
+           {"type": "mesh", "file": "curved.obj", "material": "m", "transform": [{"translate": [0, 0, -1]}]}"#,
+    );
+    let scene = Scene::load(&p).expect("meshes load");
+    let flags: Vec<(bool, bool)> = scene
+        .triangles
+        .iter()
+        .map(|t| (t.has_normals, t.has_uvs))
+        .collect();
+    assert_eq!(
+        flags,
+        [(false, false); 2]
+            .iter()
+            .chain(&[(true, false); 2])
+            .copied()
+            .collect::<Vec<_>>()
+    );
+    let down = |x: f32, z: f32| {
+        scene
+            .intersect(&Ray::new(Vec3::new(x, 0.3, z), Vec3::NEG_Z))
+            .expect("hit")
+    };
+    let flat = down(0.5, 5.0);
+    assert_eq!(flat.ns, flat.ng);
+    assert_eq!(flat.ns, Vec3::Z);
+    // Behind the flat quad: a ray starting between the two.
+    let curved = down(0.5, -0.5);
+    assert!((curved.p.z + 1.0).abs() < 1e-6);
+    assert!(
+        (curved.ns - Vec3::new(0.3, 0.0, 0.8).normalize()).length() < 1e-5,
+        "{:?}",
+        curved.ns
+    );
+}
+
 #[test]
 fn shipped_scenes_load() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes");

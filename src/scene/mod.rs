@@ -61,9 +61,11 @@ pub struct Triangle {
     pub material: u32,
     /// Index into [`Scene::lights`], or [`NO_LIGHT`].
     pub light: u32,
-    /// Vertex normals are present for this triangle's mesh.
+    /// Vertex normals are present for this triangle's mesh and some differ from the geometric
+    /// normal (else hits take the geometric normal as the shading one: a flat mesh's normals
+    /// change nothing but the hit's cost).
     pub has_normals: bool,
-    /// Vertex uvs are present for this triangle's mesh.
+    /// Vertex uvs are present for this triangle's mesh and its material reads them (a texture).
     pub has_uvs: bool,
     /// Unit geometric normal, (p1 - p0) x (p2 - p0) normalised, turned to agree with the vertex
     /// normals where they exist (as pbrt does): made once here, not per hit.
@@ -561,13 +563,18 @@ impl SceneBuilder {
                 flip = ns.dot(ng) < 0.0;
             }
             let ng = ng.normalize();
+            let ng = if flip { -ng } else { ng };
+            // Normals that are the geometric normal to within float noise (1e-5 rad) shade as
+            // it does: interpolating and normalising them is left out.
+            let flat = |n: Vec3| n.as_dvec3().dot(ng.as_dvec3()) >= 1.0 - 5e-11;
+            let curved = has_normals && !v.iter().all(|&k| flat(self.normals[k as usize]));
             self.triangles.push(Triangle {
                 v,
                 material,
                 light: NO_LIGHT,
-                has_normals,
-                has_uvs,
-                ng: if flip { -ng } else { ng },
+                has_normals: curved,
+                has_uvs: has_uvs && self.materials[material as usize].uses_uv(),
+                ng,
             });
             self.tri_emission.push(emission.unwrap_or(Rgb::ZERO));
         }
