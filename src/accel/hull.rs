@@ -2,8 +2,8 @@
 //! the scene's triangles (walls, floor, ceiling). A segment that starts and ends in front of
 //! every plane stays in front of them all (the region in front of them is convex), so it cannot
 //! meet a boundary triangle: a shadow ray between two points of the room need not test the
-//! walls, and a ray that meets something inside the room need not test them either. The flat
-//! queries use it (`flat::Flat`); the answers are the same as testing every triangle.
+//! walls. The flat queries use it for shadow rays (`flat::Flat`); the answers are the same as
+//! testing every triangle.
 
 use super::SphereGeom;
 use crate::geometry::Vec3;
