@@ -275,6 +275,71 @@ fn flat_vertex_normals_are_the_geometric_normal() {
     );
 }
 
+/// Light-sampling densities skip the sum over lights only where no ray meets two emitters; there
+/// they equal the sum.
+#[test]
+fn the_light_pdf_skips_the_sum_only_where_no_ray_meets_two_emitters() {
+    use omis::geometry::{Vec2, Vec3};
+    use omis::sampler::Pcg32;
+    use omis::scene::NO_LIGHT;
+    let d = folder("one-emitter-per-ray");
+    let quad = |corner: [f32; 3], e1: [f32; 3], e2: [f32; 3]| {
+        format!(
+            r#"{{"type": "quad", "material": "m", "corner": {corner:?}, "edge1": {e1:?}, "edge2": {e2:?}, "emission": 2}}"#
+        )
+    };
+    let down = ([1.0, 0.0, 0.0], [0.0, 0.0, 1.0]);
+    let cases = [
+        // Two quads side by side in the plane y = 2, sharing an edge: four triangles, no overlap.
+        (quad([-1.0, 2.0, -0.5], down.0, down.1) + ", " + &quad([0.0, 2.0, -0.5], down.0, down.1), true),
+        // The same plane, overlapping by a sliver.
+        (quad([-1.0, 2.0, -0.5], down.0, down.1) + ", " + &quad([-0.01, 2.0, -0.5], down.0, down.1), false),
+        // Parallel planes: a ray can cross both.
+        (quad([-1.0, 2.0, -0.5], down.0, down.1) + ", " + &quad([-1.0, 2.5, -0.5], down.0, down.1), false),
+        // One quad is two triangles in one plane.
+        (quad([-1.0, 2.0, -0.5], down.0, down.1), true),
+        // A sphere light alone.
+        (r#"{"type": "sphere", "center": [0, 2, 0], "radius": 0.3, "material": "m", "emission": 2}"#.to_string(), true),
+    ];
+    for (k, (shapes, want)) in cases.iter().enumerate() {
+        let floor = r#"{"type": "quad", "material": "m", "corner": [-3, 0, -3], "edge1": [6, 0, 0], "edge2": [0, 0, 6]}"#;
+        let p = scene_with_shapes(&d, &format!("{floor}, {shapes}"));
+        let scene = Scene::load(&p).expect("scene loads");
+        assert_eq!(scene.one_emitter_per_ray(), *want, "case {k}");
+        // From points on the floor: each light sample's density and a hit light's density
+        // against the sum over every light the ray meets.
+        let mut checked = 0;
+        let mut rng = Pcg32::new(17, k as u64);
+        for _ in 0..400 {
+            let mut f = || rng.next_f32();
+            let p = Vec3::new(4.0 * f() - 2.0, 1e-3, 4.0 * f() - 2.0);
+            let Some((l, pmf)) = scene.sample_light(f()) else {
+                continue;
+            };
+            let Some(ls) = scene.lights[l as usize].sample_li(p, Vec2::new(f(), f())) else {
+                continue;
+            };
+            let sum = scene.light_pdf_dir(p, ls.wi);
+            let close = |a: f32| (a - sum).abs() <= 1e-4 * sum;
+            if *want {
+                assert!(
+                    close(scene.light_pdf_sampled(p, ls.wi, pmf, ls.pdf)),
+                    "case {k}"
+                );
+                let hit = scene
+                    .intersect(&omis::geometry::Ray::new(p, ls.wi))
+                    .expect("hit");
+                assert_ne!(hit.light, NO_LIGHT, "case {k}");
+                assert!(close(scene.light_pdf_hit(p, ls.wi, hit.light)), "case {k}");
+            } else {
+                assert_eq!(scene.light_pdf_sampled(p, ls.wi, pmf, ls.pdf), sum);
+            }
+            checked += 1;
+        }
+        assert!(checked > 300, "case {k}: {checked}");
+    }
+}
+
 #[test]
 fn shipped_scenes_load() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes");

@@ -72,7 +72,7 @@ pub fn li(
                     (None, _) | (_, DirectStrategy::Bsdf) => 1.0,
                     (Some(_), DirectStrategy::Light) => 0.0,
                     (Some((p, pdf_bsdf)), DirectStrategy::Mis) => {
-                        power_heuristic(pdf_bsdf, scene.light_pdf_dir(p, ray.d))
+                        power_heuristic(pdf_bsdf, scene.light_pdf_hit(p, ray.d, hit.light))
                     }
                 };
                 add(&mut l, depth, beta * le * w);
@@ -163,7 +163,7 @@ fn direct(
     if le == Rgb::ZERO {
         return Rgb::ZERO;
     }
-    let pdf_light = scene.light_pdf_dir(hit.p, ls.wi);
+    let pdf_light = scene.light_pdf_sampled(hit.p, ls.wi, pmf, ls.pdf);
     if !(pdf_light > 0.0) {
         return Rgb::ZERO;
     }

@@ -15,6 +15,7 @@ use crate::camera::Camera;
 use crate::geometry::{Ray, Rgb, Transform, Vec2, Vec3, offset_origin};
 use crate::light::{Distribution1D, Light};
 use crate::material::Material;
+use glam::{DVec2, DVec3};
 use std::path::{Path, PathBuf};
 
 /// The `light` index of a primitive that does not emit.
@@ -166,6 +167,8 @@ pub struct Scene {
     /// Indices of the area lights (scanned directly when there are few).
     area_lights: Vec<u32>,
     emitters_occlude: bool,
+    /// No ray meets two emitters (see [`one_emitter_per_ray`]).
+    one_emitter_per_ray: bool,
 }
 
 /// The world-space geometry of the triangles and spheres, in the scene's order.
@@ -348,6 +351,35 @@ impl Scene {
             }
         }
         sum
+    }
+
+    /// [`Scene::light_pdf_dir`] of a direction that light sampling produced by choosing a light
+    /// with probability `pmf` and sampling it with solid-angle density `pdf`. Where no ray meets
+    /// two emitters the sum over the lights the ray meets has that one term, and no ray is cast.
+    #[inline]
+    pub fn light_pdf_sampled(&self, p: Vec3, wi: Vec3, pmf: f32, pdf: f32) -> f32 {
+        if self.one_emitter_per_ray {
+            pmf * pdf
+        } else {
+            self.light_pdf_dir(p, wi)
+        }
+    }
+
+    /// [`Scene::light_pdf_dir`] of a direction whose ray from `p` reaches light `l` first. Where no
+    /// ray meets two emitters only `l`'s term is computed.
+    #[inline]
+    pub fn light_pdf_hit(&self, p: Vec3, wi: Vec3, l: u32) -> f32 {
+        if self.one_emitter_per_ray {
+            self.light_pmf(l) * self.lights[l as usize].pdf_li(p, wi)
+        } else {
+            self.light_pdf_dir(p, wi)
+        }
+    }
+
+    /// True when no ray meets two emitters, except on a set of rays of measure zero: at most one
+    /// area light, or triangles in one plane whose interiors do not overlap.
+    pub fn one_emitter_per_ray(&self) -> bool {
+        self.one_emitter_per_ray
     }
 
     /// False when no emitter can stand between a point and another emitter (at most one area
@@ -692,7 +724,9 @@ impl SceneBuilder {
         let accel = Accel::build(&tri_geom, &ids(&tri_geom), &sphere_geom, &ids(&sphere_geom));
         let emitter_accel = (area_lights.len() > EMITTER_BVH_THRESHOLD)
             .then(|| Accel::build(&emit_tris, &emit_tri_ids, &emit_spheres, &emit_sphere_ids));
-        let emitters_occlude = !coplanar_triangle_lights(&lights, &area_lights);
+        let coplanar = coplanar_triangle_lights(&lights, &area_lights);
+        let emitters_occlude = !coplanar;
+        let one_emitter_per_ray = one_emitter_per_ray(&lights, &area_lights, coplanar);
         let stats = SceneStats {
             triangles: self.triangles.len(),
             spheres: self.spheres.len(),
@@ -717,8 +751,78 @@ impl SceneBuilder {
             emitter_accel,
             area_lights,
             emitters_occlude,
+            one_emitter_per_ray,
         })
     }
+}
+
+/// The most coplanar triangle lights whose interiors are checked pair by pair for
+/// [`one_emitter_per_ray`]; past it the light-sampling density sums over the lights a ray meets.
+const ONE_EMITTER_CHECK_MAX: usize = 64;
+
+/// True when no ray meets two emitters (except on a set of measure zero): at most one area light,
+/// or triangles in one plane (`coplanar`, from [`coplanar_triangle_lights`]) no two of which
+/// overlap. A ray crosses the plane once, so it meets at most one of them.
+fn one_emitter_per_ray(lights: &[Light], area: &[u32], coplanar: bool) -> bool {
+    if area.len() <= 1 {
+        return true;
+    }
+    if !coplanar || area.len() > ONE_EMITTER_CHECK_MAX {
+        return false;
+    }
+    let corners: Vec<[DVec3; 3]> = area
+        .iter()
+        .filter_map(|&l| match &lights[l as usize] {
+            Light::Triangle { p0, e1, e2, .. } => {
+                let p0 = p0.as_dvec3();
+                Some([p0, p0 + e1.as_dvec3(), p0 + e2.as_dvec3()])
+            }
+            _ => None,
+        })
+        .collect();
+    if corners.len() != area.len() {
+        return false;
+    }
+    // The plane's axes, from the first triangle (the rest lie in its plane).
+    let [a, b, c] = corners[0];
+    let (s, t) = (b - a).cross(c - a).normalize().any_orthonormal_pair();
+    let flat: Vec<[DVec2; 3]> = corners
+        .iter()
+        .map(|tri| tri.map(|p| DVec2::new(p.dot(s), p.dot(t))))
+        .collect();
+    let scale = flat
+        .iter()
+        .flatten()
+        .fold(0.0f64, |m, p| m.max(p.abs().max_element()));
+    for (i, a) in flat.iter().enumerate() {
+        if flat[i + 1..].iter().any(|b| interiors_overlap(a, b, scale)) {
+            return false;
+        }
+    }
+    true
+}
+
+/// Separating-axis test of two triangles in a plane: true unless an edge normal of either
+/// separates them (touching along an edge or at a corner, to within rounding, is separate).
+/// `scale` is the largest coordinate.
+fn interiors_overlap(a: &[DVec2; 3], b: &[DVec2; 3], scale: f64) -> bool {
+    let range = |tri: &[DVec2; 3], axis: DVec2| {
+        let d = tri.map(|p| p.dot(axis));
+        (d[0].min(d[1]).min(d[2]), d[0].max(d[1]).max(d[2]))
+    };
+    for tri in [a, b] {
+        for k in 0..3 {
+            let e = tri[(k + 1) % 3] - tri[k];
+            let axis = e.perp();
+            let tol = 1e-10 * axis.length() * scale;
+            let (a_lo, a_hi) = range(a, axis);
+            let (b_lo, b_hi) = range(b, axis);
+            if a_hi <= b_lo + tol || b_hi <= a_lo + tol {
+                return false;
+            }
+        }
+    }
+    true
 }
 
 /// True when there is at most one area light, or all are triangles in one plane.
