@@ -1,5 +1,5 @@
-//! `omis bench`: BVH build time, closest-hit and occlusion ray rates with random rays, and the
-//! path tracer's throughput compared with the bare BVH rate for the same mix of queries; peak
+//! `omis bench`: the samplers' cost per number, BVH build time, closest-hit and occlusion ray
+//! rates with random rays, and the path tracer's throughput compared with the bare BVH rate for the same mix of queries; peak
 //! memory (VmHWM) after loading and at the end; optionally the path tracer's relMSE against a
 //! reference (box-downsampled to the bench resolution when it is an integer multiple of it).
 
@@ -9,7 +9,7 @@ use crate::geometry::warp::uniform_sphere;
 use crate::geometry::{Ray, Vec2, Vec3};
 use crate::integrator::{IntegratorKind, RenderSettings};
 use crate::job::Resolved;
-use crate::sampler::{Pcg32, SamplerKind};
+use crate::sampler::{Pcg32, Sampler, SamplerKind, Stream};
 use crate::scene::{Scene, mesh};
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -108,6 +108,31 @@ fn downsample(img: &Image, w: usize, h: usize) -> Result<Image> {
     Ok(out)
 }
 
+/// Nanoseconds per 2D and 1D number pair of each sampler kind, on one thread: `n` pixel samples
+/// of eight pairs each, the samplers' construction included.
+fn measure_samplers(n: u32) -> Vec<(SamplerKind, f64)> {
+    [
+        SamplerKind::Sobol,
+        SamplerKind::Stratified,
+        SamplerKind::Independent,
+    ]
+    .into_iter()
+    .map(|kind| {
+        let start = Instant::now();
+        let mut acc = 0.0f32;
+        for i in 0..n {
+            let mut s = Sampler::new(kind, 1, i % 256, i / 256, i % 16, 16, Stream::Camera);
+            for _ in 0..8 {
+                let v = s.next_2d();
+                acc += v.x + v.y + s.next_1d();
+            }
+        }
+        std::hint::black_box(acc);
+        (kind, start.elapsed().as_secs_f64() * 1e9 / (n as f64 * 8.0))
+    })
+    .collect()
+}
+
 struct RayRates {
     /// The queries tested every primitive (no BVH).
     flat: bool,
@@ -171,6 +196,26 @@ pub fn run(a: BenchArgs) -> Result<()> {
     let pool = super::thread_pool(a.threads)?;
     let threads = pool.current_num_threads();
     let (w, h) = super::parse_resolution(&a.resolution).map_err(anyhow::Error::msg)?;
+    let samplers = measure_samplers((a.rays / 8).clamp(1000, 1 << 24) as u32);
+    if a.json {
+        let per: serde_json::Map<String, serde_json::Value> = samplers
+            .iter()
+            .map(|(k, ns)| (format!("{k:?}").to_lowercase(), serde_json::json!(ns)))
+            .collect();
+        println!(
+            "{}",
+            serde_json::json!({"target": "samplers", "ns_per_2d_1d_draw": per})
+        );
+    } else {
+        let per: Vec<String> = samplers
+            .iter()
+            .map(|(k, ns)| format!("{} {ns:.1}", format!("{k:?}").to_lowercase()))
+            .collect();
+        println!(
+            "samplers, 1 thread, ns per 2D + 1D draw (8 per pixel sample, its construction included): {}",
+            per.join(", ")
+        );
+    }
     let mut scenes = a.scenes.clone();
     if scenes.is_empty() && a.obj_dir.is_empty() {
         scenes.push(PathBuf::from("scenes/cornell-box.json"));
