@@ -186,8 +186,8 @@ impl SobolBlock {
 /// Dimension `d` of the pixel sample whose index bit-reversed is `index_reversed`, as 32-bit
 /// fractions: the first two dimensions of the Sobol' (0,2)-sequence at an index shuffled per
 /// dimension, each Owen-scrambled (Burley 2020, "Practical Hash-based Owen Scrambling", JCGT
-/// 9(4), section 4's padding by shuffling). The three scrambles' seeds hash the pixel's keys
-/// with the dimension.
+/// 9(4): padding by shuffling the index). The three scrambles' seeds hash the pixel's keys with
+/// the dimension.
 #[inline(always)]
 fn sobol_dimension(keys: [u32; 3], index_reversed: u32, d: u32) -> (u32, u32) {
     let salt = d.wrapping_add(1).wrapping_mul(0x9e37_79b9);
