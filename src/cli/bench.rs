@@ -1,7 +1,8 @@
 //! `omis bench`: the samplers' cost per number, BVH build time, closest-hit and occlusion ray
-//! rates with random rays, and the path tracer's throughput compared with the bare BVH rate for the same mix of queries; peak
-//! memory (VmHWM) after loading and at the end; optionally the path tracer's relMSE against a
-//! reference (box-downsampled to the bench resolution when it is an integer multiple of it).
+//! rates with random rays, and the path tracer's throughput compared with the bare BVH rate for
+//! the same mix of queries; peak memory (VmHWM) after loading and at the end; optionally the
+//! path tracer's relMSE against a reference (box-downsampled to the bench resolution when it is
+//! an integer multiple of it).
 
 use crate::accel::{Accel, SphereGeom};
 use crate::film::{Image, exr_io, metrics, png};
@@ -108,9 +109,9 @@ fn downsample(img: &Image, w: usize, h: usize) -> Result<Image> {
     Ok(out)
 }
 
-/// Nanoseconds per 2D and 1D number pair of each sampler kind, on one thread: `n` pixel samples
-/// of eight pairs each, the samplers' construction included.
-fn measure_samplers(n: u32) -> Vec<(SamplerKind, f64)> {
+/// Nanoseconds per 2D and 1D number pair of each sampler kind (by its name on the command line),
+/// on one thread: `n` pixel samples of eight pairs each, the samplers' construction included.
+fn measure_samplers(n: u32) -> Vec<(String, f64)> {
     [
         SamplerKind::Sobol,
         SamplerKind::Stratified,
@@ -128,7 +129,8 @@ fn measure_samplers(n: u32) -> Vec<(SamplerKind, f64)> {
             }
         }
         std::hint::black_box(acc);
-        (kind, start.elapsed().as_secs_f64() * 1e9 / (n as f64 * 8.0))
+        let ns = start.elapsed().as_secs_f64() * 1e9 / (n as f64 * 8.0);
+        (format!("{kind:?}").to_lowercase(), ns)
     })
     .collect()
 }
@@ -200,7 +202,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
     if a.json {
         let per: serde_json::Map<String, serde_json::Value> = samplers
             .iter()
-            .map(|(k, ns)| (format!("{k:?}").to_lowercase(), serde_json::json!(ns)))
+            .map(|(name, ns)| (name.clone(), serde_json::json!(ns)))
             .collect();
         println!(
             "{}",
@@ -209,7 +211,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
     } else {
         let per: Vec<String> = samplers
             .iter()
-            .map(|(k, ns)| format!("{} {ns:.1}", format!("{k:?}").to_lowercase()))
+            .map(|(name, ns)| format!("{name} {ns:.1}"))
             .collect();
         println!(
             "samplers, 1 thread, ns per 2D + 1D draw (8 per pixel sample, its construction included): {}",

@@ -355,7 +355,8 @@ impl Scene {
 
     /// [`Scene::light_pdf_dir`] of a direction that light sampling produced by choosing a light
     /// with probability `pmf` and sampling it with solid-angle density `pdf`. Where no ray meets
-    /// two emitters the sum over the lights the ray meets has that one term: no light is intersected.
+    /// two emitters the sum over the lights the ray meets has that one term: no light is
+    /// intersected.
     #[inline]
     pub fn light_pdf_sampled(&self, p: Vec3, wi: Vec3, pmf: f32, pdf: f32) -> f32 {
         if self.one_emitter_per_ray {
