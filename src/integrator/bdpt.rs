@@ -29,15 +29,22 @@
 //! are not balance's, and they gave 1.07-1.14x the variance behind SmallVCM's mirror and glass
 //! spheres (BENCHMARKS.md, issue 15).
 //!
-//! By default subpaths end only where a BSDF is black or fails to sample, at an escape, or at
-//! the max depth: there is no Russian roulette, as in pbrt-v3's BDPT (Pharr, Jakob and
-//! Humphreys, "Physically Based Rendering", 3rd ed., §16.3). Roulette multiplies a surviving
-//! subpath's throughput by 1/q, and on paths that only one technique can make (caustics seen
-//! through glass or in a mirror) MIS cannot take that back: it made the glass-and-mirror Cornell
-//! box 1.2-1.4x noisier per sample, all of it in fireflies (BENCHMARKS.md, issue 13). With
-//! [`Workspace::set_roulette`] a walk continues from each vertex with probability q, its BSDF's
-//! albedo estimate, as in SmallVCM; q is a factor of every density sampled from the vertex, in
-//! both directions, so the MIS weights stay exact (Georgiev et al. 2012's implementation).
+//! Subpaths end where a BSDF is black or fails to sample, at an escape, at the max depth, and
+//! with [`Workspace::set_roulette`] by Russian roulette: from its start vertex R on, a walk
+//! continues from each vertex with probability q, its BSDF's albedo estimate, as in SmallVCM
+//! (R = 1) and Georgiev et al. 2012's implementation; the vertices before R always continue.
+//! Roulette multiplies a surviving subpath's throughput by 1/q, and on paths that only one
+//! technique can make (caustics seen through glass or in a mirror) MIS cannot take that back:
+//! from the first vertex it made the glass-and-mirror Cornell box 1.3x noisier per sample, most
+//! of it in fireflies, while it saves 20-50 % of the time on long paths (BENCHMARKS.md, issue
+//! 13). BDPT's default start ([`ROULETTE_FROM`]) leaves those short paths alone.
+//!
+//! q is a factor of every density sampled from a vertex, in both directions, so the weights
+//! stay exact; with R > 1 it depends on the technique: x_j of a path of k vertices is light
+//! vertex j but camera vertex k - 1 - j, and continues with q where that index is >= R. Forward
+//! densities (`pdf_fwd`) carry the q of the subpath that made them; reverse densities
+//! (`pdf_rev`) are stored without it and get it where they are used
+//! (`Workspace::q_as` and the partial sums' `light_sum_for` / `cam_sum_for`).
 
 use crate::camera::Camera;
 use crate::film::RayStats;
@@ -49,6 +56,12 @@ use crate::scene::{NO_LIGHT, Scene};
 
 /// Longest supported max depth (subpaths have at most max_depth + 2 vertices).
 pub const MAX_DEPTH: u32 = 64;
+
+/// BDPT's default first roulette vertex: subpaths always continue through their first three
+/// surface vertices, where paths that one technique alone makes (caustics seen directly or in
+/// a mirror) get their fireflies from 1/q, and end by roulette from the fourth on, where most of
+/// a long path's time goes (BENCHMARKS.md #13, stop 46).
+pub const ROULETTE_FROM: u32 = 4;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Kind {
@@ -78,11 +91,17 @@ pub struct Vertex {
     /// Area density of this vertex from its predecessor in its subpath (with the predecessor's
     /// continuation probability `q`).
     pdf_fwd: f32,
-    /// Area density of this vertex from its successor (with the successor's `q`).
+    /// Area density of this vertex from its successor, without the successor's continuation
+    /// probability: which one applies depends on the technique (`Workspace::q_as`).
     pdf_rev: f32,
-    /// Probability that a subpath continues from this vertex (Russian roulette; 1 without it
-    /// and at the endpoints): a factor of every density a walk from here samples.
+    /// Probability that this subpath continued from this vertex (Russian roulette; 1 without it,
+    /// before the roulette's start and at the endpoints): a factor of every density its walk
+    /// samples from here.
     q: f32,
+    /// The vertex's continuation probability at any index past the roulette's start: its BSDF's
+    /// albedo estimate with roulette on, else 1. The q of this vertex when a technique's other
+    /// subpath would have sampled from it there.
+    rr: f32,
     /// Specular (delta) BSDF: no connection can be made here.
     delta: bool,
     /// Point light: a delta in position, never hit.
@@ -110,6 +129,7 @@ impl Vertex {
             pdf_fwd,
             pdf_rev: 0.0,
             q: 1.0,
+            rr: 1.0,
             delta: false,
             delta_pos: false,
             material: NO_MATERIAL,
@@ -129,6 +149,7 @@ impl Vertex {
             pdf_fwd: self.pdf_fwd,
             pdf_rev: self.pdf_rev,
             q: self.q,
+            rr: self.rr,
             material: self.material,
             light: self.light,
             delta_pos: self.delta_pos,
@@ -242,6 +263,7 @@ pub(crate) struct StoredVertex {
     pdf_fwd: f32,
     pdf_rev: f32,
     q: f32,
+    rr: f32,
     material: u32,
     light: u32,
     delta_pos: bool,
@@ -282,6 +304,7 @@ impl StoredVertex {
             pdf_fwd: self.pdf_fwd,
             pdf_rev: self.pdf_rev,
             q: self.q,
+            rr: self.rr,
             delta: !first && bsdf.is_delta(),
             delta_pos: self.delta_pos,
             material: self.material,
@@ -346,8 +369,9 @@ pub struct Workspace {
     exponent: i32,
     /// Vertex merging's eta = N_L pi r^2 (0: no merging, plain BDPT): see `set_merging`.
     eta: f64,
-    /// Subpaths end by Russian roulette (`set_roulette`).
-    roulette: bool,
+    /// Subpaths end by Russian roulette from their vertex of this index on (`set_roulette`);
+    /// `usize::MAX`: never.
+    roulette_from: usize,
     /// The light vertex of the latest next-event sample (for tests of the weights).
     last_nee: Option<Vertex>,
 }
@@ -366,7 +390,7 @@ impl Default for Workspace {
             q1: 0.0,
             exponent: 1,
             eta: 0.0,
-            roulette: false,
+            roulette_from: usize::MAX,
             last_nee: None,
         }
     }
@@ -382,7 +406,7 @@ fn random_walk(
     mut pdf_dir: f32,
     sampler: &mut Sampler,
     mode: Mode,
-    roulette: bool,
+    roulette_from: usize,
     max_vertices: usize,
     path: &mut Vec<Vertex>,
     stats: &mut RayStats,
@@ -410,13 +434,21 @@ fn random_walk(
             beta,
             pdf_fwd: 0.0,
             pdf_rev: 0.0,
-            q: if roulette { bsdf.continuation() } else { 1.0 },
+            q: 1.0,
+            rr: if roulette_from == usize::MAX {
+                1.0
+            } else {
+                bsdf.continuation()
+            },
             delta: bsdf.is_delta(),
             delta_pos: false,
             material: hit.material,
             uv: hit.uv,
         };
         v.pdf_fwd = path[prev].area_density(pdf_dir, &v);
+        if path.len() >= roulette_from {
+            v.q = v.rr;
+        }
         let q = v.q;
         path.push(v);
         if bsdf.is_black() {
@@ -442,7 +474,7 @@ fn random_walk(
         } else {
             (s.pdf, s.pdf_rev)
         };
-        path[prev].pdf_rev = path[cur].area_density(pdf_rev, &path[prev]);
+        path[prev].pdf_rev = path[cur].to_area(pdf_rev, &path[prev]);
         beta *= s.f * (s.wi.dot(hit.ns).abs() / (s.pdf * q));
         if beta == Rgb::ZERO {
             break;
@@ -479,7 +511,7 @@ pub fn camera_subpath(
         pdf_dir,
         sampler,
         Mode::Radiance,
-        ws.roulette,
+        ws.roulette_from,
         max_depth as usize + 2,
         &mut ws.cam,
         stats,
@@ -527,7 +559,7 @@ pub fn light_subpath(
         e.pdf_dir,
         sampler,
         Mode::Importance,
-        ws.roulette,
+        ws.roulette_from,
         max_depth as usize + 1,
         &mut ws.light,
         stats,
@@ -569,6 +601,8 @@ fn balance_weights(
     c: &Connection,
 ) -> bool {
     let k = s + t;
+    let from = ws.roulette_from;
+    let q_as = |v: &Vertex, index: usize| if index >= from { v.rr } else { 1.0 };
     let Workspace {
         cam,
         light,
@@ -590,10 +624,19 @@ fn balance_weights(
     };
     for i in 0..k {
         let v = vert(i);
-        let (mut l, mut e) = if i < s {
-            (v.pdf_fwd as f64, v.pdf_rev as f64)
+        // The density from the far side carries the q of the vertex that sampled v there, at
+        // its index in that side's subpath (`Workspace::q_as`); the connection's own
+        // densities below replace the ones whose sampling vertex is not stored.
+        let (mut l, mut e) = if i + 2 < s {
+            let q = q_as(&light[i + 1], k - 2 - i);
+            (v.pdf_fwd as f64, (v.pdf_rev * q) as f64)
+        } else if i < s {
+            (v.pdf_fwd as f64, 0.0)
+        } else if i >= s + 2 {
+            let q = q_as(&cam[k - i], i - 1);
+            ((v.pdf_rev * q) as f64, v.pdf_fwd as f64)
         } else {
-            (v.pdf_rev as f64, v.pdf_fwd as f64)
+            (0.0, v.pdf_fwd as f64)
         };
         // Densities the connection changes.
         if i + 1 == s {
@@ -660,10 +703,11 @@ impl Workspace {
         self.eta = eta;
     }
 
-    /// Whether subpaths traced from now on end by Russian roulette (each vertex continues with
-    /// its BSDF's albedo estimate) besides the max depth.
-    pub fn set_roulette(&mut self, on: bool) {
-        self.roulette = on;
+    /// Whether subpaths traced from now on end by Russian roulette besides the max depth:
+    /// `Some(n)`, each vertex from the n-th surface vertex on (n >= 1; the endpoints are vertex
+    /// 0) continues with its BSDF's albedo estimate; the vertices before it always continue.
+    pub fn set_roulette(&mut self, from: Option<u32>) {
+        self.roulette_from = from.map_or(usize::MAX, |n| n.max(1) as usize);
     }
 
     /// Forgets the camera subpath (a light subpath prepared alone).
@@ -743,58 +787,119 @@ impl Workspace {
     /// ratio recurrence like the connections. This is the dVM part of Georgiev's dVCM / dVC / dVM
     /// (tech. report, 2012) in ratio form.
     pub fn prepare(&mut self, scene: &Scene, heuristic: MisKind) {
-        let b = heuristic.beta();
-        self.exponent = b;
-        let eta_b = mis::ratio_term(self.eta, b);
-        let light = &self.light;
-        self.q1 = if light.len() >= 2 {
-            nee_density(scene, &light[0], &light[1])
+        self.exponent = heuristic.beta();
+        self.q1 = if self.light.len() >= 2 {
+            nee_density(scene, &self.light[0], &self.light[1])
         } else {
             0.0
         };
         self.light_sums.clear();
-        for j in 0..light.len() {
-            let y = &light[j];
-            let sum = match j {
-                0 => !y.delta_pos as u8 as f64,
-                1 => {
-                    let y0 = &light[0];
-                    let v0 = !y0.delta_pos as u8 as f64;
-                    let v1 = !y.delta as u8 as f64;
-                    (v0 * mis::ratio_term(y0.pdf_rev as f64, b)
-                        + v1 * mis::ratio_term(self.q1 as f64, b))
-                        / mis::ratio_term(y0.pdf_fwd as f64, b)
-                }
-                _ => {
-                    let yp = &light[j - 1];
-                    let v = !(yp.delta || y.delta) as u8 as f64;
-                    v + mis::ratio_term(yp.pdf_rev as f64 / yp.pdf_fwd as f64, b)
-                        * self.light_sums[j - 1]
-                        + merge_term(eta_b, yp, yp.pdf_rev as f64, b)
-                }
-            };
-            self.light_sums.push(sum);
+        let mut prev = 0.0;
+        for j in 0..self.light.len() {
+            prev = self.light_sum_next(j, prev, self.light[j].rr);
+            self.light_sums.push(prev);
         }
         self.cam_sums.clear();
-        let cam = &self.cam;
-        for j in 0..cam.len() {
-            let sum = match j {
-                0 => 0.0,
-                _ => {
-                    let (z, zp) = (&cam[j], &cam[j - 1]);
-                    let v = !(z.delta || zp.delta) as u8 as f64;
-                    let prev = if j == 1 {
-                        0.0
-                    } else {
-                        mis::ratio_term(zp.pdf_rev as f64 / zp.pdf_fwd as f64, b)
-                            * self.cam_sums[j - 1]
-                            + merge_term(eta_b, zp, zp.pdf_rev as f64, b)
-                    };
-                    v + prev
-                }
-            };
-            self.cam_sums.push(sum);
+        let mut prev = 0.0;
+        for j in 0..self.cam.len() {
+            prev = self.cam_sum_next(j, prev, self.cam[j].rr);
+            self.cam_sums.push(prev);
         }
+    }
+
+    /// The continuation probability of `v` as vertex `index` of a subpath (1 before the
+    /// roulette's start). A technique's density at a vertex carries the q of the vertex that
+    /// sampled it in that technique's subpaths, and x_j of a path of k vertices is light vertex
+    /// j but camera vertex k - 1 - j: with a start past vertex 1 the two differ near the ends.
+    #[inline]
+    fn q_as(&self, v: &Vertex, index: usize) -> f32 {
+        if index >= self.roulette_from {
+            v.rr
+        } else {
+            1.0
+        }
+    }
+
+    /// S_j from S_{j-1} = `prev` (see `prepare`), with y_j's continuation probability `q_rev` in
+    /// pE_{j-1}, the density of y_{j-1} from the camera side.
+    fn light_sum_next(&self, j: usize, prev: f64, q_rev: f32) -> f64 {
+        let b = self.exponent;
+        let m = |x: f64| mis::ratio_term(x, b);
+        let light = &self.light;
+        let y = &light[j];
+        match j {
+            0 => !y.delta_pos as u8 as f64,
+            1 => {
+                let y0 = &light[0];
+                let v0 = !y0.delta_pos as u8 as f64;
+                let v1 = !y.delta as u8 as f64;
+                (v0 * m((y0.pdf_rev * q_rev) as f64) + v1 * m(self.q1 as f64))
+                    / m(y0.pdf_fwd as f64)
+            }
+            _ => {
+                let yp = &light[j - 1];
+                let v = !(yp.delta || y.delta) as u8 as f64;
+                let pe = (yp.pdf_rev * q_rev) as f64;
+                v + m(pe / yp.pdf_fwd as f64) * prev + merge_term(m(self.eta), yp, pe, b)
+            }
+        }
+    }
+
+    /// T_j from T_{j-1} = `prev`, with z_j's continuation probability `q_rev` in pL(z_{j-1}).
+    fn cam_sum_next(&self, j: usize, prev: f64, q_rev: f32) -> f64 {
+        let b = self.exponent;
+        let m = |x: f64| mis::ratio_term(x, b);
+        match j {
+            0 => 0.0,
+            _ => {
+                let (z, zp) = (&self.cam[j], &self.cam[j - 1]);
+                let v = !(z.delta || zp.delta) as u8 as f64;
+                let older = if j == 1 {
+                    0.0
+                } else {
+                    let pl = (zp.pdf_rev * q_rev) as f64;
+                    m(pl / zp.pdf_fwd as f64) * prev + merge_term(m(self.eta), zp, pl, b)
+                };
+                v + older
+            }
+        }
+    }
+
+    /// S_j for a full path of k vertices. The prepared S_j takes every y_i (i <= j) to sample
+    /// y_{i-1} past the roulette's start, which holds when y_j is camera vertex k - 1 - j >= R
+    /// of the techniques it sums; closer to the camera the last few terms are made again with
+    /// q = 1 where y_i's camera index is below R: at most R - 1 steps.
+    fn light_sum_for(&self, j: usize, k: usize) -> f64 {
+        let r = self.roulette_from;
+        if r == usize::MAX || j + r < k {
+            return self.light_sums[j];
+        }
+        let (mut i, mut sum) = match (k - 1).checked_sub(r) {
+            Some(i0) => (i0, self.light_sums[i0]),
+            None => (0, self.light_sums[0]),
+        };
+        while i < j {
+            i += 1;
+            sum = self.light_sum_next(i, sum, self.q_as(&self.light[i], k - 1 - i));
+        }
+        sum
+    }
+
+    /// T_j for a full path of k vertices: as `light_sum_for`, z_i being light vertex k - 1 - i.
+    fn cam_sum_for(&self, j: usize, k: usize) -> f64 {
+        let r = self.roulette_from;
+        if r == usize::MAX || j + r < k {
+            return self.cam_sums[j];
+        }
+        let (mut i, mut sum) = match (k - 1).checked_sub(r) {
+            Some(i0) => (i0, self.cam_sums[i0]),
+            None => (0, self.cam_sums[0]),
+        };
+        while i < j {
+            i += 1;
+            sum = self.cam_sum_next(i, sum, self.q_as(&self.cam[i], k - 1 - i));
+        }
+        sum
     }
 }
 
@@ -849,7 +954,7 @@ fn heuristic_weight(
                 (v0 * m(pe_y2) + m(ws.q1 as f64)) / m(yp.pdf_fwd as f64)
             } else {
                 let v = !yp.delta as u8 as f64;
-                v + m(pe_y2 / yp.pdf_fwd as f64) * ws.light_sums[s - 2]
+                v + m(pe_y2 / yp.pdf_fwd as f64) * ws.light_sum_for(s - 2, s + t)
                     + merge_term(eta_b, yp, pe_y2, b)
             };
             // Merging at y_{s-1} (s - 1 >= 1), then the older techniques.
@@ -866,7 +971,8 @@ fn heuristic_weight(
         let pe_z1 = z.pdf_fwd as f64;
         // sum_{t' < t - 1} relative to p_{s+1}; T_0 = 0.
         let rest = if t >= 3 {
-            m(pl_z2 / zp.pdf_fwd as f64) * ws.cam_sums[t - 2] + merge_term(eta_b, zp, pl_z2, b)
+            m(pl_z2 / zp.pdf_fwd as f64) * ws.cam_sum_for(t - 2, s + t)
+                + merge_term(eta_b, zp, pl_z2, b)
         } else {
             0.0
         };
@@ -1151,7 +1257,7 @@ fn next_event(
         },
         pe_y2: 0.0,
         pl_z1: v0.area_density(pdf_dir, z),
-        pl_z2: z.area_density(pdf_rev, zp),
+        pl_z2: ws.q_as(z, 1) * z.to_area(pdf_rev, zp),
         q1: if ls.delta {
             pmf
         } else {
@@ -1210,9 +1316,10 @@ fn connect(
     let (z_to_y, z_back) = z.bsdf.pdfs(z_dirs.as_ref());
     let c = Connection {
         pe_y1: z.area_density(z_to_y, y),
-        pe_y2: y.area_density(y_back, yp),
+        // y samples y_{s-2} as camera vertex t, z samples z_{t-2} as light vertex s.
+        pe_y2: ws.q_as(y, t) * y.to_area(y_back, yp),
         pl_z1: y.area_density(y_to_z, z),
-        pl_z2: z.area_density(z_back, zp),
+        pl_z2: ws.q_as(z, s) * z.to_area(z_back, zp),
         q1: ws.q1,
     };
     report(ws, sink, None, s, t, &c, depth, pixel, contribution);
@@ -1281,7 +1388,7 @@ fn connect_to_camera(
     let z0 = &ws.cam[0];
     let pe_y1 = z0.area_density(cam.pdf_dir(w_cy), y);
     let pe_y2 = if s >= 2 {
-        y.area_density(y.bsdf.pdf_back(y_dirs.as_ref()), &ws.light[s - 2])
+        ws.q_as(y, 1) * y.to_area(y.bsdf.pdf_back(y_dirs.as_ref()), &ws.light[s - 2])
     } else {
         0.0
     };
@@ -1326,8 +1433,10 @@ mod tests {
         fn unsampled(&mut self, _: (u32, u32), _: u32, _: u32) {}
     }
 
-    fn area(from: &Vertex, pdf_dir: f64, to: &Vertex) -> f64 {
-        from.area_density(pdf_dir as f32, to) as f64
+    /// `from`'s solid-angle density toward `to` in area measure, times the continuation
+    /// probability `q` of `from` in the subpath that samples it.
+    fn area_q(from: &Vertex, pdf_dir: f64, to: &Vertex, q: f32) -> f64 {
+        (q * from.to_area(pdf_dir as f32, to)) as f64
     }
 
     fn dir(a: &Vertex, b: &Vertex) -> Vec3 {
@@ -1335,8 +1444,11 @@ mod tests {
     }
 
     /// Technique densities p_{s'} of a full path, computed directly as products (an independent
-    /// restatement of the conventions in the module documentation).
-    fn reference_weights(scene: &Scene, v: &[Vertex]) -> Vec<f64> {
+    /// restatement of the conventions in the module documentation), with subpaths ending by
+    /// roulette from vertex `from` on (`usize::MAX`: none): a vertex continues with its `rr` at
+    /// an index >= `from` of the subpath the technique samples it in, else with 1.
+    fn reference_weights(scene: &Scene, v: &[Vertex], from: usize) -> Vec<f64> {
+        let q = |b: &Vertex, index: usize| if index >= from { b.rr } else { 1.0 };
         let k = v.len();
         let light = &scene.lights[v[0].light as usize];
         let pmf = scene.light_pmf(v[0].light) as f64;
@@ -1357,16 +1469,22 @@ mod tests {
                         if v[0].delta_pos {
                             pmf
                         } else {
-                            pmf * area(&v[1], light.pdf_li(v[1].p, dir(&v[1], &v[0])) as f64, &v[0])
+                            pmf * area_q(
+                                &v[1],
+                                light.pdf_li(v[1].p, dir(&v[1], &v[0])) as f64,
+                                &v[0],
+                                1.0,
+                            )
                         }
                     } else {
                         pmf * light.pdf_le(v[0].ng, dir(&v[0], &v[1])).0 as f64
                     }
                 } else if i == 1 {
-                    area(
+                    area_q(
                         &v[0],
                         light.pdf_le(v[0].ng, dir(&v[0], &v[1])).1 as f64,
                         &v[1],
+                        1.0,
                     )
                 } else {
                     let b = &v[i - 1];
@@ -1375,7 +1493,7 @@ mod tests {
                     } else {
                         b.bsdf.pdf(dir(b, &v[i - 2]), dir(b, &v[i])) as f64
                     };
-                    area(b, pdf, &v[i])
+                    area_q(b, pdf, &v[i], q(b, i - 1))
                 };
             }
             for i in sp..k {
@@ -1383,10 +1501,11 @@ mod tests {
                 d *= if j == 0 {
                     1.0
                 } else if j == 1 {
-                    area(
+                    area_q(
                         &v[k - 1],
                         scene.camera.pdf_dir(dir(&v[k - 1], &v[i])) as f64,
                         &v[i],
+                        1.0,
                     )
                 } else {
                     let b = &v[i + 1];
@@ -1395,7 +1514,7 @@ mod tests {
                     } else {
                         b.bsdf.pdf(dir(b, &v[i + 2]), dir(b, &v[i])) as f64
                     };
-                    area(b, pdf, &v[i])
+                    area_q(b, pdf, &v[i], q(b, j - 1))
                 };
             }
             p[sp] = d;
@@ -1471,9 +1590,11 @@ mod tests {
         i: u32,
         seed: u64,
         mode: Option<MisKind>,
+        roulette: Option<u32>,
     ) -> Vec<(Vec<Vertex>, u32, Vec<f64>, f64)> {
         let max_depth = 5u32;
         let mut ws = Workspace::default();
+        ws.set_roulette(roulette);
         let mut stats = RayStats::default();
         let mut cs = Sampler::new(SamplerKind::Independent, seed, x, y, i, 16, Stream::Camera);
         let mut ls = Sampler::new(SamplerKind::Independent, seed, x, y, i, 16, Stream::Light);
@@ -1588,7 +1709,7 @@ mod tests {
         let (mut checked, mut shared, mut largest) = (0, 0, 0.0f64);
         for seed in 0..64u64 {
             for (x, y) in [(16, 16), (10, 20), (22, 12), (8, 8), (24, 26)] {
-                for (full, _, w, _) in techniques(&scene, x, y, 0, seed, None) {
+                for (full, _, w, _) in techniques(&scene, x, y, 0, seed, None, None) {
                     let through_mirror = full.iter().any(is_mirror);
                     let other_delta = full.iter().any(|v| v.delta && !is_mirror(v));
                     if !through_mirror || other_delta || ill_conditioned(&full) {
@@ -1599,7 +1720,7 @@ mod tests {
                         v.bsdf = Bsdf::new(&narrow, v.ng, v.ns, v.uv);
                         v.delta = false;
                     }
-                    let r = reference_weights(&scene, &glossy);
+                    let r = reference_weights(&scene, &glossy, usize::MAX);
                     checked += 1;
                     if w.iter().filter(|x| **x > 0.0).count() > 1 {
                         shared += 1;
@@ -1635,12 +1756,17 @@ mod tests {
         fn balance_weights_match_direct_densities(x in 0u32..32, y in 0u32..32, i in 0u32..16, seed in 0u64..1000) {
             let mut checked = 0;
             let mut multi = 0;
-            for (si, scene) in scenes().iter().enumerate() {
-                for (full, s, w, _) in techniques(scene, x, y, i, seed, None) {
+            // Roulette changes the densities: at every vertex alike, and from vertex 3 on, where
+            // a vertex's q differs between the subpaths of different techniques.
+            for (si, scene, roulette) in scenes().iter().enumerate().flat_map(|(si, scene)| {
+                [None, Some(1), Some(3)].map(|r| (si, scene, r))
+            }) {
+                for (full, s, w, _) in techniques(scene, x, y, i, seed, None, roulette) {
                     if ill_conditioned(&full) {
                         continue;
                     }
-                    let r = reference_weights(scene, &full);
+                    let from = roulette.map_or(usize::MAX, |n| n as usize);
+                    let r = reference_weights(scene, &full, from);
                     checked += 1;
                     if w.iter().filter(|x| **x > 0.0).count() > 1 {
                         multi += 1;
@@ -1669,7 +1795,7 @@ mod tests {
                         if *b == 0.0 {
                             prop_assert!(*a == 0.0, "technique with density 0 weighted {a}: {w:?} vs {r:?}");
                         }
-                        prop_assert!((a - b).abs() < 2e-3 * (1.0 + b), "scene {si} s={s} k={} fast {w:?} reference {r:?}", full.len());
+                        prop_assert!((a - b).abs() < 2e-3 * (1.0 + b), "scene {si} roulette {roulette:?} s={s} k={} fast {w:?} reference {r:?}", full.len());
                     }
                 }
             }
@@ -1684,10 +1810,12 @@ mod tests {
         fn recursive_weights_equal_the_vector_weights(x in 0u32..32, y in 0u32..32, i in 0u32..16, seed in 0u64..1000) {
             let mut checked = 0;
             let mut shared = 0;
-            for (si, scene) in scenes().iter().enumerate() {
-                let vector = techniques(scene, x, y, i, seed, None);
+            for (si, scene, roulette) in scenes().iter().enumerate().flat_map(|(si, scene)| {
+                [None, Some(1), Some(3)].map(|r| (si, scene, r))
+            }) {
+                let vector = techniques(scene, x, y, i, seed, None, roulette);
                 for mis in [MisKind::Balance, MisKind::Power] {
-                    let fast = techniques(scene, x, y, i, seed, Some(mis));
+                    let fast = techniques(scene, x, y, i, seed, Some(mis), roulette);
                     prop_assert_eq!(fast.len(), vector.len());
                     for ((full, s, w, _), (_, fs, fw, own)) in vector.iter().zip(&fast) {
                         prop_assert_eq!(s, fs);
@@ -1697,7 +1825,7 @@ mod tests {
                         if expect < 1.0 {
                             shared += 1;
                         }
-                        prop_assert!((own - expect).abs() <= 1e-6 * (1.0 + expect), "scene {si} {mis:?} s={s} k={}: recursive {own} vs vector {expect} from {w:?}", full.len());
+                        prop_assert!((own - expect).abs() <= 1e-6 * (1.0 + expect), "scene {si} roulette {roulette:?} {mis:?} s={s} k={}: recursive {own} vs vector {expect} from {w:?}", full.len());
                     }
                 }
             }

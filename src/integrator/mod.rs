@@ -115,6 +115,15 @@ pub struct RenderSettings {
     /// estimate at each vertex); the path tracer always uses its own.
     #[serde(default)]
     pub roulette: bool,
+    /// The first subpath vertex (1 = the first surface hit) that roulette may end a subpath at;
+    /// the vertices before it always continue.
+    #[serde(default = "default_roulette_from")]
+    pub roulette_from: u32,
+}
+
+/// Roulette from the first surface vertex: what `roulette` meant before `roulette_from`.
+fn default_roulette_from() -> u32 {
+    1
 }
 
 fn default_bdd() -> u32 {
@@ -134,6 +143,11 @@ fn default_kappa() -> f64 {
 }
 
 impl RenderSettings {
+    /// The vertex BDPT-family subpaths' Russian roulette starts at, or None without roulette.
+    pub fn roulette_start(&self) -> Option<u32> {
+        self.roulette.then_some(self.roulette_from)
+    }
+
     /// Number of per-depth layers kept (0 when not requested).
     pub fn depth_count(&self) -> usize {
         if self.depth_layers {
@@ -192,6 +206,7 @@ impl Default for RenderSettings {
             bpm_weights: bpm::BpmWeights::Optimal,
             vcm_weights: vcm::VcmWeights::Georgiev,
             roulette: false,
+            roulette_from: default_roulette_from(),
         }
     }
 }

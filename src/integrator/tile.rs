@@ -268,7 +268,7 @@ pub fn render_tile_cached(
     }
     let mut film = TileFilm::new(tile, &settings.film_layout());
     let mut ws = bdpt::Workspace::default();
-    ws.set_roulette(settings.roulette);
+    ws.set_roulette(settings.roulette_start());
     let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
     let nd = settings.depth_count();
     let mut per_depth = vec![Rgb::ZERO; nd];
@@ -415,7 +415,7 @@ fn render_tile_vcm(
     let layout = settings.film_layout();
     let mut film = TileFilm::new(tile, &layout);
     let mut ws = bdpt::Workspace::default();
-    ws.set_roulette(settings.roulette);
+    ws.set_roulette(settings.roulette_start());
     let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
     let nd = settings.depth_count();
     let mut per_depth = vec![Rgb::ZERO; nd];

@@ -120,7 +120,7 @@ impl PhotonMap {
         let eta_b = mis::ratio_term(eta, b);
         let mut ws = Workspace::default();
         ws.set_merging(eta);
-        ws.set_roulette(settings.roulette);
+        ws.set_roulette(settings.roulette_start());
         let mut stats = RayStats::default();
         let mut photons = Vec::new();
         let mut vertices = Vec::new();
