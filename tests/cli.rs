@@ -223,6 +223,20 @@ fn bad_input_exits_nonzero_with_one_line() {
         "--no-roulette",
     );
     assert_one_line_error(
+        &omis(&["render", "scenes/furnace.json", "--roulette-from", "0"]),
+        "--roulette-from",
+    );
+    assert_one_line_error(
+        &omis(&[
+            "render",
+            "scenes/furnace.json",
+            "--roulette-from",
+            "2",
+            "--no-roulette",
+        ]),
+        "--no-roulette",
+    );
+    assert_one_line_error(
         &omis(&["render", "scenes/furnace.json", "--spp", "abc"]),
         "--spp",
     );

@@ -89,12 +89,17 @@ pub struct JobArgs {
     /// split by Ershov et al.'s optimal weight.
     #[arg(long, value_enum, default_value_t = VcmWeightsArg::Georgiev)]
     pub vcm_weights: VcmWeightsArg,
-    /// BDPT, VCM and BPM: subpaths also end by Russian roulette, each vertex continuing with its
-    /// BSDF's albedo estimate (as SmallVCM's do): shorter subpaths, more variance on paths only
-    /// one technique makes. Default: on for vcm (less error at equal time), off for bdpt and bpm.
+    /// BDPT, VCM and BPM: subpaths also end by Russian roulette, each vertex from
+    /// --roulette-from on continuing with its BSDF's albedo estimate (as SmallVCM's do): shorter
+    /// subpaths, more variance on paths only one technique makes. Default: on for bdpt (from its
+    /// 4th vertex) and vcm (from the 1st), where it pays at equal time; off for bpm.
     #[arg(long, conflicts_with = "no_roulette")]
     pub roulette: bool,
-    /// BDPT, VCM and BPM: no Russian roulette (subpaths run to the max depth), vcm included.
+    /// BDPT, VCM and BPM: the first subpath vertex (1 = the first surface hit) roulette may end a
+    /// subpath at; implies --roulette. Default: 4 for bdpt; vcm and bpm take 1 only.
+    #[arg(long, conflicts_with = "no_roulette", value_name = "N")]
+    pub roulette_from: Option<u32>,
+    /// BDPT, VCM and BPM: no Russian roulette (subpaths run to the max depth).
     #[arg(long)]
     pub no_roulette: bool,
 }
@@ -135,6 +140,7 @@ impl JobArgs {
             vcm_weights: self.vcm_weights.into(),
             // The two flags conflict, so at most one is set.
             roulette: (self.roulette || self.no_roulette).then_some(self.roulette),
+            roulette_from: self.roulette_from,
         };
         s.validate(&job::Limits::default()).map_err(flag_error)?;
         Ok(s)

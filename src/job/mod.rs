@@ -93,8 +93,14 @@ pub struct JobSettings {
     /// al.'s optimal weight.
     pub vcm_weights: integrator::vcm::VcmWeights,
     /// BDPT, VCM, BPM: subpaths also end by Russian roulette. None (the default): on for VCM,
-    /// where it pays at equal time (BENCHMARKS.md #15, stop 28), off for BDPT and BPM.
+    /// where it pays at equal time (BENCHMARKS.md #15, stop 28), and for BDPT from its
+    /// `bdpt::ROULETTE_FROM`-th vertex (#13, stop 46); off for BPM; on when `roulette_from` is
+    /// set.
     pub roulette: Option<bool>,
+    /// BDPT, VCM, BPM: the first subpath vertex (1 = the first surface hit) roulette may end a
+    /// subpath at. None: `bdpt::ROULETTE_FROM` for BDPT, 1 (every vertex, SmallVCM's) for VCM and
+    /// BPM, which take no other.
+    pub roulette_from: Option<u32>,
 }
 
 /// Default samples of the first pass: the first preview after 16 spp.
@@ -187,6 +193,7 @@ impl Default for JobSettings {
             bpm_weights: integrator::bpm::BpmWeights::Optimal,
             vcm_weights: integrator::vcm::VcmWeights::Georgiev,
             roulette: None,
+            roulette_from: None,
         }
     }
 }
@@ -305,6 +312,9 @@ impl Resolved {
         if r.integrator != IntegratorKind::Pt {
             let on = if r.roulette { "on" } else { "off" };
             attributes.push(("omis.roulette", on.to_string()));
+            if r.roulette {
+                attributes.push(("omis.roulette_from", r.roulette_from.to_string()));
+            }
         }
         if let Some(d_opt) = self.optimal_max_depth() {
             attributes.push(("omis.optimal_max_depth", d_opt.to_string()));
@@ -437,6 +447,31 @@ impl JobSettings {
                 ),
             ));
         }
+        if let Some(n) = self.roulette_from {
+            if n == 0 || n > integrator::bdpt::MAX_DEPTH {
+                return Err(FieldError::new(
+                    "roulette_from",
+                    format!(
+                        "{n} is outside 1 ..= {} (1: the first surface vertex)",
+                        integrator::bdpt::MAX_DEPTH
+                    ),
+                ));
+            }
+            if self.roulette == Some(false) {
+                return Err(FieldError::new(
+                    "roulette_from",
+                    "is set while roulette is false",
+                ));
+            }
+            // VCM's and BPM's merge weights take every vertex's q as the same from both sides,
+            // which holds for a start at the first vertex only.
+            if n > 1 && matches!(self.integrator, IntegratorKind::Vcm | IntegratorKind::Bpm) {
+                return Err(FieldError::new(
+                    "roulette_from",
+                    format!("{n}: vcm and bpm take 1 only (roulette at every vertex)"),
+                ));
+            }
+        }
         if !(self.radius_alpha > 0.0 && self.radius_alpha <= 1.0) {
             return Err(FieldError::new(
                 "radius_alpha",
@@ -558,9 +593,14 @@ impl JobSettings {
             bdd: self.bdd,
             bpm_weights: self.bpm_weights,
             vcm_weights: self.vcm_weights,
-            roulette: self
-                .roulette
-                .unwrap_or(self.integrator == IntegratorKind::Vcm),
+            roulette: self.roulette.unwrap_or(
+                self.roulette_from.is_some()
+                    || matches!(self.integrator, IntegratorKind::Vcm | IntegratorKind::Bdpt),
+            ),
+            roulette_from: self.roulette_from.unwrap_or(match self.integrator {
+                IntegratorKind::Bdpt => integrator::bdpt::ROULETTE_FROM,
+                _ => 1,
+            }),
         };
         let pilot_start = std::time::Instant::now();
         let optimal_depth =
@@ -635,44 +675,92 @@ mod tests {
     }
 
     #[test]
-    fn roulette_defaults_to_on_for_vcm_only_and_is_recorded_in_the_exr() {
+    fn roulette_defaults_per_integrator_and_is_recorded_in_the_exr() {
         let mut scene = crate::scene::Scene::load(std::path::Path::new(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/scenes/cornell-box.json"
         )))
         .expect("the Cornell box");
+        let bdpt_from = integrator::bdpt::ROULETTE_FROM;
+        // (integrator, roulette, roulette_from) -> the start vertex, None without roulette.
         let cases = [
-            (IntegratorKind::Vcm, None, true),
-            (IntegratorKind::Vcm, Some(false), false),
-            (IntegratorKind::Bdpt, None, false),
-            (IntegratorKind::Bdpt, Some(true), true),
-            (IntegratorKind::Bpm, None, false),
-            (IntegratorKind::Pt, None, false),
+            (IntegratorKind::Vcm, None, None, Some(1)),
+            (IntegratorKind::Vcm, Some(false), None, None),
+            (IntegratorKind::Bdpt, None, None, Some(bdpt_from)),
+            (IntegratorKind::Bdpt, Some(false), None, None),
+            (IntegratorKind::Bdpt, Some(true), Some(1), Some(1)),
+            (IntegratorKind::Bdpt, None, Some(7), Some(7)),
+            (IntegratorKind::Bpm, None, None, None),
+            (IntegratorKind::Bpm, None, Some(1), Some(1)),
+            (IntegratorKind::Pt, None, None, None),
         ];
-        for (integrator, roulette, want) in cases {
+        for (integrator, roulette, roulette_from, want) in cases {
             let job = JobSettings {
                 resolution: Some([64, 64]),
                 spp: Some(4),
                 integrator,
                 roulette,
+                roulette_from,
                 ..Default::default()
             };
             let r = job
                 .resolve(&mut scene, &Limits::default())
                 .expect("resolves");
-            assert_eq!(r.render.roulette, want, "{integrator:?} {roulette:?}");
-            let attribute = r
-                .exr_attributes("cornell-box", 4)
-                .into_iter()
-                .find(|(k, _)| *k == "omis.roulette");
+            let case = format!("{integrator:?} {roulette:?} {roulette_from:?}");
+            if integrator != IntegratorKind::Pt {
+                assert_eq!(r.render.roulette_start(), want, "{case}");
+            }
+            let attributes = r.exr_attributes("cornell-box", 4);
+            let attribute = |name: &str| {
+                attributes
+                    .iter()
+                    .find(|(k, _)| *k == name)
+                    .map(|(_, v)| v.clone())
+            };
             let expected = (integrator != IntegratorKind::Pt)
-                .then(|| (if want { "on" } else { "off" }).to_string());
-            assert_eq!(attribute.map(|(_, v)| v), expected, "{integrator:?}");
+                .then(|| (if want.is_some() { "on" } else { "off" }).to_string());
+            assert_eq!(attribute("omis.roulette"), expected, "{case}");
+            assert_eq!(
+                attribute("omis.roulette_from"),
+                want.map(|n| n.to_string()),
+                "{case}"
+            );
         }
         // A job stored before the field was optional reads back as what it said.
         let old: JobSettings =
             serde_json::from_str(r#"{"integrator": "vcm", "roulette": false}"#).expect("parses");
         assert_eq!(old.roulette, Some(false));
+        // Render settings from before `roulette_from` meant roulette at every vertex.
+        let old: RenderSettings = serde_json::from_str(
+            &serde_json::to_string(&RenderSettings {
+                roulette: true,
+                ..Default::default()
+            })
+            .expect("serialises")
+            .replace(",\"roulette_from\":1", ""),
+        )
+        .expect("parses");
+        assert_eq!(old.roulette_start(), Some(1));
+        // Starts outside 1 ..= 64, or with roulette off, are refused by name.
+        for (integrator, roulette, from) in [
+            (IntegratorKind::Bdpt, None, 0),
+            (IntegratorKind::Bdpt, None, 65),
+            (IntegratorKind::Bdpt, Some(false), 3),
+            (IntegratorKind::Vcm, None, 2),
+            (IntegratorKind::Bpm, Some(true), 4),
+        ] {
+            let job = JobSettings {
+                integrator,
+                roulette,
+                roulette_from: Some(from),
+                ..Default::default()
+            };
+            let e = job.validate(&Limits::default()).expect_err("refused");
+            assert_eq!(
+                e.field, "roulette_from",
+                "{integrator:?} {roulette:?} {from}"
+            );
+        }
     }
 
     #[test]
