@@ -7,6 +7,7 @@ mod common;
 
 use common::{assert_agree, load, region};
 use omis::film::Image;
+use omis::integrator::bdpt::ROULETTE_FROM;
 use omis::integrator::{IntegratorKind, RenderSettings, Techniques};
 use omis::mis::MisKind;
 use omis::sampler::SamplerKind;
@@ -103,29 +104,34 @@ fn roulette_keeps_bdpt_unbiased() {
     // with any densities that every technique computes alike (q left out everywhere passes);
     // optimal MIS needs the true densities: without q it gave 1.825 against 1.75 (26 standard
     // errors) at depth 2. The furnace (q = 0.5 at every vertex) is analytic; on the Cornell box
-    // q is the walls' albedo; the glass caustic's mirror has q = 0.9 at specular vertices.
+    // q is the walls' albedo; the glass caustic's mirror has q = 0.9 at specular vertices. Both
+    // starts: roulette at every vertex, and from BDPT's default vertex on.
     let furnace = load("furnace.json", 8, 8);
-    for mis in [MisKind::Balance, MisKind::Power, MisKind::Optimal] {
-        for max_depth in [2u32, 5] {
-            let expected: f64 = (0..=max_depth).map(|d| 0.5f64.powi(d as i32)).sum();
-            let s = RenderSettings {
-                roulette: true,
-                ..bdpt(mis, 8, max_depth)
-            };
-            let imgs = renders(&furnace, &s);
-            let (m, se) = region(&imgs, (0, 0, 8, 8), 1);
-            assert!(
-                (m - expected).abs() <= 4.0 * se + 1e-5 * expected,
-                "{mis:?} depth {max_depth} with roulette: {m} vs {expected} (se {se})"
-            );
+    for from in [1, ROULETTE_FROM] {
+        for mis in [MisKind::Balance, MisKind::Power, MisKind::Optimal] {
+            for max_depth in [2u32, 6] {
+                let expected: f64 = (0..=max_depth).map(|d| 0.5f64.powi(d as i32)).sum();
+                let s = RenderSettings {
+                    roulette: true,
+                    roulette_from: from,
+                    ..bdpt(mis, 8, max_depth)
+                };
+                let imgs = renders(&furnace, &s);
+                let (m, se) = region(&imgs, (0, 0, 8, 8), 1);
+                assert!(
+                    (m - expected).abs() <= 4.0 * se + 1e-5 * expected,
+                    "{mis:?} depth {max_depth}, roulette from {from}: {m} vs {expected} (se {se})"
+                );
+            }
         }
     }
-    let with_roulette = |scene: &Scene, s: &RenderSettings| -> Vec<Image> {
+    let with_roulette = |scene: &Scene, s: &RenderSettings, from: u32| -> Vec<Image> {
         (0..SEEDS)
             .map(|k| {
                 let s = RenderSettings {
                     seed: 5000 + k,
                     roulette: true,
+                    roulette_from: from,
                     ..s.clone()
                 };
                 render(scene, &s, 2)
@@ -134,17 +140,19 @@ fn roulette_keeps_bdpt_unbiased() {
     };
     let cornell = load("cornell-box.json", 24, 24);
     let reference = renders(&cornell, &pt(16, 5));
-    let rr = with_roulette(&cornell, &bdpt(MisKind::Balance, 4, 5));
+    let rr = with_roulette(&cornell, &bdpt(MisKind::Balance, 4, 5), 1);
     assert_agree("Cornell box, BDPT with roulette vs PT", &rr, &reference, 3);
     let glass = load("glass-caustic.json", 32, 32);
     let plain = renders(&glass, &bdpt(MisKind::Balance, 8, 8));
-    let rr = with_roulette(&glass, &bdpt(MisKind::Balance, 8, 8));
-    assert_agree(
-        "glass caustic, BDPT with roulette vs without",
-        &rr,
-        &plain,
-        2,
-    );
+    for from in [1, ROULETTE_FROM] {
+        let rr = with_roulette(&glass, &bdpt(MisKind::Balance, 8, 8), from);
+        assert_agree(
+            &format!("glass caustic, BDPT with roulette from {from} vs without"),
+            &rr,
+            &plain,
+            2,
+        );
+    }
 }
 
 #[test]
@@ -368,6 +376,39 @@ impl omis::integrator::bdpt::SampleSink for FurnaceSink {
     fn unsampled(&mut self, _: (u32, u32), _: u32, _: u32) {}
 }
 
+/// The furnace's (s, t, contribution / a^d) of every camera-side technique's sample with a
+/// contribution, 1024 pixel samples of max depth 6, with subpaths ending by roulette from
+/// vertex `roulette` on (None: no roulette).
+fn furnace_ratios(roulette: Option<u32>) -> Vec<(u32, u32, f64)> {
+    use omis::film::RayStats;
+    use omis::integrator::bdpt::{PixelSample, Workspace, pixel_sample};
+    use omis::sampler::{Sampler, Stream};
+    let scene = load("furnace.json", 16, 16);
+    let mut ws = Workspace::default();
+    ws.set_roulette(roulette);
+    let mut stats = RayStats::default();
+    let mut sink = FurnaceSink { ratios: Vec::new() };
+    for y in 0..16 {
+        for x in 0..16 {
+            for i in 0..4 {
+                let kind = SamplerKind::Independent;
+                let mut cs = Sampler::new(kind, 7, x, y, i, 4, Stream::Camera);
+                let mut ls = Sampler::new(kind, 7, x, y, i, 4, Stream::Light);
+                let ps = PixelSample {
+                    pixel: (x, y),
+                    max_depth: FURNACE_DEPTH,
+                    cam_sampler: &mut cs,
+                    light_sampler: &mut ls,
+                };
+                pixel_sample(&scene, ps, &mut ws, &mut sink, &mut stats);
+            }
+        }
+    }
+    sink.ratios
+}
+
+const FURNACE_DEPTH: u32 = 6;
+
 /// Catches Russian roulette (or any other random throughput factor) in the BDPT subpaths, the
 /// cause of the fireflies of issue 13. Inside the furnace (a sphere of albedo a = 0.5 and
 /// emission 1, seen from inside) every camera-side technique (s, t >= 2) has an unweighted
@@ -379,31 +420,9 @@ impl omis::integrator::bdpt::SampleSink for FurnaceSink {
 /// survivor would carry 1/q = 2 per surviving vertex past the roulette's start.
 #[test]
 fn bdpt_subpath_throughputs_have_zero_variance_in_the_furnace() {
-    use omis::film::RayStats;
-    use omis::integrator::bdpt::{PixelSample, Workspace, pixel_sample};
-    use omis::sampler::{Sampler, Stream};
-    let scene = load("furnace.json", 16, 16);
-    let max_depth = 6;
-    let mut ws = Workspace::default();
-    let mut stats = RayStats::default();
-    let mut sink = FurnaceSink { ratios: Vec::new() };
-    for y in 0..16 {
-        for x in 0..16 {
-            for i in 0..4 {
-                let kind = SamplerKind::Independent;
-                let mut cs = Sampler::new(kind, 7, x, y, i, 4, Stream::Camera);
-                let mut ls = Sampler::new(kind, 7, x, y, i, 4, Stream::Light);
-                let ps = PixelSample {
-                    pixel: (x, y),
-                    max_depth,
-                    cam_sampler: &mut cs,
-                    light_sampler: &mut ls,
-                };
-                pixel_sample(&scene, ps, &mut ws, &mut sink, &mut stats);
-            }
-        }
-    }
-    let r = &sink.ratios;
+    let max_depth = FURNACE_DEPTH;
+    let r = &furnace_ratios(None);
+
     let n = r.len() as f64;
     let mean = r.iter().map(|x| x.2).sum::<f64>() / n;
     let var = r.iter().map(|x| (x.2 - mean).powi(2)).sum::<f64>() / (n - 1.0);
@@ -424,4 +443,35 @@ fn bdpt_subpath_throughputs_have_zero_variance_in_the_furnace() {
     }
     let deep = r.iter().filter(|x| x.0 + x.1 == max_depth + 2).count();
     assert!(deep >= 1024 * 6, "only {deep} samples of depth {max_depth}");
+}
+
+/// BDPT's default roulette starts at vertex `bdpt::ROULETTE_FROM`, no earlier: in the furnace
+/// (see above) a technique's contribution / a^d is 2^n exactly, n the number of subpath vertices
+/// at or past the start that the sample continued from (light vertices y_1 .. y_{s-2}, camera
+/// vertices z_1 .. z_{t-2}). A start one vertex earlier (the fireflies of issue 13 on short
+/// caustic paths) or later (the time of long paths) fails it, and so does roulette that never
+/// happens.
+#[test]
+fn bdpt_roulette_starts_at_its_default_vertex_in_the_furnace() {
+    let from = ROULETTE_FROM;
+    let r = furnace_ratios(Some(from));
+    let past = |len: u32| (len as i32 - 1 - from as i32).max(0);
+    let mut survivors = 0;
+    for &(s, t, ratio) in &r {
+        let n = past(s) + past(t);
+        let expected = 2f64.powi(n);
+        assert!(
+            (ratio / expected - 1.0).abs() < 1e-3,
+            "(s, t) = ({s}, {t}): contribution / a^d {ratio}, expected 2^{n}"
+        );
+        survivors += (n > 0) as usize;
+    }
+    // Subpaths do survive roulette (the deepest techniques have samples) and short ones are
+    // all there.
+    assert!(
+        survivors >= 200,
+        "only {survivors} samples past the roulette"
+    );
+    let short = r.iter().filter(|x| x.0 + x.1 <= from + 1).count();
+    assert!(short >= 1024 * from as usize, "only {short} short samples");
 }
