@@ -44,7 +44,7 @@
 //! vertex j but camera vertex k - 1 - j, and continues with q where that index is >= R. Forward
 //! densities (`pdf_fwd`) carry the q of the subpath that made them; reverse densities
 //! (`pdf_rev`) are stored without it and get it where they are used
-//! (`Workspace::q_as` and the partial sums' `light_sum_for` / `cam_sum_for`).
+//! (`Workspace::q_as` and `Workspace::sum_for`).
 
 use crate::camera::Camera;
 use crate::film::RayStats;
@@ -865,39 +865,31 @@ impl Workspace {
         }
     }
 
-    /// S_j for a full path of k vertices. The prepared S_j takes every y_i (i <= j) to sample
-    /// y_{i-1} past the roulette's start, which holds when y_j is camera vertex k - 1 - j >= R
-    /// of the techniques it sums; closer to the camera the last few terms are made again with
-    /// q = 1 where y_i's camera index is below R: at most R - 1 steps.
-    fn light_sum_for(&self, j: usize, k: usize) -> f64 {
+    /// S_j (`camera` false) or T_j (true) for a full path of k vertices. The prepared sum takes
+    /// every vertex i <= j of its subpath to sample vertex i - 1 past the roulette's start,
+    /// which holds when vertex j has index k - 1 - j >= R in the other subpath of the techniques
+    /// it sums; closer to the connection the last few terms are made again with q = 1 where that
+    /// index is below R: at most R - 1 steps.
+    fn sum_for(&self, camera: bool, j: usize, k: usize) -> f64 {
+        let (sums, path) = if camera {
+            (&self.cam_sums, &self.cam)
+        } else {
+            (&self.light_sums, &self.light)
+        };
         let r = self.roulette_from;
         if r == usize::MAX || j + r < k {
-            return self.light_sums[j];
+            return sums[j];
         }
-        let (mut i, mut sum) = match (k - 1).checked_sub(r) {
-            Some(i0) => (i0, self.light_sums[i0]),
-            None => (0, self.light_sums[0]),
-        };
+        let mut i = (k - 1).saturating_sub(r);
+        let mut sum = sums[i];
         while i < j {
             i += 1;
-            sum = self.light_sum_next(i, sum, self.q_as(&self.light[i], k - 1 - i));
-        }
-        sum
-    }
-
-    /// T_j for a full path of k vertices: as `light_sum_for`, z_i being light vertex k - 1 - i.
-    fn cam_sum_for(&self, j: usize, k: usize) -> f64 {
-        let r = self.roulette_from;
-        if r == usize::MAX || j + r < k {
-            return self.cam_sums[j];
-        }
-        let (mut i, mut sum) = match (k - 1).checked_sub(r) {
-            Some(i0) => (i0, self.cam_sums[i0]),
-            None => (0, self.cam_sums[0]),
-        };
-        while i < j {
-            i += 1;
-            sum = self.cam_sum_next(i, sum, self.q_as(&self.cam[i], k - 1 - i));
+            let q = self.q_as(&path[i], k - 1 - i);
+            sum = if camera {
+                self.cam_sum_next(i, sum, q)
+            } else {
+                self.light_sum_next(i, sum, q)
+            };
         }
         sum
     }
@@ -954,7 +946,7 @@ fn heuristic_weight(
                 (v0 * m(pe_y2) + m(ws.q1 as f64)) / m(yp.pdf_fwd as f64)
             } else {
                 let v = !yp.delta as u8 as f64;
-                v + m(pe_y2 / yp.pdf_fwd as f64) * ws.light_sum_for(s - 2, s + t)
+                v + m(pe_y2 / yp.pdf_fwd as f64) * ws.sum_for(false, s - 2, s + t)
                     + merge_term(eta_b, yp, pe_y2, b)
             };
             // Merging at y_{s-1} (s - 1 >= 1), then the older techniques.
@@ -971,7 +963,7 @@ fn heuristic_weight(
         let pe_z1 = z.pdf_fwd as f64;
         // sum_{t' < t - 1} relative to p_{s+1}; T_0 = 0.
         let rest = if t >= 3 {
-            m(pl_z2 / zp.pdf_fwd as f64) * ws.cam_sum_for(t - 2, s + t)
+            m(pl_z2 / zp.pdf_fwd as f64) * ws.sum_for(true, t - 2, s + t)
                 + merge_term(eta_b, zp, pl_z2, b)
         } else {
             0.0
