@@ -995,9 +995,9 @@ fn heuristic_weight(
 /// Reports a sample with a contribution: its weight, and the balance vector where the sink wants
 /// it.
 #[allow(clippy::too_many_arguments)]
-fn report(
+fn report<S: SampleSink + ?Sized>(
     ws: &mut Workspace,
-    sink: &mut dyn SampleSink,
+    sink: &mut S,
     nee: Option<&Vertex>,
     s: usize,
     t: usize,
@@ -1025,9 +1025,9 @@ fn report(
 }
 
 /// Reports a sample only technique `s` of the `k` of its depth could make (see `weights_alone`).
-fn report_alone(
+fn report_alone<S: SampleSink + ?Sized>(
     ws: &mut Workspace,
-    sink: &mut dyn SampleSink,
+    sink: &mut S,
     s: usize,
     t: usize,
     depth: u32,
@@ -1059,11 +1059,11 @@ pub struct PixelSample<'a> {
 }
 
 /// Renders one pixel sample: both subpaths, then every technique, reported to `sink`.
-pub fn pixel_sample(
+pub fn pixel_sample<S: SampleSink + ?Sized>(
     scene: &Scene,
     ps: PixelSample,
     ws: &mut Workspace,
-    sink: &mut dyn SampleSink,
+    sink: &mut S,
     stats: &mut RayStats,
 ) {
     pixel_camera_subpath(scene, ps.pixel, ps.cam_sampler, ps.max_depth, ws, stats);
@@ -1095,13 +1095,13 @@ pub(crate) fn pixel_camera_subpath(
 
 /// Every technique of the traced (or loaded) subpaths of a pixel sample, reported to `sink`;
 /// `cam_sampler` gives next-event estimation its numbers.
-pub(crate) fn connect_all(
+pub(crate) fn connect_all<S: SampleSink + ?Sized>(
     scene: &Scene,
     pixel: (u32, u32),
     max_depth: u32,
     cam_sampler: &mut Sampler,
     ws: &mut Workspace,
-    sink: &mut dyn SampleSink,
+    sink: &mut S,
     stats: &mut RayStats,
 ) {
     ws.prepare(scene, sink.heuristic());
@@ -1142,14 +1142,14 @@ pub(crate) fn connect_all(
 /// Technique (0, t): z_{t-1} lies on an emitter. Returns whether the technique produced a path
 /// (a camera subpath ending on a non-emitter is a zero-contribution sample only this technique
 /// could make).
-fn hit_emitter(
+fn hit_emitter<S: SampleSink + ?Sized>(
     scene: &Scene,
     ws: &mut Workspace,
     t: usize,
     depth: u32,
     pixel: (u32, u32),
     zero: bool,
-    sink: &mut dyn SampleSink,
+    sink: &mut S,
 ) -> bool {
     let z = &ws.cam[t - 1];
     let zp = &ws.cam[t - 2];
@@ -1194,7 +1194,7 @@ fn hit_emitter(
 
 /// Technique (1, t >= 2): next-event estimation at z_{t-1}.
 #[allow(clippy::too_many_arguments)]
-fn next_event(
+fn next_event<S: SampleSink + ?Sized>(
     scene: &Scene,
     ws: &mut Workspace,
     t: usize,
@@ -1202,7 +1202,7 @@ fn next_event(
     pixel: (u32, u32),
     sampler: &mut Sampler,
     zero: bool,
-    sink: &mut dyn SampleSink,
+    sink: &mut S,
     stats: &mut RayStats,
 ) -> bool {
     let z = &ws.cam[t - 1];
@@ -1263,7 +1263,7 @@ fn next_event(
 
 /// Technique (s >= 2, t >= 2): connect y_{s-1} and z_{t-1}.
 #[allow(clippy::too_many_arguments)]
-fn connect(
+fn connect<S: SampleSink + ?Sized>(
     scene: &Scene,
     ws: &mut Workspace,
     s: usize,
@@ -1271,7 +1271,7 @@ fn connect(
     depth: u32,
     pixel: (u32, u32),
     zero: bool,
-    sink: &mut dyn SampleSink,
+    sink: &mut S,
     stats: &mut RayStats,
 ) -> bool {
     let y = &ws.light[s - 1];
@@ -1329,12 +1329,12 @@ fn nee_density(scene: &Scene, v0: &Vertex, v1: &Vertex) -> f32 {
 }
 
 /// Technique (s >= 1, 1): connect y_{s-1} to the camera and report it for the pixel it lands in.
-fn connect_to_camera(
+fn connect_to_camera<S: SampleSink + ?Sized>(
     scene: &Scene,
     ws: &mut Workspace,
     s: usize,
     depth: u32,
-    sink: &mut dyn SampleSink,
+    sink: &mut S,
     stats: &mut RayStats,
 ) {
     let y = &ws.light[s - 1];
