@@ -92,11 +92,11 @@ pub struct JobArgs {
     /// BDPT, VCM and BPM: subpaths also end by Russian roulette, each vertex from
     /// --roulette-from on continuing with its BSDF's albedo estimate (as SmallVCM's do): shorter
     /// subpaths, more variance on paths only one technique makes. Default: on for bdpt (from its
-    /// 4th vertex) and vcm (from the 1st), where it pays at equal time; off for bpm.
+    /// 3rd vertex) and vcm (from the 1st), where it pays at equal time; off for bpm.
     #[arg(long, conflicts_with = "no_roulette")]
     pub roulette: bool,
     /// BDPT, VCM and BPM: the first subpath vertex (1 = the first surface hit) roulette may end a
-    /// subpath at; implies --roulette. Default: 4 for bdpt; vcm and bpm take 1 only.
+    /// subpath at; implies --roulette. Default: 3 for bdpt; vcm and bpm take 1 only.
     #[arg(long, conflicts_with = "no_roulette", value_name = "N")]
     pub roulette_from: Option<u32>,
     /// BDPT, VCM and BPM: no Russian roulette (subpaths run to the max depth).

@@ -57,11 +57,13 @@ use crate::scene::{NO_LIGHT, Scene};
 /// Longest supported max depth (subpaths have at most max_depth + 2 vertices).
 pub const MAX_DEPTH: u32 = 64;
 
-/// BDPT's default first roulette vertex: subpaths always continue through their first three
+/// BDPT's default first roulette vertex: subpaths always continue through their first two
 /// surface vertices, where paths that one technique alone makes (caustics seen directly or in
-/// a mirror) get their fireflies from 1/q, and end by roulette from the fourth on, where most of
-/// a long path's time goes (BENCHMARKS.md #13, stop 46).
-pub const ROULETTE_FROM: u32 = 4;
+/// a mirror) get their fireflies from 1/q, and end by roulette from the third on (as the path
+/// tracer's from its third bounce), where most of a long path's time goes: pbrt-v3's per-sample
+/// error on the glass-and-mirror box, 1.5x SmallVCM per CPU second on its scene 1 (BENCHMARKS.md
+/// #13, stop 46).
+pub const ROULETTE_FROM: u32 = 3;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Kind {
