@@ -504,6 +504,12 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
     assert_eq!(j["equal_time_clock"], "wall");
     // `--optimal-max-depth auto` (the default): one pilot per seed, reported with its CPU time.
     assert_eq!(j["optimal_max_depth"], "auto");
+    // BDPT's roulette is `omis render`'s default.
+    assert_eq!(
+        j["roulette_from"],
+        omis::integrator::bdpt::ROULETTE_FROM,
+        "{j}"
+    );
     let choices = j["optimal_depth_choices"].as_array().expect("choices");
     assert_eq!(choices.len(), 2, "{j}");
     assert!(choices.iter().all(|c| c["chosen"].is_u64()), "{j}");
@@ -620,6 +626,15 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
         "--cpu-time",
     ]);
     assert_one_line_error(&out, "--equal-time");
+    let out = omis(&[
+        "compare",
+        "scenes/cornell-box-small-light.json",
+        "--reference",
+        s(&reference),
+        "--roulette-from",
+        "0",
+    ]);
+    assert_one_line_error(&out, "--roulette-from");
 }
 
 #[test]

@@ -59,6 +59,13 @@ pub struct CompareArgs {
     /// Also run the path tracer (power-heuristic NEE) as a baseline.
     #[arg(long)]
     pub pt: bool,
+    /// BDPT: subpaths end by Russian roulette from their N-th vertex on (1 = the first surface
+    /// hit). Default: `omis render`'s (3).
+    #[arg(long, value_name = "N", conflicts_with = "no_roulette")]
+    pub roulette_from: Option<u32>,
+    /// BDPT: no Russian roulette (subpaths run to the max depth).
+    #[arg(long)]
+    pub no_roulette: bool,
     /// Print the results as one JSON object (last line of stdout).
     #[arg(long)]
     pub json: bool,
@@ -173,6 +180,15 @@ pub fn run(a: CompareArgs) -> Result<()> {
     if a.spp.contains(&0) {
         bail!("--spp values must be >= 1");
     }
+    let roulette_from = a
+        .roulette_from
+        .unwrap_or(crate::integrator::bdpt::ROULETTE_FROM);
+    if !(1..=crate::integrator::bdpt::MAX_DEPTH).contains(&roulette_from) {
+        bail!(
+            "--roulette-from {roulette_from} is outside 1 ..= {} (1: the first surface vertex)",
+            crate::integrator::bdpt::MAX_DEPTH
+        );
+    }
     if a.cpu_time && a.equal_time.is_none() {
         bail!("--cpu-time sets the clock of --equal-time, which is missing");
     }
@@ -222,6 +238,9 @@ pub fn run(a: CompareArgs) -> Result<()> {
         optimal_max_depth: d_opt,
         optimal_kappa: a.kappa,
         depth_layers: true,
+        // BDPT's roulette as `omis render` resolves it (the path tracer has its own).
+        roulette: !a.no_roulette,
+        roulette_from,
         ..Default::default()
     };
     // `--optimal-max-depth auto`: one pilot per seed (a function of the seed, like the render).
@@ -390,6 +409,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
         "width": reference.width, "height": reference.height,
         "max_depth": a.max_depth, "optimal_max_depth": a.optimal_max_depth.to_string(),
         "optimal_depth_choices": choices, "pilot_cpu_seconds": pilot_cpu, "kappa": a.kappa,
+        "roulette_from": (!a.no_roulette).then_some(roulette_from),
         "seeds": a.seeds, "eps": a.eps, "equal_time_clock": clock_name(a.cpu_time),
         "equal_spp": points, "equal_time": timed,
     });
