@@ -44,7 +44,7 @@
 //! vertex j but camera vertex k - 1 - j, and continues with q where that index is >= R. Forward
 //! densities (`pdf_fwd`) carry the q of the subpath that made them; reverse densities
 //! (`pdf_rev`) are stored without it and get it where they are used
-//! (`Workspace::q_as` and `Workspace::sum_for`).
+//! (`continuation_at` and `Workspace::sum_for`).
 
 use crate::camera::Camera;
 use crate::film::RayStats;
@@ -94,7 +94,7 @@ pub struct Vertex {
     /// continuation probability `q`).
     pdf_fwd: f32,
     /// Area density of this vertex from its successor, without the successor's continuation
-    /// probability: which one applies depends on the technique (`Workspace::q_as`).
+    /// probability: which one applies depends on the technique (`continuation_at`).
     pdf_rev: f32,
     /// Probability that this subpath continued from this vertex (Russian roulette; 1 without it,
     /// before the roulette's start and at the endpoints): a factor of every density its walk
@@ -142,6 +142,10 @@ impl Vertex {
     /// The vertex without its BSDF and outgoing direction (80 bytes instead of 208), for keeping
     /// many light subpaths.
     pub(crate) fn stored(&self) -> StoredVertex {
+        debug_assert_eq!(
+            self.q, self.rr,
+            "kept subpaths have roulette from vertex 1 or none"
+        );
         StoredVertex {
             p: self.p,
             ng: self.ng,
@@ -151,7 +155,6 @@ impl Vertex {
             pdf_fwd: self.pdf_fwd,
             pdf_rev: self.pdf_rev,
             q: self.q,
-            rr: self.rr,
             material: self.material,
             light: self.light,
             delta_pos: self.delta_pos,
@@ -265,11 +268,12 @@ pub(crate) struct StoredVertex {
     pdf_fwd: f32,
     pdf_rev: f32,
     q: f32,
-    rr: f32,
     material: u32,
     light: u32,
     delta_pos: bool,
 }
+
+const _: () = assert!(std::mem::size_of::<StoredVertex>() == 80);
 
 impl StoredVertex {
     /// Position.
@@ -306,7 +310,9 @@ impl StoredVertex {
             pdf_fwd: self.pdf_fwd,
             pdf_rev: self.pdf_rev,
             q: self.q,
-            rr: self.rr,
+            // VCM and BPM keep subpaths, and their roulette starts at vertex 1 (or is off), where
+            // a vertex's q is its rr (`stored` checks it).
+            rr: self.q,
             delta: !first && bsdf.is_delta(),
             delta_pos: self.delta_pos,
             material: self.material,
@@ -448,9 +454,7 @@ fn random_walk(
             uv: hit.uv,
         };
         v.pdf_fwd = path[prev].area_density(pdf_dir, &v);
-        if path.len() >= roulette_from {
-            v.q = v.rr;
-        }
+        v.q = continuation_at(&v, path.len(), roulette_from);
         let q = v.q;
         path.push(v);
         if bsdf.is_black() {
@@ -568,6 +572,15 @@ pub fn light_subpath(
     );
 }
 
+/// The continuation probability of `v` as vertex `index` of a subpath whose roulette starts at
+/// vertex `from` (1 before it). A technique's density at a vertex carries the q of the vertex
+/// that sampled it in that technique's subpaths, and x_j of a path of k vertices is light vertex
+/// j but camera vertex k - 1 - j: with a start past vertex 1 the two differ near the ends.
+#[inline]
+fn continuation_at(v: &Vertex, index: usize, from: usize) -> f32 {
+    if index >= from { v.rr } else { 1.0 }
+}
+
 /// Unit direction and squared distance from `a` to `b`.
 #[inline]
 pub(crate) fn dir_to(a: Vec3, b: Vec3) -> (Vec3, f32) {
@@ -604,7 +617,6 @@ fn balance_weights(
 ) -> bool {
     let k = s + t;
     let from = ws.roulette_from;
-    let q_as = |v: &Vertex, index: usize| if index >= from { v.rr } else { 1.0 };
     let Workspace {
         cam,
         light,
@@ -627,15 +639,15 @@ fn balance_weights(
     for i in 0..k {
         let v = vert(i);
         // The density from the far side carries the q of the vertex that sampled v there, at
-        // its index in that side's subpath (`Workspace::q_as`); the connection's own
+        // its index in that side's subpath (`continuation_at`); the connection's own
         // densities below replace the ones whose sampling vertex is not stored.
         let (mut l, mut e) = if i + 2 < s {
-            let q = q_as(&light[i + 1], k - 2 - i);
+            let q = continuation_at(&light[i + 1], k - 2 - i, from);
             (v.pdf_fwd as f64, (v.pdf_rev * q) as f64)
         } else if i < s {
             (v.pdf_fwd as f64, 0.0)
         } else if i >= s + 2 {
-            let q = q_as(&cam[k - i], i - 1);
+            let q = continuation_at(&cam[k - i], i - 1, from);
             ((v.pdf_rev * q) as f64, v.pdf_fwd as f64)
         } else {
             (0.0, v.pdf_fwd as f64)
@@ -809,17 +821,10 @@ impl Workspace {
         }
     }
 
-    /// The continuation probability of `v` as vertex `index` of a subpath (1 before the
-    /// roulette's start). A technique's density at a vertex carries the q of the vertex that
-    /// sampled it in that technique's subpaths, and x_j of a path of k vertices is light vertex
-    /// j but camera vertex k - 1 - j: with a start past vertex 1 the two differ near the ends.
+    /// [`continuation_at`] with this workspace's roulette start.
     #[inline]
     fn q_as(&self, v: &Vertex, index: usize) -> f32 {
-        if index >= self.roulette_from {
-            v.rr
-        } else {
-            1.0
-        }
+        continuation_at(v, index, self.roulette_from)
     }
 
     /// S_j from S_{j-1} = `prev` (see `prepare`), with y_j's continuation probability `q_rev` in
