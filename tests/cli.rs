@@ -353,7 +353,7 @@ fn auto_optimal_depth_is_chosen_once_the_same_way_in_both_modes_and_reported() {
     let choice = &jb["optimal_depth"];
     assert!(choice["chosen"].is_u64(), "{jb}");
     // 24x20 at 8 spp is 3840 pixel samples: the pilot takes its smallest frame (256 pixels at
-    // most, the job's aspect), not the full 48x48 of a large or time-budgeted job.
+    // most, the job's aspect), not the full 48x48 of a large job.
     assert_eq!(
         choice["pilot_resolution"],
         serde_json::json!([17, 14]),
@@ -502,7 +502,7 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
     let points = j["equal_spp"].as_array().expect("equal_spp");
     assert_eq!(points.len(), 6, "2 spp x 3 strategies");
     assert_eq!(j["equal_time_clock"], "wall");
-    // `--optimal-max-depth auto` (the default): one pilot per seed, reported with its CPU time.
+    // `--optimal-max-depth auto` (the default): every optimal render runs its pilot.
     assert_eq!(j["optimal_max_depth"], "auto");
     // BDPT's roulette is `omis render`'s default.
     assert_eq!(
@@ -510,13 +510,30 @@ fn compare_reports_error_time_and_memory_at_equal_spp_and_equal_time() {
         omis::integrator::bdpt::ROULETTE_FROM,
         "{j}"
     );
-    let choices = j["optimal_depth_choices"].as_array().expect("choices");
-    assert_eq!(choices.len(), 2, "{j}");
-    assert!(choices.iter().all(|c| c["chosen"].is_u64()), "{j}");
-    assert!(
-        j["pilot_cpu_seconds"].as_f64().is_some_and(|t| t > 0.0),
-        "{j}"
-    );
+    // Each optimal render's pilot: its choice per seed, its CPU time counted in the render's.
+    let timed = j["equal_time"].as_array().expect("equal_time");
+    assert_eq!(timed.len(), 3, "{j}");
+    for p in points.iter().chain(timed) {
+        let choices = p["optimal_depth"].as_array().expect("optimal_depth");
+        let pilot = p["pilot_cpu_seconds"].as_f64().expect("pilot_cpu_seconds");
+        if p["method"] == "balance" {
+            assert!(choices.is_empty() && pilot == 0.0, "{p}");
+        } else {
+            assert_eq!(choices.len(), 2, "{p}");
+            assert!(choices.iter().all(|c| c["chosen"].is_u64()), "{p}");
+            assert!(
+                pilot > 0.0 && pilot < p["cpu_seconds"].as_f64().expect("cpu"),
+                "{p}"
+            );
+        }
+    }
+    // At equal time the pilot is a bounded share of the 0.3 s budget (4.7 ms): a smaller frame
+    // than the whole 24x24 one a job of unknown size would take.
+    for p in &timed[1..] {
+        let c = &p["optimal_depth"][0]["pilot_resolution"];
+        let px = c[0].as_u64().unwrap_or(0) * c[1].as_u64().unwrap_or(0);
+        assert!(px > 0 && px < 24 * 24, "{p}");
+    }
     let get = |m: &str, spp: u64| {
         points
             .iter()

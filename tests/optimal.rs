@@ -1229,7 +1229,7 @@ fn auto_depth_predicts_the_variance_of_independent_renders_and_keeps_optimal_whe
         ..optimal(16, 5, 1)
     };
     let eps = 0.01;
-    let c = optimal_depth::choose(&mut scene, &s, eps, None);
+    let c = optimal_depth::choose(&mut scene, &s, eps, Default::default());
     assert_eq!(
         (scene.camera.width, scene.camera.height),
         (96, 80),
@@ -1243,7 +1243,10 @@ fn auto_depth_predicts_the_variance_of_independent_renders_and_keeps_optimal_whe
     assert_eq!(c.relmse.len(), 6, "{c:?}");
     assert!(c.time.windows(2).all(|t| t[1] > t[0]), "{c:?}");
     // Deterministic: the same job gives the same choice.
-    assert_eq!(optimal_depth::choose(&mut scene, &s, eps, None), c);
+    assert_eq!(
+        optimal_depth::choose(&mut scene, &s, eps, Default::default()),
+        c
+    );
 
     // Independent renders at the pilot's resolution and spp, D_opt 1: balance at depth 1, and
     // depth 1 weighted with the optimal weights solved from the next render's systems (the
@@ -1343,8 +1346,88 @@ fn auto_depth_is_not_fooled_by_weights_fitted_to_the_pilots_own_samples() {
         sampler: SamplerKind::Sobol,
         ..optimal(16, 5, 1)
     };
-    let c = optimal_depth::choose(&mut scene, &s, 0.01, None);
+    let c = optimal_depth::choose(&mut scene, &s, 0.01, Default::default());
     eprintln!("{}", c.summary());
     assert!(c.relmse[3] >= 0.97 * c.relmse[2], "{c:?}");
     assert!(c.chosen <= 2, "{c:?}");
+}
+
+/// A time budget bounds the pilot by time: a probe (replica 0 at the smallest frame), timed on
+/// the budget's clock, sets the frame whose replicas take `PILOT_SHARE` of the budget. Here the
+/// clock says the probe took `probe_s`; the frame follows from it, and where it is the smallest
+/// frame the probe is replica 0: the same choice as a pilot bounded to that frame by samples.
+#[test]
+fn a_time_budget_bounds_the_pilot_by_the_probes_rate() {
+    use omis::job::optimal_depth::{self, Budget, JobSize};
+    use std::sync::atomic::{AtomicU32, Ordering};
+    let mut scene = load("cornell-box-small-light.json", 96, 80);
+    let s = RenderSettings {
+        seed: 3,
+        ..optimal(16, 5, 1)
+    };
+    let probe_s = 0.01;
+    let choose = |scene: &mut omis::scene::Scene, seconds: f64| {
+        // Each reading is `probe_s` later than the one before: the probe took `probe_s`.
+        let calls = AtomicU32::new(0);
+        let clock = || calls.fetch_add(1, Ordering::Relaxed) as f64 * probe_s;
+        let size = JobSize {
+            samples: None,
+            budget: Some(Budget {
+                seconds,
+                clock: &clock,
+            }),
+        };
+        let c = optimal_depth::choose(scene, &s, 0.01, size);
+        assert_eq!(calls.load(Ordering::Relaxed), 2, "the probe is timed once");
+        c
+    };
+    let smallest = optimal_depth::pilot_resolution(96, 80, optimal_depth::MIN_PILOT_PIXELS);
+    let probe_pixels = smallest[0] * smallest[1];
+    for seconds in [1.0, 10.0, 20.0, 40.0] {
+        let c = choose(&mut scene, seconds);
+        let [w, h] = c.pilot_resolution;
+        let allowed = optimal_depth::budget_pixels(seconds, probe_s, probe_pixels);
+        // The probe and the replicas at the probe's rate within the share of the budget,
+        // unless that is below the smallest frame.
+        let pilot_s =
+            probe_s * (1.0 + (optimal_depth::PILOT_REPLICAS * w * h) as f64 / probe_pixels as f64);
+        assert!(
+            [w, h] == smallest || pilot_s <= seconds * optimal_depth::PILOT_SHARE * (1.0 + 1e-9),
+            "{seconds} s: {w}x{h}, {pilot_s} s"
+        );
+        assert_eq!(
+            [w, h],
+            optimal_depth::pilot_resolution(
+                96,
+                80,
+                allowed.clamp(
+                    optimal_depth::MIN_PILOT_PIXELS as f64,
+                    optimal_depth::PILOT_PIXELS as f64
+                ) as u32
+            ),
+            "{seconds} s"
+        );
+    }
+    // 1 s: the probe alone is more than the share; the smallest frame, with the probe reused.
+    let c = choose(&mut scene, 1.0);
+    assert_eq!(c.pilot_resolution, smallest);
+    let by_samples = optimal_depth::choose(
+        &mut scene,
+        &s,
+        0.01,
+        JobSize {
+            samples: Some(1000),
+            budget: None,
+        },
+    );
+    assert_eq!(c, by_samples);
+    // A large budget: the full pilot.
+    let c = choose(&mut scene, 1e6);
+    let [w, h] = c.pilot_resolution;
+    assert!(w * h > optimal_depth::PILOT_PIXELS * 9 / 10, "{c:?}");
+    assert_eq!(
+        (scene.camera.width, scene.camera.height),
+        (96, 80),
+        "the pilot gives the camera back"
+    );
 }

@@ -43,8 +43,9 @@ pub struct CompareArgs {
     pub seeds: u64,
     #[arg(long, default_value_t = 5)]
     pub max_depth: u32,
-    /// Optimal MIS: weight depths 1..=D optimally; `auto`: a pilot render per seed chooses
-    /// (its CPU time is reported apart, not counted in the equal-time budget).
+    /// Optimal MIS: weight depths 1..=D optimally; `auto`: every optimal render chooses with
+    /// its own pilot, as `omis render` does (sized by the render's spp or time budget), and
+    /// pays for it: the pilot's time is in the render's times and in its equal-time budget.
     #[arg(long, default_value_t = OptimalDepthArg(None))]
     pub optimal_max_depth: OptimalDepthArg,
     #[arg(long, default_value_t = crate::mis::DEFAULT_KAPPA)]
@@ -117,6 +118,10 @@ struct Point {
     /// relMSE of each depth 0 ..= max_depth (against reference depth layers, or the relative
     /// variance across seeds when the reference has none).
     relmse_per_depth: Vec<f64>,
+    /// Per seed, what the render's pilot chose (`--optimal-max-depth auto`; empty otherwise).
+    optimal_depth: Vec<DepthChoice>,
+    /// CPU seconds per render of its pilot (part of `cpu_seconds`).
+    pilot_cpu_seconds: f64,
 }
 
 fn ser_method<S: serde::Serializer>(m: &Method, s: S) -> Result<S::Ok, S::Error> {
@@ -134,6 +139,25 @@ struct Rendered {
     /// Per depth: its relMSE against the reference's depth layer, or its image when the
     /// reference has none (the point then takes the relative variance across seeds).
     depths: Vec<DepthError>,
+    /// The render's pilot, where it ran one (its times are in `seconds` and `cpu`).
+    pilot: Option<Pilot>,
+}
+
+/// A pilot render that chose a render's D_opt, and what it cost.
+struct Pilot {
+    choice: DepthChoice,
+    /// Wall and CPU seconds.
+    seconds: f64,
+    cpu: f64,
+    /// Seconds on the clock of the render's time budget.
+    on_clock: f64,
+}
+
+/// One render of a comparison, as it ran.
+struct Run {
+    out: RenderOutput,
+    cpu: f64,
+    pilot: Option<Pilot>,
 }
 
 enum DepthError {
@@ -211,11 +235,15 @@ pub fn run(a: CompareArgs) -> Result<()> {
                 .map(|(_, i)| i.clone())
         })
         .collect();
-    let mut scene = Scene::load(&a.scene).map_err(anyhow::Error::msg)?;
-    scene.camera = scene
-        .camera
-        .with_resolution(reference.width as u32, reference.height as u32)
-        .map_err(anyhow::Error::msg)?;
+    let load = || -> Result<Scene> {
+        let mut scene = Scene::load(&a.scene).map_err(anyhow::Error::msg)?;
+        scene.camera = scene
+            .camera
+            .with_resolution(reference.width as u32, reference.height as u32)
+            .map_err(anyhow::Error::msg)?;
+        Ok(scene)
+    };
+    let scene = load()?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let pool = super::thread_pool(a.threads)?;
     let mut methods: Vec<Method> = a.mis.iter().map(|&m| Method::Bdpt(m.into())).collect();
@@ -243,28 +271,58 @@ pub fn run(a: CompareArgs) -> Result<()> {
         roulette_from,
         ..Default::default()
     };
-    // `--optimal-max-depth auto`: one pilot per seed (a function of the seed, like the render).
-    let mut pilot_cpu = 0.0;
-    let choices: Vec<Option<DepthChoice>> = (0..a.seeds)
-        .map(|seed| {
-            let s = base(Method::Bdpt(MisKind::Optimal), 1, seed, 0);
-            (a.optimal_max_depth.0.is_none()
-                && methods
-                    .iter()
-                    .any(|m| matches!(m, Method::Bdpt(k) if k.is_optimal())))
-            .then(|| {
-                let cpu0 = super::procstat::cpu_seconds(None);
-                // The full pilot: its time is kept out of the comparison's budgets.
-                let c = pool.install(|| optimal_depth::choose(&mut scene, &s, a.eps, None));
-                pilot_cpu += super::procstat::cpu_seconds(None) - cpu0;
-                eprintln!("seed {seed}: {}", c.summary());
-                c
-            })
+    // `--optimal-max-depth auto`: each optimal render's pilot, as `omis render` runs it for a job
+    // of `samples` pixel samples or a budget of `budget_s` seconds (on the budget's clock). The
+    // pilot moves its own scene's camera, so it has a scene of its own.
+    let pilot_scene = (a.optimal_max_depth.0.is_none()
+        && methods
+            .iter()
+            .any(|m| matches!(m, Method::Bdpt(k) if k.is_optimal())))
+    .then(load)
+    .transpose()?
+    .map(std::cell::RefCell::new);
+    let pixels = reference.width as u64 * reference.height as u64;
+    let pilot = |method: Method, seed: u64, spp: Option<u32>, budget_s: Option<f64>| {
+        let scene = pilot_scene.as_ref()?;
+        if !matches!(method, Method::Bdpt(k) if k.is_optimal()) {
+            return None;
+        }
+        let wall0 = std::time::Instant::now();
+        let cpu0 = super::procstat::cpu_seconds(None);
+        let clock = || {
+            if a.cpu_time {
+                super::procstat::cpu_seconds(None) - cpu0
+            } else {
+                wall0.elapsed().as_secs_f64()
+            }
+        };
+        let size = optimal_depth::JobSize {
+            samples: spp.map(|n| pixels * n as u64),
+            budget: budget_s.map(|seconds| optimal_depth::Budget {
+                seconds,
+                clock: &clock,
+            }),
+        };
+        let s = base(method, 1, seed, 0);
+        let mut scene = scene.borrow_mut();
+        let scene: &mut Scene = &mut scene;
+        let choice = pool.install(|| optimal_depth::choose(scene, &s, a.eps, size));
+        let point = spp.map_or_else(|| "equal time".to_string(), |n| format!("{n} spp"));
+        eprintln!(
+            "{} seed {seed}, {point}: {}",
+            method.name(),
+            choice.summary()
+        );
+        Some(Pilot {
+            choice,
+            seconds: wall0.elapsed().as_secs_f64(),
+            cpu: super::procstat::cpu_seconds(None) - cpu0,
+            on_clock: clock(),
         })
-        .collect();
-    let settings = |method: Method, spp: u32, seed: u64| {
-        let d_opt = match (&choices[seed as usize], a.optimal_max_depth.0) {
-            (Some(c), _) => c.chosen,
+    };
+    let settings = |method: Method, spp: u32, seed: u64, pilot: &Option<Pilot>| {
+        let d_opt = match (pilot, a.optimal_max_depth.0) {
+            (Some(p), _) => p.choice.chosen,
             (None, Some(d)) => d,
             (None, None) => crate::mis::DEFAULT_OPTIMAL_MAX_DEPTH,
         };
@@ -272,7 +330,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
     };
     // One render reduced to what its point needs; the film is dropped here, so a comparison
     // holds images, not every render's accumulators.
-    let summarize = |(out, cpu): (RenderOutput, f64)| -> Result<Rendered> {
+    let summarize = |Run { out, cpu, pilot }: Run| -> Result<Rendered> {
         let img = out.image();
         let e = metrics::compare(&img, &reference, a.eps).map_err(anyhow::Error::msg)?;
         let mut depths = Vec::new();
@@ -289,11 +347,12 @@ pub fn run(a: CompareArgs) -> Result<()> {
         Ok(Rendered {
             relmse: e.relmse,
             relmse_trimmed: e.relmse_trimmed,
-            seconds: out.seconds,
-            cpu,
+            seconds: out.seconds + pilot.as_ref().map_or(0.0, |p| p.seconds),
+            cpu: cpu + pilot.as_ref().map_or(0.0, |p| p.cpu),
             spp: out.spp,
             bytes_per_pixel: out.film.layout.bytes_per_pixel(),
             depths,
+            pilot,
         })
     };
     let eval = |method: Method, spp: u32, runs: Vec<Rendered>| -> Point {
@@ -334,32 +393,42 @@ pub fn run(a: CompareArgs) -> Result<()> {
             cpu_seconds: runs.iter().map(|r| r.cpu).sum::<f64>() / n,
             bytes_per_pixel: runs.first().map_or(0, |r| r.bytes_per_pixel),
             relmse_per_depth: per_depth,
+            optimal_depth: runs
+                .iter()
+                .filter_map(|r| r.pilot.as_ref().map(|p| p.choice.clone()))
+                .collect(),
+            pilot_cpu_seconds: runs
+                .iter()
+                .map(|r| r.pilot.as_ref().map_or(0.0, |p| p.cpu))
+                .sum::<f64>()
+                / n,
         }
     };
     // Every method's renders of a seed run back to back, the first method rotating with the
     // seed: a machine whose speed drifts during the comparison (other load, thermal limits)
     // then slows every method alike, which matters most for the equal-time budgets.
-    let interleaved =
-        |render: &dyn Fn(Method, u64) -> (RenderOutput, f64)| -> Result<Vec<Vec<Rendered>>> {
-            let mut runs: Vec<Vec<Rendered>> = methods.iter().map(|_| Vec::new()).collect();
-            for seed in 0..a.seeds {
-                for k in 0..methods.len() {
-                    let m = (k + seed as usize) % methods.len();
-                    runs[m].push(summarize(render(methods[m], seed))?);
-                }
+    let interleaved = |render: &dyn Fn(Method, u64) -> Run| -> Result<Vec<Vec<Rendered>>> {
+        let mut runs: Vec<Vec<Rendered>> = methods.iter().map(|_| Vec::new()).collect();
+        for seed in 0..a.seeds {
+            for k in 0..methods.len() {
+                let m = (k + seed as usize) % methods.len();
+                runs[m].push(summarize(render(methods[m], seed))?);
             }
-            Ok(runs)
-        };
+        }
+        Ok(runs)
+    };
 
     let mut points = Vec::new();
     for &spp in &a.spp {
         let runs = interleaved(&|mis, seed| {
-            let s = settings(mis, spp, seed);
+            let pilot = pilot(mis, seed, Some(spp), None);
+            let s = settings(mis, spp, seed, &pilot);
             let job = Resolved {
                 max_pass_size: Some(MAX_PASS_SIZE),
                 ..Resolved::fixed(&scene, &s, TILE_SIZE, 1)
             };
-            timed_render(&pool, &job, &scene, false)
+            let (out, cpu) = timed_render(&pool, &job, &scene, false);
+            Run { out, cpu, pilot }
         })?;
         for (&mis, runs) in methods.iter().zip(runs) {
             let p = eval(mis, spp, runs);
@@ -380,12 +449,16 @@ pub fn run(a: CompareArgs) -> Result<()> {
             bail!("--equal-time must be a positive number of seconds");
         }
         let runs = interleaved(&|mis, seed| {
-            let s = settings(mis, 1, seed);
+            // The pilot's time counts against the budget, as in `omis render --time-budget`.
+            let pilot = pilot(mis, seed, None, Some(t));
+            let s = settings(mis, 1, seed, &pilot);
             let job = Resolved {
                 max_pass_size: Some(MAX_TIMED_PASS_SIZE),
+                pilot_s: pilot.as_ref().map(|p| p.on_clock),
                 ..Resolved::timed(&scene, &s, TILE_SIZE, 1, t)
             };
-            timed_render(&pool, &job, &scene, a.cpu_time)
+            let (out, cpu) = timed_render(&pool, &job, &scene, a.cpu_time);
+            Run { out, cpu, pilot }
         })?;
         for (&mis, runs) in methods.iter().zip(runs) {
             let spp = runs.iter().map(|r| r.spp).min().unwrap_or(0);
@@ -408,7 +481,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
         "reference": a.reference.display().to_string(),
         "width": reference.width, "height": reference.height,
         "max_depth": a.max_depth, "optimal_max_depth": a.optimal_max_depth.to_string(),
-        "optimal_depth_choices": choices, "pilot_cpu_seconds": pilot_cpu, "kappa": a.kappa,
+        "kappa": a.kappa,
         "roulette_from": (!a.no_roulette).then_some(roulette_from),
         "seeds": a.seeds, "eps": a.eps, "equal_time_clock": clock_name(a.cpu_time),
         "equal_spp": points, "equal_time": timed,

@@ -603,11 +603,18 @@ impl JobSettings {
             }),
         };
         let pilot_start = std::time::Instant::now();
+        let clock = || pilot_start.elapsed().as_secs_f64();
         let optimal_depth =
             (self.optimal_max_depth.is_none() && render.optimal_applies()).then(|| {
                 let pixels = width as u64 * height as u64;
-                let samples = spp.map(|s| pixels.saturating_mul(s as u64));
-                optimal_depth::choose(scene, &render, self.eps, samples)
+                let size = optimal_depth::JobSize {
+                    samples: spp.map(|s| pixels.saturating_mul(s as u64)),
+                    budget: self.time_budget_s.map(|seconds| optimal_depth::Budget {
+                        seconds,
+                        clock: &clock,
+                    }),
+                };
+                optimal_depth::choose(scene, &render, self.eps, size)
             });
         let pilot_s = optimal_depth
             .is_some()

@@ -8,10 +8,18 @@
 //! retries all make the same choice and keep the same bits. The pilot is deterministic (fixed
 //! seeds, its counters instead of clocks) and small: `PILOT_REPLICAS` renders of `PILOT_SPP`
 //! samples of at most `PILOT_PIXELS` pixels (about 37k pixel samples), and at most `PILOT_SHARE`
-//! of a job of known spp (its cost is the job's, and at equal time a pilot larger than the gain
-//! it finds makes optimal MIS lose to balance: Veach MIS at 64x64 and 128 spp took 1.118x
-//! balance's time with the full pilot, 1.032x without, for 0.92-0.94x its error; BENCHMARKS.md
-//! #14, stop 41), but never under `MIN_PILOT_PIXELS`.
+//! of the job (its cost is the job's, and at equal time a pilot larger than the gain it finds
+//! makes optimal MIS lose to balance: Veach MIS at 64x64 and 128 spp took 1.118x balance's time
+//! with the full pilot, 1.032x without, for 0.92-0.94x its error; BENCHMARKS.md #14, stop 41),
+//! but never under `MIN_PILOT_PIXELS`.
+//!
+//! A job of known spp bounds the pilot by its pixel samples. A time budget bounds it by time,
+//! which only a measurement turns into pixels: a probe (replica 0 at the smallest pilot frame)
+//! is timed on the budget's clock, and the frame is the largest whose replicas, the probe
+//! included, take `PILOT_SHARE` of the budget at the probe's rate (the probe is replica 0 when
+//! that is the smallest frame). So a time-budgeted job's choice depends on the speed of the
+//! machine that resolves it; it is made once, where the job is resolved, and kept with it (the
+//! spp such a job reaches depends on that speed anyway).
 //!
 //! The estimates: the pilot renders the whole frame at a reduced resolution (same camera, same
 //! field of view; the techniques' relative densities per pixel do not depend on the resolution,
@@ -115,8 +123,28 @@ impl DepthChoice {
     }
 }
 
-/// Most pixels of the pilot frame for a job of `job_samples` pixel samples (None: not known in
-/// advance, a time budget): `PILOT_SHARE` of them, within `MIN_PILOT_PIXELS ..= PILOT_PIXELS`.
+/// What bounds a pilot: the job's pixel samples where it has a count, its time budget where it
+/// has one (both: whichever allows the smaller pilot); neither: the full `PILOT_PIXELS`.
+#[derive(Clone, Copy, Default)]
+pub struct JobSize<'a> {
+    /// Pixel samples of the job.
+    pub samples: Option<u64>,
+    /// The job's time budget.
+    pub budget: Option<Budget<'a>>,
+}
+
+/// A time budget: `seconds` on `clock` (seconds since any fixed start; wall or CPU time, as the
+/// budget counts).
+#[derive(Clone, Copy)]
+pub struct Budget<'a> {
+    /// The budget.
+    pub seconds: f64,
+    /// Seconds on the budget's clock.
+    pub clock: &'a (dyn Fn() -> f64 + Sync),
+}
+
+/// Most pixels of the pilot frame for a job of `job_samples` pixel samples (None: no count, the
+/// full frame): `PILOT_SHARE` of them, within `MIN_PILOT_PIXELS ..= PILOT_PIXELS`.
 pub fn pilot_pixels(job_samples: Option<u64>) -> u32 {
     let Some(n) = job_samples else {
         return PILOT_PIXELS;
@@ -124,6 +152,19 @@ pub fn pilot_pixels(job_samples: Option<u64>) -> u32 {
     let per_pixel = (PILOT_REPLICAS * PILOT_SPP) as f64;
     let share = (n as f64 * PILOT_SHARE / per_pixel).floor();
     share.clamp(MIN_PILOT_PIXELS as f64, PILOT_PIXELS as f64) as u32
+}
+
+/// Most pixels of the pilot frame for a time budget of `budget_s` seconds, where a probe replica
+/// of `probe_pixels` pixels took `probe_s`: the frame whose `PILOT_REPLICAS` replicas, at the
+/// probe's rate per pixel, take `PILOT_SHARE` of the budget less the probe's own time (infinite
+/// where the probe took no measurable time; below `MIN_PILOT_PIXELS` where the probe alone used
+/// the share up: the caller clamps).
+pub fn budget_pixels(budget_s: f64, probe_s: f64, probe_pixels: u32) -> f64 {
+    let per_pixel = probe_s / probe_pixels.max(1) as f64;
+    if !(per_pixel > 0.0 && per_pixel.is_finite()) {
+        return f64::INFINITY;
+    }
+    (budget_s * PILOT_SHARE - probe_s) / (PILOT_REPLICAS as f64 * per_pixel)
 }
 
 /// The pilot frame of a `width` x `height` job: the same aspect, at most `max_pixels` pixels
@@ -245,39 +286,18 @@ fn cross_fitted(k: &Replica, j: &Replica, dmax: u32, kappa: f64) -> Vec<[f64; 3]
     values
 }
 
-/// Chooses D_opt for rendering `scene` (camera at the job's resolution) with `settings`, relMSE
-/// measured with `eps`, for a job of `job_samples` pixel samples (None where a time budget ends
-/// it). Renders on the current rayon pool; the same inputs give the same choice.
-pub fn choose(
+/// Pilot replicas `ks` of `settings`' job, rendered at `w` x `h` (the scene's camera is given back;
+/// None where the camera cannot take that resolution).
+fn replicas_at(
     scene: &mut Scene,
     settings: &RenderSettings,
-    eps: f64,
-    job_samples: Option<u64>,
-) -> DepthChoice {
-    let dmax = AUTO_MAX_DEPTH.min(settings.max_depth);
-    let [w, h] = pilot_resolution(
-        scene.camera.width,
-        scene.camera.height,
-        pilot_pixels(job_samples),
-    );
-    let mut choice = DepthChoice {
-        chosen: 0,
-        pilot_resolution: [w, h],
-        replicas: PILOT_REPLICAS,
-        pilot_spp: PILOT_SPP,
-        relmse: vec![0.0],
-        relmse_se: vec![0.0],
-        time: vec![1.0],
-        bytes_per_pixel: vec![0],
-    };
-    if dmax == 0 {
-        return choice;
-    }
-    let Ok(pilot_camera) = scene.camera.with_resolution(w, h) else {
-        return choice;
-    };
+    dmax: u32,
+    [w, h]: [u32; 2],
+    ks: std::ops::Range<u32>,
+) -> Option<Vec<Replica>> {
+    let pilot_camera = scene.camera.with_resolution(w, h).ok()?;
     let camera = std::mem::replace(&mut scene.camera, pilot_camera);
-    let rendered: Vec<Replica> = (0..PILOT_REPLICAS)
+    let rendered = ks
         .map(|k| {
             let s = RenderSettings {
                 spp: PILOT_SPP,
@@ -292,6 +312,62 @@ pub fn choose(
         })
         .collect();
     scene.camera = camera;
+    Some(rendered)
+}
+
+/// Chooses D_opt for rendering `scene` (camera at the job's resolution) with `settings`, relMSE
+/// measured with `eps`, for a job of `size`. Renders on the current rayon pool; the same inputs
+/// give the same choice (a time budget aside: the module's doc).
+pub fn choose(
+    scene: &mut Scene,
+    settings: &RenderSettings,
+    eps: f64,
+    size: JobSize,
+) -> DepthChoice {
+    let dmax = AUTO_MAX_DEPTH.min(settings.max_depth);
+    let (width, height) = (scene.camera.width, scene.camera.height);
+    let mut max_pixels = pilot_pixels(size.samples);
+    // A time budget: the probe, replica 0 at the smallest frame, timed.
+    let smallest = pilot_resolution(width, height, MIN_PILOT_PIXELS);
+    let mut probe = None;
+    if let Some(b) = size.budget
+        && dmax > 0
+        && pilot_resolution(width, height, max_pixels) != smallest
+    {
+        let t0 = (b.clock)();
+        probe = replicas_at(scene, settings, dmax, smallest, 0..1);
+        let spent = (b.clock)() - t0;
+        let allowed = budget_pixels(b.seconds, spent, smallest[0] * smallest[1]);
+        max_pixels = allowed.clamp(MIN_PILOT_PIXELS as f64, max_pixels as f64) as u32;
+    }
+    let [w, h] = pilot_resolution(width, height, max_pixels);
+    let mut choice = DepthChoice {
+        chosen: 0,
+        pilot_resolution: [w, h],
+        replicas: PILOT_REPLICAS,
+        pilot_spp: PILOT_SPP,
+        relmse: vec![0.0],
+        relmse_se: vec![0.0],
+        time: vec![1.0],
+        bytes_per_pixel: vec![0],
+    };
+    if dmax == 0 {
+        return choice;
+    }
+    let rendered = match probe {
+        // The probe is replica 0 where the budget allows no larger frame.
+        Some(mut first) if [w, h] == smallest => {
+            let Some(rest) = replicas_at(scene, settings, dmax, [w, h], 1..PILOT_REPLICAS) else {
+                return choice;
+            };
+            first.extend(rest);
+            first
+        }
+        _ => match replicas_at(scene, settings, dmax, [w, h], 0..PILOT_REPLICAS) {
+            Some(r) => r,
+            None => return choice,
+        },
+    };
     // Replica k weighted with the weights of replica k + 1 (mod the count).
     let n = rendered.len();
     let values: Vec<Vec<[f64; 3]>> = (0..n)
@@ -403,5 +479,21 @@ mod tests {
         }
         assert_eq!(pilot_resolution(64, 64, 512), [22, 22]);
         assert_eq!(pilot_resolution(10, 10, 256), [10, 10]);
+    }
+
+    /// A time budget's pilot: the probe and the replicas at the probe's rate take the share of
+    /// the budget.
+    #[test]
+    fn a_budgets_pilot_takes_its_share_at_the_probes_rate() {
+        for (budget, probe, px) in [(3.0, 0.004, 256), (60.0, 0.01, 240), (1.0, 0.001, 256)] {
+            let p = budget_pixels(budget, probe, px);
+            let per_pixel = probe / px as f64;
+            let total = probe + PILOT_REPLICAS as f64 * p * per_pixel;
+            assert!((total / (budget * PILOT_SHARE) - 1.0).abs() < 1e-9, "{p}");
+        }
+        // The probe alone past the share: below any frame (the caller takes the smallest).
+        assert!(budget_pixels(0.1, 0.01, 256) < 0.0);
+        // A probe too fast for the clock: no bound from time.
+        assert_eq!(budget_pixels(3.0, 0.0, 256), f64::INFINITY);
     }
 }
