@@ -14,10 +14,10 @@
 //! but never under `MIN_PILOT_PIXELS`.
 //!
 //! A job of known spp bounds the pilot by its pixel samples. A time budget bounds it by time,
-//! which only a measurement turns into pixels: a probe (replica 0 at the smallest pilot frame)
-//! is timed on the budget's clock, and the frame is the largest whose replicas, the probe
-//! included, take `PILOT_SHARE` of the budget at the probe's rate (the probe is replica 0 when
-//! that is the smallest frame). So a time-budgeted job's choice depends on the speed of the
+//! which only a measurement turns into pixels: a probe (replica 0 at the smallest pilot frame,
+//! and the cross-fitting solves of its pixels) is timed on the budget's clock, and the frame is
+//! the largest whose replicas, the probe included, take `PILOT_SHARE` of the budget at the
+//! probe's rate (the probe is replica 0 when that is the smallest frame). So a time-budgeted job's choice depends on the speed of the
 //! machine that resolves it; it is made once, where the job is resolved, and kept with it (the
 //! spp such a job reaches depends on that speed anyway).
 //!
@@ -336,6 +336,11 @@ pub fn choose(
     {
         let t0 = (b.clock)();
         probe = replicas_at(scene, settings, dmax, smallest, 0..1);
+        // Timed with the analysis a replica's pixels will cost (its solves; the weights solved
+        // from the probe itself are thrown away).
+        if let Some(p) = probe.as_ref().and_then(|p| p.first()) {
+            std::hint::black_box(cross_fitted(p, p, dmax, settings.optimal_kappa));
+        }
         let spent = (b.clock)() - t0;
         let allowed = budget_pixels(b.seconds, spent, smallest[0] * smallest[1]);
         max_pixels = allowed.clamp(MIN_PILOT_PIXELS as f64, max_pixels as f64) as u32;
