@@ -297,7 +297,7 @@ pub fn run(a: CompareArgs) -> Result<()> {
             }
         };
         let size = optimal_depth::JobSize {
-            samples: spp.map(|n| pixels * n as u64),
+            samples: spp.map(|n| pixels.saturating_mul(n as u64)),
             budget: budget_s.map(|seconds| optimal_depth::Budget {
                 seconds,
                 clock: &clock,
