@@ -5,8 +5,8 @@
 //! Why a pilot and not the job's first pass: the choice fixes the layout of every task result
 //! and tile checkpoint, so it must be known before the first task; and it must be a function of
 //! the job alone (scene, settings, seed), so that in-process and distributed renders, tilings and
-//! retries all make the same choice and keep the same bits. The pilot is deterministic (fixed
-//! seeds, its counters instead of clocks) and small: `PILOT_REPLICAS` renders of `PILOT_SPP`
+//! retries all make the same choice and keep the same bits. The pilot of a job of known spp is
+//! deterministic (fixed seeds, its counters instead of clocks), and every pilot is small: `PILOT_REPLICAS` renders of `PILOT_SPP`
 //! samples of at most `PILOT_PIXELS` pixels (about 37k pixel samples), and at most `PILOT_SHARE`
 //! of the job (its cost is the job's, and at equal time a pilot larger than the gain it finds
 //! makes optimal MIS lose to balance: Veach MIS at 64x64 and 128 spp took 1.118x balance's time
@@ -17,9 +17,10 @@
 //! which only a measurement turns into pixels: a probe (replica 0 at the smallest pilot frame,
 //! and the cross-fitting solves of its pixels) is timed on the budget's clock, and the frame is
 //! the largest whose replicas, the probe included, take `PILOT_SHARE` of the budget at the
-//! probe's rate (the probe is replica 0 when that is the smallest frame). So a time-budgeted job's choice depends on the speed of the
-//! machine that resolves it; it is made once, where the job is resolved, and kept with it (the
-//! spp such a job reaches depends on that speed anyway).
+//! probe's rate (the probe is replica 0 when that is the smallest frame). So a time-budgeted
+//! job's choice depends on the speed of the machine that resolves it; it is made once, where
+//! the job is resolved, and kept with it (the spp such a job reaches depends on that speed
+//! anyway).
 //!
 //! The estimates: the pilot renders the whole frame at a reduced resolution (same camera, same
 //! field of view; the techniques' relative densities per pixel do not depend on the resolution,
