@@ -235,15 +235,14 @@ pub fn run(a: CompareArgs) -> Result<()> {
                 .map(|(_, i)| i.clone())
         })
         .collect();
-    let load = || -> Result<Scene> {
-        let mut scene = Scene::load(&a.scene).map_err(anyhow::Error::msg)?;
-        scene.camera = scene
-            .camera
-            .with_resolution(reference.width as u32, reference.height as u32)
-            .map_err(anyhow::Error::msg)?;
-        Ok(scene)
-    };
-    let scene = load()?;
+    let mut scene = Scene::load(&a.scene).map_err(anyhow::Error::msg)?;
+    scene.camera = scene
+        .camera
+        .with_resolution(reference.width as u32, reference.height as u32)
+        .map_err(anyhow::Error::msg)?;
+    // A pilot moves the camera for its replicas (and gives it back) before its render borrows
+    // the scene.
+    let scene = std::cell::RefCell::new(scene);
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let pool = super::thread_pool(a.threads)?;
     let mut methods: Vec<Method> = a.mis.iter().map(|&m| Method::Bdpt(m.into())).collect();
@@ -272,19 +271,10 @@ pub fn run(a: CompareArgs) -> Result<()> {
         ..Default::default()
     };
     // `--optimal-max-depth auto`: each optimal render's pilot, as `omis render` runs it for a job
-    // of `samples` pixel samples or a budget of `budget_s` seconds (on the budget's clock). The
-    // pilot moves its own scene's camera, so it has a scene of its own.
-    let pilot_scene = (a.optimal_max_depth.0.is_none()
-        && methods
-            .iter()
-            .any(|m| matches!(m, Method::Bdpt(k) if k.is_optimal())))
-    .then(load)
-    .transpose()?
-    .map(std::cell::RefCell::new);
+    // of `samples` pixel samples or a budget of `budget_s` seconds (on the budget's clock).
     let pixels = reference.width as u64 * reference.height as u64;
     let pilot = |method: Method, seed: u64, spp: Option<u32>, budget_s: Option<f64>| {
-        let scene = pilot_scene.as_ref()?;
-        if !matches!(method, Method::Bdpt(k) if k.is_optimal()) {
+        if a.optimal_max_depth.0.is_some() || !matches!(method, Method::Bdpt(k) if k.is_optimal()) {
             return None;
         }
         let wall0 = std::time::Instant::now();
@@ -425,9 +415,9 @@ pub fn run(a: CompareArgs) -> Result<()> {
             let s = settings(mis, spp, seed, &pilot);
             let job = Resolved {
                 max_pass_size: Some(MAX_PASS_SIZE),
-                ..Resolved::fixed(&scene, &s, TILE_SIZE, 1)
+                ..Resolved::fixed(&scene.borrow(), &s, TILE_SIZE, 1)
             };
-            let (out, cpu) = timed_render(&pool, &job, &scene, false);
+            let (out, cpu) = timed_render(&pool, &job, &scene.borrow(), false);
             Run { out, cpu, pilot }
         })?;
         for (&mis, runs) in methods.iter().zip(runs) {
@@ -455,9 +445,9 @@ pub fn run(a: CompareArgs) -> Result<()> {
             let job = Resolved {
                 max_pass_size: Some(MAX_TIMED_PASS_SIZE),
                 pilot_s: pilot.as_ref().map(|p| p.on_clock),
-                ..Resolved::timed(&scene, &s, TILE_SIZE, 1, t)
+                ..Resolved::timed(&scene.borrow(), &s, TILE_SIZE, 1, t)
             };
-            let (out, cpu) = timed_render(&pool, &job, &scene, a.cpu_time);
+            let (out, cpu) = timed_render(&pool, &job, &scene.borrow(), a.cpu_time);
             Run { out, cpu, pilot }
         })?;
         for (&mis, runs) in methods.iter().zip(runs) {
