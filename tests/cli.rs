@@ -686,3 +686,23 @@ fn diff_and_compare_read_the_exr_header_before_the_pixels() {
     );
     assert!(start.elapsed() < std::time::Duration::from_secs(30));
 }
+
+#[test]
+fn an_image_diffed_with_itself_has_no_error_also_on_black_pixels() {
+    let d = folder("self-diff");
+    let path = d.join("half-black.exr");
+    let mut img = omis::film::Image::new(8, 8);
+    for (k, p) in img.pixels.iter_mut().enumerate().skip(32) {
+        *p = omis::geometry::Rgb::splat(k as f32 * 0.1);
+    }
+    omis::film::exr_io::write_exr(&path, &img, &[], &[]).expect("write EXR");
+    let out = omis(&["diff", s(&path), s(&path), "--eps", "0", "--json"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v = last_json(&out);
+    assert_eq!(v["relmse"], 0.0, "{v}");
+    assert_eq!(v["identical"], true, "{v}");
+}

@@ -1146,8 +1146,8 @@ fn pbrt_v4_files_are_refused_naming_file_line_and_construct() {
             "pbrt-v4 file (line 3: Shape \"bilinearmesh\")",
         ],
     );
-    // A whole pbrt-v4 scene (as pbrt-v4 writes them: no WorldEnd) is refused at its first
-    // pbrt-v4 construct, before anything is read.
+    // A whole pbrt-v4 scene (as pbrt-v4 writes them: no WorldEnd) is refused before anything
+    // is read, naming every pbrt-v4 construct at once.
     let e = load_err(&common::write(
         &d,
         "v4-scene.pbrt",
@@ -1161,7 +1161,7 @@ fn pbrt_v4_files_are_refused_naming_file_line_and_construct() {
         &[
             "v4-scene.pbrt",
             "line 4",
-            "pbrt-v4 file (line 4: Film \"rgb\")",
+            "pbrt-v4 file (line 4: Film \"rgb\"; line 6: Material \"diffuse\")",
         ],
     );
     // pbrt-v3 declarations that pbrt-v4 shares are not taken for pbrt-v4.

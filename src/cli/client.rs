@@ -22,8 +22,10 @@ impl Client {
     pub(crate) fn new(base: &str, token: Option<String>) -> Result<Client> {
         let base = base.trim_end_matches('/').to_string();
         check_url(&base, "--server")?;
+        // Pooled connections are given up before the coordinator closes them as idle.
         let http = reqwest::Client::builder()
             .connect_timeout(Duration::from_secs(5))
+            .pool_idle_timeout(Duration::from_secs(4))
             .build()
             .context("cannot create the HTTP client")?;
         Ok(Client { base, token, http })

@@ -57,6 +57,11 @@ pub(crate) struct ServeArgs {
     /// Folder for the database, task results and outputs (created if missing).
     #[arg(long)]
     pub data: PathBuf,
+    /// Begin a new, empty database although the data folder holds the jobs and scenes of an
+    /// earlier one (whose database is missing or empty); they are not recovered. Without it
+    /// the coordinator refuses to start there.
+    #[arg(long)]
+    pub init: bool,
     /// Local worker processes to start and keep alive.
     #[arg(long, default_value_t = 0)]
     pub workers: usize,
@@ -95,6 +100,30 @@ pub(crate) struct ServeArgs {
     /// Largest upload (scene bundle, reference, task result) in MiB.
     #[arg(long, default_value_t = 1024)]
     pub max_upload_mb: u64,
+    /// Largest JSON body (a job with its scene inline, the worker protocol's messages) in MiB.
+    #[arg(long, default_value_t = service::DEFAULT_MAX_JSON_BYTES >> 20)]
+    pub max_json_mb: u64,
+    /// Most open connections; at the cap the oldest idle one is closed for a new one, or the
+    /// new one is answered 503 when none is idle. Lowered to fit the limit on open files.
+    #[arg(long, default_value_t = 2048)]
+    pub max_connections: usize,
+    /// Client requests in flight at once (an event stream counts while open); more get 503.
+    #[arg(long, default_value_t = 512)]
+    pub max_client_requests: usize,
+    /// Worker requests in flight at once (a lease's long poll counts); more get 503.
+    #[arg(long, default_value_t = 1024)]
+    pub max_worker_requests: usize,
+    /// Seconds a client has to send a request's headers, and to send its next request on a
+    /// kept-alive connection, before the connection is closed.
+    #[arg(long, default_value_t = 10.0)]
+    pub header_timeout: f64,
+    /// Slowest request body, in bytes per second on average, once --body-grace has passed;
+    /// a slower one is cut off with 400.
+    #[arg(long, default_value_t = 4096)]
+    pub body_min_rate: u64,
+    /// Seconds a request body may take before --body-min-rate applies.
+    #[arg(long, default_value_t = 10.0)]
+    pub body_grace: f64,
     /// Tile accumulators one merge task holds in memory, in MiB, whatever the size of the frame
     /// (workers merge a pass band group by band group; the coordinator reads groups back with
     /// at most this much in all after a restart and for a time-budget job's final EXR).
@@ -113,6 +142,7 @@ pub(crate) fn serve(a: ServeArgs) -> Result<()> {
         bail!("--lease-seconds must be >= 1");
     }
     let mut cfg = service::Config::new(a.bind, a.data.clone());
+    cfg.init = a.init;
     cfg.library = a.scenes.is_dir().then(|| a.scenes.clone());
     cfg.client_token = token(&a.token, &a.token_file, "--token-file")?;
     cfg.worker_token = token(&a.worker_token, &a.worker_token_file, "--worker-token-file")?;
@@ -131,6 +161,24 @@ pub(crate) fn serve(a: ServeArgs) -> Result<()> {
         ..Limits::default()
     };
     cfg.max_upload_bytes = a.max_upload_mb.saturating_mul(1 << 20);
+    cfg.max_json_bytes = a.max_json_mb.max(1).saturating_mul(1 << 20);
+    let seconds = |v: f64, flag: &str| -> Result<std::time::Duration> {
+        if !(v > 0.0 && v <= 3600.0) {
+            bail!("{flag} must be a number of seconds within (0, 3600]");
+        }
+        Ok(std::time::Duration::from_secs_f64(v))
+    };
+    cfg.server = service::server::ServerConfig {
+        max_connections: a.max_connections.max(1),
+        header_timeout: seconds(a.header_timeout, "--header-timeout")?,
+        body_min_rate: a.body_min_rate.max(1),
+        body_grace: seconds(a.body_grace, "--body-grace")?,
+    };
+    if a.max_client_requests == 0 || a.max_worker_requests == 0 {
+        bail!("--max-client-requests and --max-worker-requests must be >= 1");
+    }
+    cfg.max_client_requests = a.max_client_requests;
+    cfg.max_worker_requests = a.max_worker_requests;
     if a.merge_memory_mb == 0 {
         bail!("--merge-memory-mb must be >= 1");
     }

@@ -511,6 +511,169 @@ pub fn read_exr(path: &Path) -> Result<Image, String> {
     Ok(layers.swap_remove(i).1)
 }
 
+/// The channels of the layer `read_exr` reads: its part, and the channel index of R, G and B
+/// (a `Y` channel stands for all three).
+struct BeautyChannels {
+    part: usize,
+    rgb: [usize; 3],
+}
+
+/// Finds the layer `read_exr` would return, from the headers alone: the group of channels with
+/// the empty name, else the first complete R, G, B group in file order.
+fn beauty_channels(headers: &[Header]) -> Option<BeautyChannels> {
+    let mut groups: Vec<(String, usize, [Option<usize>; 3])> = Vec::new();
+    for (part, h) in headers.iter().enumerate() {
+        let name = h
+            .own_attributes
+            .layer_name
+            .as_ref()
+            .map(|t| t.to_string())
+            .unwrap_or_default();
+        let name = if name == "omis" { String::new() } else { name };
+        for (c, ch) in h.channels.list.iter().enumerate() {
+            let full = ch.name.to_string();
+            let (prefix, comp) = full.rsplit_once('.').unwrap_or(("", full.as_str()));
+            let slots: &[usize] = match comp {
+                "R" | "r" => &[0],
+                "G" | "g" => &[1],
+                "B" | "b" => &[2],
+                "Y" | "y" => &[0, 1, 2],
+                _ => continue,
+            };
+            let group = match (name.is_empty(), prefix.is_empty()) {
+                (true, _) => prefix.to_string(),
+                (false, true) => name.clone(),
+                (false, false) => format!("{name}.{prefix}"),
+            };
+            let k = match groups
+                .iter()
+                .position(|(g, p, _)| *g == group && *p == part)
+            {
+                Some(k) => k,
+                None => {
+                    groups.push((group, part, [None; 3]));
+                    groups.len() - 1
+                }
+            };
+            for &slot in slots {
+                groups[k].2[slot] = Some(c);
+            }
+        }
+    }
+    let complete = |g: &&(String, usize, [Option<usize>; 3])| g.2.iter().all(Option::is_some);
+    let pick = groups
+        .iter()
+        .filter(complete)
+        .find(|g| g.0.is_empty())
+        .or_else(|| groups.iter().find(complete))?;
+    Some(BeautyChannels {
+        part: pick.1,
+        rgb: pick.2.map(|c| c.unwrap_or(0)),
+    })
+}
+
+/// Reads the beauty layer of the EXR at `path` (the layer `read_exr` reads) block by block:
+/// `size(width, height)` first, then `line(x, y, component, values)` for every line of samples
+/// (a scan line, or a tile's row) of each of its R, G, B components. Memory holds one block,
+/// whatever the file's size.
+pub fn for_each_beauty_line(
+    path: &Path,
+    size: impl FnOnce(usize, usize) -> Result<(), String>,
+    mut line: impl FnMut(usize, usize, usize, &[f32]),
+) -> Result<(), String> {
+    use exr::block::reader::ChunksReader;
+    use exr::prelude::f16;
+    let bad = |e: exr::error::Error| format!("{}: not a readable EXR: {e}", path.display());
+    let file = std::fs::File::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let reader = exr::block::read(std::io::BufReader::new(file), false).map_err(bad)?;
+    let headers: Vec<Header> = reader.headers().to_vec();
+    let beauty = beauty_channels(&headers)
+        .ok_or_else(|| format!("{}: EXR has no R, G, B channels", path.display()))?;
+    let header = &headers[beauty.part];
+    let (w, h) = (header.layer_size.width(), header.layer_size.height());
+    size(w, h)?;
+    let part = beauty.part;
+    let chunks = reader
+        .filter_chunks(false, |_, _, block| {
+            block.layer == part && block.level == exr::math::Vec2(0, 0)
+        })
+        .map_err(bad)?;
+    let blocks = chunks.sequential_decompressor(false);
+    let mut values: Vec<f32> = Vec::new();
+    for block in blocks {
+        let block = block.map_err(bad)?;
+        for l in block.lines(&header.channels) {
+            let loc = l.location;
+            if !beauty.rgb.contains(&loc.channel) {
+                continue;
+            }
+            values.clear();
+            match header.channels.list[loc.channel].sample_type {
+                SampleType::F32 => {
+                    for v in l.read_samples::<f32>() {
+                        values.push(v.map_err(bad)?);
+                    }
+                }
+                SampleType::F16 => {
+                    for v in l.read_samples::<f16>() {
+                        values.push(v.map_err(bad)?.to_f32());
+                    }
+                }
+                SampleType::U32 => {
+                    for v in l.read_samples::<u32>() {
+                        values.push(v.map_err(bad)? as f32);
+                    }
+                }
+            }
+            let (x, y) = (loc.position.x(), loc.position.y());
+            if x + values.len() > w || y >= h {
+                return Err(format!(
+                    "{}: a block of the beauty holds {} values at ({x}, {y}), outside its {w}x{h} \
+                     layer",
+                    path.display(),
+                    values.len()
+                ));
+            }
+            for k in (0..3).filter(|&k| beauty.rgb[k] == loc.channel) {
+                line(x, y, k, &values);
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The width and height of the beauty layer of the EXR at `path` (the layer `read_exr` reads),
+/// from its headers alone.
+pub fn beauty_size(path: &Path) -> Result<(usize, usize), String> {
+    let meta = exr::meta::MetaData::read_from_file(path, false)
+        .map_err(|e| format!("{}: not a readable EXR: {e}", path.display()))?;
+    let beauty = beauty_channels(&meta.headers)
+        .ok_or_else(|| format!("{}: EXR has no R, G, B channels", path.display()))?;
+    let size = meta.headers[beauty.part].layer_size;
+    Ok((size.width(), size.height()))
+}
+
+/// The beauty layer of an EXR (as `read_exr` reads it), read block by block into one image:
+/// the file's other layers never take memory.
+pub fn read_exr_beauty(path: &Path) -> Result<Image, String> {
+    let img = std::cell::RefCell::new(Image::new(0, 0));
+    for_each_beauty_line(
+        path,
+        |w, h| {
+            *img.borrow_mut() = Image::new(w, h);
+            Ok(())
+        },
+        |x, y, k, values| {
+            let mut img = img.borrow_mut();
+            let at = y * img.width + x;
+            for (p, v) in img.pixels[at..at + values.len()].iter_mut().zip(values) {
+                p[k] = *v;
+            }
+        },
+    )?;
+    Ok(img.into_inner())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -733,5 +896,50 @@ mod tests {
         assert_eq!(beauty, &a);
         assert_eq!(var, &b);
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// The beauty read block by block equals the one `read_exr` reads, with several layers, and
+    /// from a tiled file; its size comes from the headers alone.
+    #[test]
+    fn the_beauty_read_block_by_block_is_read_exrs() {
+        let dir = std::env::temp_dir().join(format!("omis-exr-beauty-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (w, h) = (37, 21);
+        let images: Vec<Image> = (0..3).map(|l| ramp(w, h, l)).collect();
+        let named: Vec<NamedLayer> = ["depth1", "variance"]
+            .iter()
+            .zip(&images[1..])
+            .map(|(n, image)| NamedLayer {
+                name: n.to_string(),
+                image,
+            })
+            .collect();
+        let path = dir.join("layers.exr");
+        write_exr(&path, &images[0], &named, &[]).unwrap();
+        assert_eq!(read_exr_beauty(&path).unwrap(), read_exr(&path).unwrap());
+        assert_eq!(beauty_size(&path).unwrap(), (w, h));
+        // Tiled, 16 x 16 tiles.
+        use exr::prelude::{Blocks, Encoding, Layer, SpecificChannels, Vec2, WritableImage};
+        let img = &images[0];
+        let layer = Layer::new(
+            (w, h),
+            LayerAttributes::default(),
+            Encoding {
+                compression: Compression::ZIP1,
+                blocks: Blocks::Tiles(Vec2(16, 16)),
+                line_order: LineOrder::Increasing,
+            },
+            SpecificChannels::rgb(|p: Vec2<usize>| {
+                let c = img.pixels[p.y() * w + p.x()];
+                (c[0], c[1], c[2])
+            }),
+        );
+        let tiled = dir.join("tiled.exr");
+        exr::image::Image::from_layer(layer)
+            .write()
+            .to_file(&tiled)
+            .unwrap();
+        assert_eq!(read_exr_beauty(&tiled).unwrap(), *img);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -51,7 +51,11 @@ pub fn compare(img: &Image, reference: &Image, eps: f64) -> Result<ErrorStats, S
         for c in 0..3 {
             let d = a[c] as f64 - r[c] as f64;
             let rr = r[c] as f64;
-            rel += d * d / (rr * rr + eps);
+            // A value equal to its reference has no error, also where the reference is 0 and
+            // eps is 0 (0 / 0).
+            if d != 0.0 {
+                rel += d * d / (rr * rr + eps);
+            }
             mse += d * d;
             max_abs = max_abs.max(d.abs());
         }
@@ -91,7 +95,11 @@ pub fn error_map(img: &Image, reference: &Image, eps: f64, scale: f64) -> Result
     for (a, r) in img.pixels.iter().zip(&reference.pixels) {
         let la = crate::geometry::luminance(*a) as f64;
         let lr = crate::geometry::luminance(*r) as f64;
-        let e = (la - lr) / (lr.abs() + eps.sqrt());
+        let e = if la == lr {
+            0.0
+        } else {
+            (la - lr) / (lr.abs() + eps.sqrt())
+        };
         let m = if e.is_finite() {
             (e.abs() / scale).min(1.0)
         } else {

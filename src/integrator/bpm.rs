@@ -85,11 +85,11 @@ impl<'a> Mixing<'a> {
         };
         // A and B: sums over the frozen photons at x_M of W1 at their directions.
         let (mut a_sum, mut nb) = (0.0, 0.0);
-        let mut qs: Vec<Photon> = Vec::new();
-        frozen.query(m.p, |q| qs.push(*q));
-        for q in &qs {
+        let mut qs: Vec<(Photon, f32)> = Vec::new();
+        frozen.query(m.p, |q, scale| qs.push((*q, scale)));
+        for (q, scale) in &qs {
             let (w1_0, _, f_t) = m.w1_parts(q.wi);
-            let e = luminance(q.beta) / frozen.flux.max(f64::MIN_POSITIVE);
+            let e = luminance(q.beta) * *scale as f64 / frozen.flux.max(f64::MIN_POSITIVE);
             a_sum += w1_0 * f_t * e / n_f;
             nb += w1_0 * e;
         }
@@ -116,9 +116,9 @@ impl<'a> Mixing<'a> {
             hit.uv,
         );
         let (mut l, mut b) = (0.0, 0.0);
-        self.frozen.query(hit.p, |q| {
+        self.frozen.query(hit.p, |q, scale| {
             let f = luminance(bsdf.eval(-v, q.wi, Mode::Radiance));
-            let e = luminance(q.beta);
+            let e = luminance(q.beta) * scale as f64;
             l += f * e;
             b += f * f * e;
         });
@@ -200,7 +200,7 @@ pub fn pixel_sample(
         }
         let mut sum = Rgb::ZERO;
         let beta = z.throughput();
-        map.query(z.position(), |ph| {
+        map.query(z.position(), |ph, scale| {
             let depth = ph.index + j as u32 - 1;
             if depth > max_depth || c < m && !ph.caustic {
                 return;
@@ -216,7 +216,8 @@ pub fn pixel_sample(
                 return;
             }
             let f = z.bsdf().eval_local(wo, ph.wi, Mode::Radiance).0;
-            let v = f * ph.beta * w as f32;
+            // `scale` is 1 but where the query tested a sample of its photons.
+            let v = f * ph.beta * (w as f32 * scale);
             sum += v;
             if let Some(pd) = per_depth.as_deref_mut() {
                 pd[depth as usize] += beta * v * norm;

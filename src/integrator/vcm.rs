@@ -255,8 +255,14 @@ impl PhotonMap {
         (pdf_dir * yp.abs_cos_ng(wi) / d2) as f64 / y.pdf_fwd() as f64
     }
 
-    /// Calls `f` for every photon within the radius of `p`, in a fixed order.
-    pub(crate) fn query(&self, p: Vec3, mut f: impl FnMut(&Photon)) {
+    /// Calls `f(photon, scale)` for every photon within the radius of `p`, in a fixed order,
+    /// with `scale` 1. Where the cells around `p` hold more than `MAX_MERGE_CANDIDATES` photons
+    /// (a radius as large as the scene, or a scene whose bounding sphere dwarfs what the camera
+    /// sees), only an evenly spaced `MAX_MERGE_CANDIDATES` of them are tested, from an offset
+    /// hashed from `p`, each with `scale` = candidates / tested: every candidate is tested with
+    /// probability 1 / scale, so the scaled sum keeps its expectation (systematic sampling), and
+    /// a query's work stays bounded.
+    pub(crate) fn query(&self, p: Vec3, mut f: impl FnMut(&Photon, f32)) {
         if self.photons.is_empty() {
             return;
         }
@@ -286,17 +292,60 @@ impl PhotonMap {
             }
         }
         let r2 = self.radius * self.radius;
-        for (k, &(lo, hi)) in ranges.iter().enumerate() {
-            if k > 0 && cells[k - 1] == cells[k] {
-                continue;
-            }
-            for ph in &self.photons[lo..hi] {
-                if ph.p.distance_squared(p) <= r2 {
-                    f(ph);
+        let first = |k: usize| k == 0 || cells[k - 1] != cells[k];
+        let candidates: usize = (0..8)
+            .filter(|&k| first(k))
+            .map(|k| ranges[k].1 - ranges[k].0)
+            .sum();
+        if candidates <= MAX_MERGE_CANDIDATES {
+            for (k, &(lo, hi)) in ranges.iter().enumerate() {
+                if !first(k) {
+                    continue;
+                }
+                for ph in &self.photons[lo..hi] {
+                    if ph.p.distance_squared(p) <= r2 {
+                        f(ph, 1.0);
+                    }
                 }
             }
+            return;
+        }
+        // Candidate c is tested when some point offset + j stride falls in [c, c + 1).
+        let stride = candidates as f64 / MAX_MERGE_CANDIDATES as f64;
+        let offset = hash_unit(p, self.radius) * stride;
+        let scale = stride as f32;
+        let mut base = 0usize;
+        let mut next = offset;
+        for (k, &(lo, hi)) in ranges.iter().enumerate() {
+            if !first(k) {
+                continue;
+            }
+            let n = hi - lo;
+            while next < (base + n) as f64 {
+                let ph = &self.photons[lo + (next as usize - base)];
+                if ph.p.distance_squared(p) <= r2 {
+                    f(ph, scale);
+                }
+                next += stride;
+            }
+            base += n;
         }
     }
+}
+
+/// Most photons one merge query tests (`PhotonMap::query`): with a sensible radius a query
+/// finds tens of photons; past this one it tests a systematic sample of them.
+pub const MAX_MERGE_CANDIDATES: usize = 4096;
+
+/// A number in [0, 1) hashed from a query point and the radius (SplitMix64's finaliser over
+/// their bits): the offset of a query's systematic sample, the same wherever the query runs.
+fn hash_unit(p: Vec3, radius: f32) -> f64 {
+    let mut h = (p.x.to_bits() as u64) << 32 ^ p.y.to_bits() as u64;
+    h ^= (p.z.to_bits() as u64) << 17 ^ (radius.to_bits() as u64) << 41;
+    h = (h ^ (h >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    h = (h ^ (h >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    h ^= h >> 31;
+    (h >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
 }
 
 /// Asks for the cache line holding `x` (a hint; nothing on processors without the instruction).
@@ -438,7 +487,7 @@ fn merge(
         }
         let wo = z.outgoing();
         let pe_z = z.pdf_fwd() as f64;
-        map.query(z.position(), |ph| {
+        map.query(z.position(), |ph, scale| {
             let depth = ph.index + t as u32 - 2;
             if depth > max_depth {
                 return;
@@ -449,7 +498,8 @@ fn merge(
             }
             // The camera's density toward y_{i-1}, as its walk would sample it (roulette at z).
             let pdf_fwd = pdf_fwd * z.continuation();
-            let contribution = z.throughput() * f * ph.beta * norm;
+            // `scale` is 1 but where the query tested a sample of its photons: norm * 1 is norm.
+            let contribution = z.throughput() * f * ph.beta * (norm * scale);
             // Light side: m(1 / (eta pL_i)) S_i, S_i completed with pE_{i-1} from the camera's
             // direction.
             let light = ph.light_a + ph.light_b * m(pdf_fwd as f64);
@@ -599,7 +649,10 @@ mod tests {
         for q in map.photons.iter().step_by(7) {
             for c in [q.p, q.p + Vec3::new(0.03, -0.05, 0.02)] {
                 let mut found = Vec::new();
-                map.query(c, |p| found.push(key(p)));
+                map.query(c, |p, scale| {
+                    assert_eq!(scale, 1.0);
+                    found.push(key(p))
+                });
                 let mut brute: Vec<_> = map
                     .photons
                     .iter()
@@ -611,5 +664,51 @@ mod tests {
                 assert_eq!(found, brute);
             }
         }
+    }
+
+    /// A query among more photons than `MAX_MERGE_CANDIDATES` tests at most that many, and its
+    /// scaled sum keeps its expectation: averaged over queries (offsets), it equals the sum over
+    /// every photon within 4 standard errors.
+    #[test]
+    fn a_query_among_too_many_photons_is_bounded_and_unbiased() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes");
+        let mut scene = Scene::load(&dir.join("cornell-box.json")).expect("scene");
+        scene.camera = scene.camera.with_resolution(96, 96).expect("resolution");
+        // A radius beyond the room: every photon is a candidate of every query.
+        let settings = RenderSettings {
+            radius: 50.0,
+            ..Default::default()
+        };
+        let map = PhotonMap::build(&scene, &settings, 0);
+        assert!(
+            map.len() > 2 * MAX_MERGE_CANDIDATES,
+            "{} photons",
+            map.len()
+        );
+        let exact: f64 = map.photons.iter().map(|p| luminance(p.beta)).sum();
+        let center = Vec3::new(0.0, 1.0, 0.0);
+        let mut sums = Vec::new();
+        for k in 0..400 {
+            let q = center + Vec3::new(k as f32 * 1e-4, 0.0, 0.0);
+            let (mut tested, mut sum) = (0usize, 0.0f64);
+            map.query(q, |p, scale| {
+                tested += 1;
+                sum += luminance(p.beta) * scale as f64;
+            });
+            assert!(
+                tested <= MAX_MERGE_CANDIDATES + 1,
+                "{tested} photons tested"
+            );
+            sums.push(sum);
+        }
+        let n = sums.len() as f64;
+        let mean = sums.iter().sum::<f64>() / n;
+        let var = sums.iter().map(|s| (s - mean) * (s - mean)).sum::<f64>() / (n - 1.0);
+        let se = (var / n).sqrt();
+        assert!(
+            (mean - exact).abs() <= 4.0 * se + 1e-9 * exact,
+            "mean {mean} vs exact {exact} (se {se})"
+        );
+        assert!(se > 0.0, "the offsets differ from query to query");
     }
 }

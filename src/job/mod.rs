@@ -80,8 +80,8 @@ pub struct JobSettings {
     pub max_pass_size: u32,
     /// eps of relMSE = mean (I - R)^2 / (R^2 + eps).
     pub eps: f64,
-    /// VCM: initial merge radius in scene units; default: 0.003 times the scene's
-    /// bounding-sphere radius.
+    /// VCM: initial merge radius in scene units, at most the scene's bounding-sphere radius;
+    /// default: 0.003 times it.
     pub radius: Option<f64>,
     /// VCM: radius reduction exponent alpha in (0, 1]: r_i = r_0 (i + 1)^((alpha - 1) / 2).
     pub radius_alpha: f64,
@@ -531,6 +531,19 @@ impl JobSettings {
             .tile_size
             .unwrap_or_else(|| self.auto_tile_size(width, height));
         check_tiles(width, height, tile_size, limits)?;
+        if let Some(r) = self.radius {
+            let (lo, hi) = scene.bounds();
+            let bound = 0.5 * (hi - lo).length() as f64;
+            if bound.is_finite() && r > bound {
+                return Err(FieldError::new(
+                    "radius",
+                    format!(
+                        "{r} exceeds the scene's bounding-sphere radius {bound}: every photon \
+                         would merge with every camera vertex"
+                    ),
+                ));
+            }
+        }
         if scene.stats.triangles > limits.max_triangles {
             return Err(FieldError::new(
                 "scene",

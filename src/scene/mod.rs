@@ -500,6 +500,8 @@ impl SceneBuilder {
     }
 
     /// Adds a mesh transformed to world space. `location` names it in errors.
+    ///
+    /// Vertices must lie within `MAX_COORDINATE` of the origin.
     pub fn add_mesh(
         &mut self,
         mesh: &MeshData,
@@ -561,10 +563,13 @@ impl SceneBuilder {
             return Err(self.err(location, "material index out of range"));
         }
         let base = self.positions.len() as u32;
-        for &p in &mesh.positions {
+        for (i, &p) in mesh.positions.iter().enumerate() {
             let w = transform.point(p);
             if !w.is_finite() {
                 return Err(self.err(location, "transformed vertex is not finite"));
+            }
+            if !within_world(w) {
+                return Err(self.err(location, beyond_world(&format!("vertex {i}"), w)));
             }
             self.positions.push(w);
             self.normals.push(Vec3::ZERO);
@@ -630,6 +635,9 @@ impl SceneBuilder {
         if !(radius > 0.0 && radius.is_finite()) {
             return Err(self.err(location, format!("sphere radius must be > 0, got {radius}")));
         }
+        if !within_world(center.abs() + radius) {
+            return Err(self.err(location, beyond_world("the sphere", center.abs() + radius)));
+        }
         if let Some(e) = emission
             && !(e.is_finite() && e.min_element() >= 0.0)
         {
@@ -661,6 +669,9 @@ impl SceneBuilder {
     ) -> Result<(), SceneError> {
         if !position.is_finite() {
             return Err(self.err(location, "point light position is not finite"));
+        }
+        if !within_world(position) {
+            return Err(self.err(location, beyond_world("the point light", position)));
         }
         if !(intensity.is_finite() && intensity.min_element() >= 0.0) {
             return Err(self.err(location, "intensity must be finite and >= 0"));
@@ -722,9 +733,31 @@ impl SceneBuilder {
         let light_select = Distribution1D::new(&powers);
 
         let (tri_geom, sphere_geom) = primitives(&self.positions, &self.triangles, &self.spheres);
-        let accel = Accel::build(&tri_geom, &ids(&tri_geom), &sphere_geom, &ids(&sphere_geom));
-        let emitter_accel = (area_lights.len() > EMITTER_BVH_THRESHOLD)
-            .then(|| Accel::build(&emit_tris, &emit_tri_ids, &emit_spheres, &emit_sphere_ids));
+        // The builder (obvhs) asserts what it assumes of its input: whatever input passed the
+        // checks above and still trips it is refused, not a crash of the coordinator.
+        let build = |what: &str, f: &dyn Fn() -> Accel| {
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).map_err(|p| {
+                let why = p
+                    .downcast_ref::<String>()
+                    .map(String::as_str)
+                    .or_else(|| p.downcast_ref::<&str>().copied())
+                    .unwrap_or("a panic");
+                self.err(
+                    "shapes",
+                    format!("the {what} BVH could not be built: {why}"),
+                )
+            })
+        };
+        let accel = build("scene's", &|| {
+            Accel::build(&tri_geom, &ids(&tri_geom), &sphere_geom, &ids(&sphere_geom))
+        })?;
+        let emitter_accel = if area_lights.len() > EMITTER_BVH_THRESHOLD {
+            Some(build("emitters'", &|| {
+                Accel::build(&emit_tris, &emit_tri_ids, &emit_spheres, &emit_sphere_ids)
+            })?)
+        } else {
+            None
+        };
         let coplanar = coplanar_triangle_lights(&lights, &area_lights);
         let emitters_occlude = !coplanar;
         let one_emitter_per_ray = one_emitter_per_ray(&lights, &area_lights, coplanar);
@@ -847,4 +880,23 @@ fn coplanar_triangle_lights(lights: &[Light], area: &[u32]) -> bool {
         }
     }
     true
+}
+
+/// The largest magnitude of a world-space coordinate. Beyond it a float has less precision than
+/// a ray test needs (at 1e12 its step is 65536 units), and the BVH builder's surface areas
+/// (squares of extents) overflow to infinity, which it does not survive.
+pub const MAX_COORDINATE: f32 = 1e12;
+
+/// Whether every coordinate of `p` is within `MAX_COORDINATE` of the origin.
+fn within_world(p: Vec3) -> bool {
+    p.abs().max_element() <= MAX_COORDINATE
+}
+
+/// The error for `what` reaching `p`, beyond `MAX_COORDINATE`.
+fn beyond_world(what: &str, p: Vec3) -> String {
+    format!(
+        "{what} reaches {:?}, beyond the largest world coordinate {MAX_COORDINATE:e} (no ray \
+         test keeps its precision there; scale the scene down)",
+        p.to_array()
+    )
 }

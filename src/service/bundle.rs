@@ -65,61 +65,91 @@ fn entry_kind(kind: tar::EntryType) -> String {
     }
 }
 
-/// Unpacks a bundle into `dest` (which must not exist yet), refusing absolute paths, `..`,
-/// links, sparse and special files (anything but plain files and folders), more than
-/// `MAX_ENTRIES` entries and more than `max_bytes` of content. Returns the relative paths of
-/// the files.
-pub fn unpack(bytes: &[u8], dest: &Path, max_bytes: u64) -> Result<Vec<String>, String> {
+/// Why a bundle was not unpacked.
+#[derive(Debug, thiserror::Error)]
+pub enum BundleError {
+    /// The archive is malformed, or holds what a bundle may not (the message says what).
+    #[error("{0}")]
+    Invalid(String),
+    /// Writing a file failed (on `path`).
+    #[error("{path}: {source}")]
+    Disk {
+        /// The file or folder inside the bundle.
+        path: String,
+        /// The error of the file system.
+        source: std::io::Error,
+    },
+}
+
+/// Unpacks a bundle read from `bytes` into `dest` (which must not exist yet), refusing absolute
+/// paths, `..`, links, sparse and special files (anything but plain files and folders), more
+/// than `MAX_ENTRIES` entries and more than `max_bytes` of content. Files are copied as they are
+/// read, a buffer at a time. Returns the relative paths of the files.
+pub fn unpack(bytes: impl Read, dest: &Path, max_bytes: u64) -> Result<Vec<String>, BundleError> {
+    let invalid = BundleError::Invalid;
+    let disk = |path: &str, source| BundleError::Disk {
+        path: path.to_string(),
+        source,
+    };
     let mut archive = tar::Archive::new(bytes);
     let entries = archive
         .entries()
-        .map_err(|e| format!("not a tar archive: {e}"))?;
-    std::fs::create_dir_all(dest).map_err(|e| format!("{}: {e}", dest.display()))?;
+        .map_err(|e| invalid(format!("not a tar archive: {e}")))?;
+    std::fs::create_dir_all(dest).map_err(|e| disk(".", e))?;
     let mut total = 0u64;
     let mut files = Vec::new();
     for (n, entry) in entries.enumerate() {
         if n >= MAX_ENTRIES {
-            return Err(format!(
+            return Err(invalid(format!(
                 "the bundle has more than {MAX_ENTRIES} entries (files and folders)"
-            ));
+            )));
         }
-        let mut entry = entry.map_err(|e| format!("not a tar archive: {e}"))?;
+        let mut entry = entry.map_err(|e| invalid(format!("not a tar archive: {e}")))?;
         let path = entry
             .path()
-            .map_err(|e| format!("bad path in bundle: {e}"))?
+            .map_err(|e| invalid(format!("bad path in bundle: {e}")))?
             .into_owned();
         let shown = path.display().to_string();
         if path
             .components()
             .any(|c| !matches!(c, Component::Normal(_) | Component::CurDir))
         {
-            return Err(format!(
+            return Err(invalid(format!(
                 "'{shown}' in the bundle is not a relative path inside it"
-            ));
+            )));
         }
         let kind = entry.header().entry_type();
         if kind.is_dir() {
             continue;
         }
         if !kind.is_file() {
-            return Err(format!(
+            return Err(invalid(format!(
                 "'{shown}' in the bundle is {}, not a plain file",
                 entry_kind(kind)
-            ));
+            )));
         }
         total = total.saturating_add(entry.size());
         if total > max_bytes {
-            return Err(format!("the bundle's files exceed {max_bytes} bytes"));
+            return Err(invalid(format!(
+                "the bundle's files exceed {max_bytes} bytes"
+            )));
         }
         let target = dest.join(&path);
         if let Some(parent) = target.parent() {
-            std::fs::create_dir_all(parent).map_err(|e| format!("{shown}: {e}"))?;
+            std::fs::create_dir_all(parent).map_err(|e| disk(&shown, e))?;
         }
-        let mut data = Vec::with_capacity(entry.size() as usize);
-        entry
-            .read_to_end(&mut data)
-            .map_err(|e| format!("{shown}: {e}"))?;
-        std::fs::write(&target, &data).map_err(|e| format!("{shown}: {e}"))?;
+        let mut out = std::fs::File::create(&target).map_err(|e| disk(&shown, e))?;
+        // A short or damaged archive fails the read; the file system fails the write.
+        let mut buf = vec![0u8; 64 << 10];
+        loop {
+            let k = entry
+                .read(&mut buf)
+                .map_err(|e| invalid(format!("'{shown}' in the bundle cannot be read: {e}")))?;
+            if k == 0 {
+                break;
+            }
+            std::io::Write::write_all(&mut out, &buf[..k]).map_err(|e| disk(&shown, e))?;
+        }
         files.push(
             path.components()
                 .filter_map(|c| match c {
@@ -131,7 +161,7 @@ pub fn unpack(bytes: &[u8], dest: &Path, max_bytes: u64) -> Result<Vec<String>, 
         );
     }
     if files.is_empty() {
-        return Err("the bundle holds no files".into());
+        return Err(invalid("the bundle holds no files".into()));
     }
     Ok(files)
 }

@@ -68,7 +68,8 @@ pub(crate) fn runtime(app: &App, job: &JobRow) -> Result<Arc<Mutex<Runtime>>, St
     }
     let resolved = resolved_of(job)?;
     let reference = match &job.reference {
-        Some(r) => Some(exr_io::read_exr(std::path::Path::new(r))?),
+        // Its beauty alone, block by block: the job's frame, not every layer of the file.
+        Some(r) => Some(exr_io::read_exr_beauty(std::path::Path::new(r))?),
         None => None,
     };
     let rt = Arc::new(Mutex::new(Runtime {
@@ -148,7 +149,8 @@ fn plan_pass(
     let mut fitted = r.clone();
     let range = fitted.fit_to_budget(p, elapsed, done, seconds_per_spp);
     if fitted != *r {
-        let json = serde_json::to_string(&fitted).map_err(|e| store::StoreError(e.to_string()))?;
+        let json =
+            serde_json::to_string(&fitted).map_err(|e| store::StoreError::new(e.to_string()))?;
         if !app.db().set_job_resolved(&job.id, &json)? {
             return Ok(None);
         }
@@ -385,51 +387,68 @@ pub(crate) fn write_outputs(
     std::fs::rename(&tmp, app.paths.output(&job.id, "image.exr")).map_err(|e| e.to_string())
 }
 
-/// Records a failed attempt; after `MAX_FAILURES` the job fails with the worker's error.
+/// Records a failed attempt; after `MAX_FAILURES` failed or lost attempts the job fails with
+/// the worker's error. False when the attempt was not current.
 pub(crate) fn task_failed(
     app: &App,
     task: &TaskRow,
     worker: &str,
     error: &str,
 ) -> Result<bool, String> {
-    let failures = app
+    let failure = app
         .db()
         .fail(task.id, task.attempt, worker, error)
         .map_err(|e| e.to_string())?;
-    let Some(failures) = failures else {
-        return Ok(false);
-    };
+    match failure {
+        Some(f) => {
+            after_failure(app, &f);
+            Ok(true)
+        }
+        None => Ok(false),
+    }
+}
+
+/// What follows a failed or lost attempt (recorded by the store): its event, and the job's
+/// failure once the task has failed `MAX_FAILURES` times.
+fn after_failure(app: &App, f: &store::Failure) {
+    let task = &f.task;
+    let lost = f.outcome == store::Outcome::Lost;
     app.event(
         &task.job_id,
         JobEvent::TaskFailed(TaskFailedEvent {
             pass: task.pass,
             tile: task.tile,
-            worker: worker.to_string(),
-            error: error.to_string(),
-            failures,
+            worker: f.worker.clone(),
+            error: f.error.clone(),
+            failures: f.failures,
+            lost,
         }),
     );
-    if failures >= MAX_FAILURES {
-        let what = match task.kind {
-            TaskKind::Render => format!("tile {}", task.tile),
-            TaskKind::Merge => format!("the merge of bands {:?}", task.bands()),
+    if f.failures >= MAX_FAILURES {
+        let lost = match f.lost {
+            0 => String::new(),
+            n => format!(" (worker lost {n} times)"),
         };
         let msg = format!(
-            "{what} of pass {} failed {failures} times; last error (worker {worker}): {error}",
-            task.pass
+            "{} of pass {} failed {} times{lost}; last error (worker {}): {}",
+            task_name(task),
+            task.pass,
+            f.failures,
+            f.worker,
+            f.error
         );
-        let ended = app
-            .db()
-            .set_job_state(&task.job_id, JobState::Failed, Some(&msg))
-            .map_err(|e| e.to_string())?;
-        if ended {
-            app.event(&task.job_id, JobEvent::Failed(FailedEvent { error: msg }));
-        }
-        drop_runtime(app, &task.job_id);
+        fail_job(app, &task.job_id, &msg);
     } else {
         app.work.notify_waiters();
     }
-    Ok(true)
+}
+
+/// A task in words: its tile, or a merge's bands.
+fn task_name(task: &TaskRow) -> String {
+    match task.kind {
+        TaskKind::Render => format!("tile {}", task.tile),
+        TaskKind::Merge => format!("the merge of bands {:?}", task.bands()),
+    }
 }
 
 /// Cancels a job that has not ended; false when it had.
@@ -529,22 +548,81 @@ fn reconcile(app: &App, id: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Every second: requeue expired leases, mark silent workers gone.
+/// How often the reaper looks for tasks no worker may take any more.
+const STRANDED_CHECK: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Twice a second: requeue expired leases (each a lost attempt of its worker), mark silent
+/// workers gone; every `STRANDED_CHECK`, fail the jobs of tasks that no live worker may take
+/// any more (each failed them or is blocklisted) for longer than a lease.
 pub(crate) async fn reaper(app: Arc<App>) {
     let mut tick = tokio::time::interval(std::time::Duration::from_millis(500));
+    let mut stranded_since: std::collections::HashMap<i64, std::time::Instant> =
+        std::collections::HashMap::new();
+    let mut last_check = std::time::Instant::now();
     loop {
         tick.tick().await;
-        let (expired, _) = {
-            let db = app.db();
-            (
-                db.expire_leases().unwrap_or(0),
-                db.mark_gone(app.cfg.lease_s * 2.0).unwrap_or(0),
-            )
-        };
-        if expired > 0 {
-            tracing::warn!("{expired} lease(s) expired; tasks requeued");
-            super::Metrics::add(&app.metrics.leases_expired, expired as u64);
+        let a = app.clone();
+        let lost = tokio::task::spawn_blocking(move || {
+            let lost = {
+                let db = a.db();
+                let lost = db.expire_leases();
+                let _ = db.mark_gone(a.cfg.lease_s * 2.0);
+                lost
+            };
+            match lost {
+                Ok(lost) => {
+                    for f in &lost {
+                        after_failure(&a, f);
+                    }
+                    lost.len()
+                }
+                Err(e) => {
+                    tracing::error!("cannot expire leases: {e}");
+                    0
+                }
+            }
+        })
+        .await
+        .unwrap_or(0);
+        if lost > 0 {
+            tracing::warn!("{lost} lease(s) expired; tasks requeued, each a lost attempt");
+            super::Metrics::add(&app.metrics.leases_expired, lost as u64);
             app.work.notify_waiters();
+        }
+        if last_check.elapsed() < STRANDED_CHECK {
+            continue;
+        }
+        last_check = std::time::Instant::now();
+        let stranded = app.db().stranded_tasks(app.cfg.lease_s * 2.0);
+        let stranded = match stranded {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::error!("cannot look for stranded tasks: {e}");
+                continue;
+            }
+        };
+        let now = std::time::Instant::now();
+        stranded_since.retain(|id, _| stranded.iter().any(|t| t.id == *id));
+        for task in stranded {
+            let since = *stranded_since.entry(task.id).or_insert(now);
+            if now.duration_since(since).as_secs_f64() < app.cfg.lease_s {
+                continue;
+            }
+            let msg = format!(
+                "{} of pass {} failed on every live worker, and each is kept from it (a task \
+                 is not given again to a worker that failed it); last error: {}",
+                task_name(&task),
+                task.pass,
+                app.db()
+                    .last_error(task.id)
+                    .ok()
+                    .flatten()
+                    .unwrap_or_else(|| "unknown".into())
+            );
+            let a = app.clone();
+            let job = task.job_id.clone();
+            let _ = tokio::task::spawn_blocking(move || fail_job(&a, &job, &msg)).await;
+            stranded_since.remove(&task.id);
         }
     }
 }

@@ -11,7 +11,9 @@ pub(crate) mod log_file;
 pub(crate) mod merge;
 pub(crate) mod pool;
 pub mod protocol;
+pub(crate) mod server;
 pub(crate) mod store;
+pub(crate) mod upload;
 pub(crate) mod web;
 
 use crate::job::Limits;
@@ -29,6 +31,8 @@ use tokio::sync::{Notify, broadcast};
 pub(crate) struct Config {
     /// Address to listen on (port 0: any free port).
     pub bind: SocketAddr,
+    /// Begin a new database although the data folder holds jobs or scenes of an earlier one.
+    pub init: bool,
     /// Folder of the database, task results and outputs.
     pub data: PathBuf,
     /// The scene library: jobs may name a scene file in this folder.
@@ -49,6 +53,14 @@ pub(crate) struct Config {
     pub limits: Limits,
     /// Largest request body (bundle, reference, task result).
     pub max_upload_bytes: u64,
+    /// Largest JSON request body (a job with an inline scene, the worker protocol's messages).
+    pub max_json_bytes: u64,
+    /// Connections: the cap, timeouts, the slowest body (`server`).
+    pub server: server::ServerConfig,
+    /// Requests of the client routes in flight at once (an event stream counts while open).
+    pub max_client_requests: usize,
+    /// Requests of the worker routes in flight at once (a lease's long poll counts).
+    pub max_worker_requests: usize,
     /// OMIS_LOG of local workers (None: inherit).
     pub worker_log: Option<String>,
     /// Tile accumulators one merge task holds at most, and the coordinator when it reads
@@ -63,8 +75,13 @@ pub(crate) struct Config {
 
 /// Bytes of free upload and merge-input buffers the coordinator keeps for reuse.
 const KEPT_BUFFER_BYTES: usize = 128 << 20;
+/// Uploads checked at once (`App::validations`).
+pub(crate) const VALIDATIONS: usize = 2;
 /// Merge outputs read and accepted at once (`App::merge_bodies`).
 const MERGE_BODIES: usize = 2;
+
+/// Default of `Config::max_json_bytes`: an inline scene of a few hundred thousand triangles.
+pub const DEFAULT_MAX_JSON_BYTES: u64 = 32 << 20;
 
 /// Default of `Config::exr_interval_s`.
 pub const DEFAULT_EXR_INTERVAL_S: f64 = 30.0;
@@ -75,6 +92,7 @@ impl Config {
     pub fn new(bind: SocketAddr, data: PathBuf) -> Config {
         Config {
             bind,
+            init: false,
             data,
             library: None,
             client_token: None,
@@ -85,6 +103,10 @@ impl Config {
             max_lease_wait_s: 30.0,
             limits: Limits::default(),
             max_upload_bytes: 1 << 30,
+            max_json_bytes: DEFAULT_MAX_JSON_BYTES,
+            server: server::ServerConfig::default(),
+            max_client_requests: 512,
+            max_worker_requests: 1024,
             worker_log: None,
             merge_memory_bytes: 256 << 20,
             exr_interval_s: DEFAULT_EXR_INTERVAL_S,
@@ -141,12 +163,30 @@ pub(crate) struct App {
     pub result_logs: store::ResultLogs,
     /// Reused buffers for uploads and merge inputs (`buffers`).
     pub buffers: Arc<buffers::Buffers>,
+    /// Client requests in flight (`Config::max_client_requests`).
+    pub client_requests: Arc<tokio::sync::Semaphore>,
+    /// Worker requests in flight (`Config::max_worker_requests`).
+    pub worker_requests: Arc<tokio::sync::Semaphore>,
+    /// The HTTP server's connection counters.
+    pub server: Arc<server::ServerStats>,
+    /// Uploads checked at once (a scene loaded, a reference read): each takes memory in
+    /// proportion to what it checks, so their number bounds the coordinator's peak.
+    pub validations: Arc<tokio::sync::Semaphore>,
 }
 
 impl App {
     /// Locks the store (a panic while holding it cannot leave SQLite inconsistent).
     pub fn db(&self) -> std::sync::MutexGuard<'_, Box<dyn JobStore>> {
         self.store.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// A turn to check an upload (`validations`), waited for.
+    pub async fn validation(&self) -> Result<tokio::sync::OwnedSemaphorePermit, api::ApiError> {
+        self.validations
+            .clone()
+            .acquire_owned()
+            .await
+            .map_err(api::ApiError::internal)
     }
 
     /// Whether recovery has yet to reconcile job `id`.
@@ -238,8 +278,27 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
             .canonicalize()
             .with_context(|| format!("{}", cfg.data.display()))?,
     };
-    let store = SqliteStore::open(&paths.db())
-        .with_context(|| format!("cannot open the database {}", paths.db().display()))?;
+    let db = paths.db();
+    let db_empty = std::fs::metadata(&db).map_or(true, |m| m.len() == 0);
+    if db_empty && !cfg.init && paths.holds_jobs_or_scenes() {
+        anyhow::bail!(
+            "the database {} is missing or empty, but {} holds the jobs and scenes of an earlier \
+             one: restore the database, or start with --init to begin a new one (the jobs and \
+             scenes beside it are then not recovered)",
+            db.display(),
+            paths.root.display()
+        );
+    }
+    let store = SqliteStore::open(&db).with_context(|| {
+        format!(
+            "cannot open the database {}: restore it from a backup, or move it away and start \
+             with --init",
+            db.display()
+        )
+    })?;
+    // Leases are the workers' to renew: after a stop, they get a lease's time to report back
+    // before their tasks count as lost.
+    store.extend_all_leases(cfg.lease_s)?;
     let listener = tokio::net::TcpListener::bind(cfg.bind)
         .await
         .with_context(|| format!("cannot bind {}", cfg.bind))?;
@@ -263,6 +322,10 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
         merge_bodies: tokio::sync::Semaphore::new(MERGE_BODIES),
         result_logs: store::ResultLogs::default(),
         buffers: Arc::new(buffers::Buffers::new(KEPT_BUFFER_BYTES)),
+        client_requests: Arc::new(tokio::sync::Semaphore::new(cfg.max_client_requests.max(1))),
+        worker_requests: Arc::new(tokio::sync::Semaphore::new(cfg.max_worker_requests.max(1))),
+        server: Arc::new(server::ServerStats::default()),
+        validations: Arc::new(tokio::sync::Semaphore::new(VALIDATIONS)),
     });
     if cfg.client_token.is_none() && cfg.worker_token.is_none() {
         tracing::warn!("no tokens given: serving {addr} (loopback only) without authentication");
@@ -276,13 +339,12 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
     tokio::spawn(jobs::recover(app.clone()));
     let router = api::router(app.clone());
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    let (server_cfg, stats) = (cfg.server.clone(), app.server.clone());
     let server = tokio::spawn(async move {
-        let serve = axum::serve(listener, router).with_graceful_shutdown(async move {
+        server::serve(listener, router, server_cfg, stats, async move {
             let _ = rx.await;
-        });
-        if let Err(e) = serve.await {
-            tracing::error!("server error: {e}");
-        }
+        })
+        .await;
     });
     tokio::spawn(jobs::reaper(app.clone()));
     let pool = (cfg.workers > 0).then(|| pool::Pool::spawn(app.clone(), &url));

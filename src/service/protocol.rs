@@ -226,8 +226,12 @@ pub struct TaskFailedEvent {
     pub worker: String,
     /// What went wrong.
     pub error: String,
-    /// Failed attempts of the task so far.
+    /// Failed and lost attempts of the task so far.
     pub failures: u32,
+    /// Whether this attempt was lost (its worker went silent and the lease expired) rather
+    /// than reported failed.
+    #[serde(default)]
+    pub lost: bool,
 }
 
 /// `done` (terminal): the job finished.
@@ -338,8 +342,9 @@ pub enum SceneSource {
     Library(String),
     /// A bundle uploaded with POST /v1/scenes.
     Bundle(String),
-    /// A scene in omis's JSON format, inline (meshes inline too).
-    Inline(serde_json::Value),
+    /// A scene in omis's JSON format, inline (meshes inline too): kept as the text sent, not a
+    /// tree of values (which takes tens of times the text's memory).
+    Inline(Box<serde_json::value::RawValue>),
 }
 
 /// A job's reference image: exactly one of `upload` or `job`.
@@ -567,6 +572,13 @@ pub struct WorkerInfo {
     pub state: WorkerState,
     /// Tasks whose result it delivered.
     pub tasks_done: i64,
+    /// Why it leases no task (it failed tasks of several jobs since its last result), or null
+    /// when it is healthy.
+    #[serde(default)]
+    pub unhealthy: Option<String>,
+    /// Jobs that give it no task any more: it failed several of their tasks.
+    #[serde(default)]
+    pub blocklisted_jobs: Vec<String>,
     /// The tasks it holds a lease on now.
     #[serde(default)]
     pub tasks: Vec<WorkerTask>,

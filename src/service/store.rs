@@ -62,6 +62,12 @@ impl Paths {
     pub fn reference(&self, id: &str) -> PathBuf {
         self.root.join("references").join(format!("{id}.exr"))
     }
+    /// Whether the folder holds jobs or scenes (of an earlier database).
+    pub fn holds_jobs_or_scenes(&self) -> bool {
+        ["jobs", "scenes"].iter().any(|d| {
+            std::fs::read_dir(self.root.join(d)).is_ok_and(|mut entries| entries.next().is_some())
+        })
+    }
 }
 
 /// Writes `bytes` to `path` atomically (temporary file, fsync, rename).
@@ -523,12 +529,29 @@ fn insert_event(
 
 /// A store's error, whatever the engine.
 #[derive(Debug, thiserror::Error)]
-#[error("{0}")]
-pub(crate) struct StoreError(pub String);
+#[error("{message}")]
+pub(crate) struct StoreError {
+    pub message: String,
+    /// The disk holding the store is full (the API answers 507).
+    pub disk_full: bool,
+}
+
+impl StoreError {
+    /// An error of the store's own making.
+    pub fn new(message: impl Into<String>) -> StoreError {
+        StoreError {
+            message: message.into(),
+            disk_full: false,
+        }
+    }
+}
 
 impl From<rusqlite::Error> for StoreError {
     fn from(e: rusqlite::Error) -> Self {
-        StoreError(e.to_string())
+        StoreError {
+            disk_full: e.sqlite_error_code() == Some(rusqlite::ErrorCode::DiskFull),
+            message: e.to_string(),
+        }
     }
 }
 
@@ -556,9 +579,185 @@ const T_DONE: TaskState = TaskState::Done;
 const K_RENDER: TaskKind = TaskKind::Render;
 const K_MERGE: TaskKind = TaskKind::Merge;
 
-/// The first queued task of a job (`lease`): merges first, then passes and tiles in order.
+/// The first queued task of a job (`lease`) that worker ?3 has not failed: merges first, then
+/// passes and tiles in order.
 const NEXT_QUEUED: &str = "SELECT id FROM tasks WHERE state = ?1 AND job_id = ?2 \
+     AND NOT EXISTS (SELECT 1 FROM failures f WHERE f.task_id = tasks.id AND f.worker_id = ?3) \
      ORDER BY kind, pass, tile LIMIT 1";
+
+/// Failed tasks of one job (distinct) after which a worker gets none of its tasks any more
+/// (Flamenco's blocklist threshold).
+pub(crate) const BLOCKLIST_AFTER: i64 = 3;
+/// Jobs whose tasks a worker failed since its last delivered result after which it is marked
+/// unhealthy and leases nothing until it registers again.
+pub(crate) const UNHEALTHY_AFTER_JOBS: i64 = 3;
+
+/// A failed or lost attempt, as [`JobStore::fail`] and [`JobStore::expire_leases`] record it.
+#[derive(Clone, Debug)]
+pub(crate) struct Failure {
+    /// The task, as it was when the attempt ended.
+    pub task: TaskRow,
+    /// The worker that held it.
+    pub worker: String,
+    /// Failed and lost attempts of the task so far, this one included.
+    pub failures: u32,
+    /// Lost attempts of the task so far (leases that expired), this one included if lost.
+    pub lost: u32,
+    /// What went wrong.
+    pub error: String,
+    /// How the attempt ended.
+    pub outcome: Outcome,
+}
+
+/// How an attempt ended without a result.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Outcome {
+    /// The worker reported an error (or its result was refused).
+    Failed,
+    /// The worker went silent: its lease expired.
+    Lost,
+}
+
+impl Outcome {
+    fn as_str(self) -> &'static str {
+        match self {
+            Outcome::Failed => "failed",
+            Outcome::Lost => "lost",
+        }
+    }
+}
+
+/// The migrations after the base schema, in order: `PRAGMA user_version` counts those applied.
+/// A database from a newer omis (a higher version) is refused.
+const MIGRATIONS: &[&str] = &[
+    // 1: failed and lost attempts (what keeps a task from a worker that failed it), per-job
+    // blocklists, and a worker's health.
+    "CREATE TABLE failures (
+       task_id INTEGER NOT NULL,
+       attempt INTEGER NOT NULL,
+       job_id TEXT NOT NULL,
+       worker_id TEXT NOT NULL,
+       outcome TEXT NOT NULL,
+       error TEXT NOT NULL,
+       at REAL NOT NULL,
+       PRIMARY KEY (task_id, attempt)
+     );
+     CREATE INDEX failures_worker ON failures (worker_id, task_id);
+     CREATE INDEX failures_job ON failures (job_id, worker_id);
+     CREATE TABLE blocklist (
+       job_id TEXT NOT NULL,
+       worker_id TEXT NOT NULL,
+       since REAL NOT NULL,
+       reason TEXT NOT NULL,
+       PRIMARY KEY (job_id, worker_id)
+     );
+     ALTER TABLE workers ADD COLUMN unhealthy TEXT;
+     ALTER TABLE workers ADD COLUMN last_done_at REAL;",
+];
+
+/// Records attempt `task.attempt` of `task` as `outcome` on `worker` and requeues the task; then
+/// blocklists the worker for the job after `BLOCKLIST_AFTER` failed tasks of it, and marks it
+/// unhealthy after failures in `UNHEALTHY_AFTER_JOBS` jobs since its last result. Runs inside
+/// the caller's transaction.
+fn record_failure(
+    conn: &Connection,
+    task: &TaskRow,
+    worker: &str,
+    outcome: Outcome,
+    error: &str,
+) -> StoreResult<Failure> {
+    let t = now();
+    cached_exec(
+        conn,
+        "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL, \
+         failures = failures + 1, last_error = ?3 WHERE id = ?1",
+        params![task.id, T_QUEUED, error],
+    )?;
+    cached_exec(
+        conn,
+        "INSERT OR REPLACE INTO failures (task_id, attempt, job_id, worker_id, outcome, error, at) \
+         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+        params![
+            task.id,
+            task.attempt,
+            task.job_id,
+            worker,
+            outcome.as_str(),
+            error,
+            t
+        ],
+    )?;
+    let (failures, lost): (u32, u32) = cached_row(
+        conn,
+        "SELECT (SELECT failures FROM tasks WHERE id = ?1), \
+         (SELECT COUNT(*) FROM failures WHERE task_id = ?1 AND outcome = 'lost')",
+        [task.id],
+        |r| Ok((r.get(0)?, r.get(1)?)),
+    )?;
+    let failed_tasks: i64 = cached_row(
+        conn,
+        "SELECT COUNT(DISTINCT task_id) FROM failures WHERE job_id = ?1 AND worker_id = ?2",
+        params![task.job_id, worker],
+        |r| r.get(0),
+    )?;
+    if failed_tasks >= BLOCKLIST_AFTER {
+        cached_exec(
+            conn,
+            "INSERT OR IGNORE INTO blocklist (job_id, worker_id, since, reason) \
+             VALUES (?1, ?2, ?3, ?4)",
+            params![
+                task.job_id,
+                worker,
+                t,
+                format!("failed {failed_tasks} tasks of the job; last: {error}")
+            ],
+        )?;
+    }
+    let failed_jobs: i64 = cached_row(
+        conn,
+        "SELECT COUNT(DISTINCT job_id) FROM failures WHERE worker_id = ?1 \
+         AND at > COALESCE((SELECT last_done_at FROM workers WHERE id = ?1), 0)",
+        [worker],
+        |r| r.get(0),
+    )?;
+    if failed_jobs >= UNHEALTHY_AFTER_JOBS {
+        cached_exec(
+            conn,
+            "UPDATE workers SET unhealthy = ?2 WHERE id = ?1 AND unhealthy IS NULL",
+            params![
+                worker,
+                format!("failed tasks of {failed_jobs} jobs since its last result; last: {error}")
+            ],
+        )?;
+    }
+    Ok(Failure {
+        task: task.clone(),
+        worker: worker.to_string(),
+        failures,
+        lost,
+        error: error.to_string(),
+        outcome,
+    })
+}
+
+/// Applies the migrations `conn` has not had, each in its own transaction.
+fn migrate(conn: &Connection) -> StoreResult<()> {
+    let have: i64 = conn.query_row("PRAGMA user_version", [], |r| r.get(0))?;
+    let known = MIGRATIONS.len() as i64;
+    if have > known {
+        return Err(StoreError::new(format!(
+            "the database has schema version {have}, newer than this omis knows ({known}); \
+             run the omis that wrote it"
+        )));
+    }
+    for (k, m) in MIGRATIONS.iter().enumerate().skip(have.max(0) as usize) {
+        conn.execute_batch(&format!(
+            "BEGIN; {m}; PRAGMA user_version = {}; COMMIT;",
+            k + 1
+        ))?;
+    }
+    Ok(())
+}
 
 /// The queries the coordinator makes of its job store: jobs, their tasks pass by pass,
 /// leases, workers, the relMSE series and the event log. SQLite (`SqliteStore`) is the embedded
@@ -655,17 +854,29 @@ pub(crate) trait JobStore: Send {
         stored: std::ops::Range<u64>,
         event: (EventKind, &serde_json::Value),
     ) -> StoreResult<Option<Completed>>;
-    /// Records a failed attempt and requeues the task; returns the failures so far, or None when
-    /// the attempt was not current.
+    /// Records a failed attempt and requeues the task (which `worker` is not given again; after
+    /// `BLOCKLIST_AFTER` failed tasks of the job, none of the job's tasks; after failures in
+    /// `UNHEALTHY_AFTER_JOBS` jobs since its last result, no task at all: it is marked
+    /// unhealthy). None when the attempt was not current.
     fn fail(
         &self,
         task_id: i64,
         attempt: u32,
         worker: &str,
         error: &str,
-    ) -> StoreResult<Option<u32>>;
-    /// Requeues every lease that expired; returns how many.
-    fn expire_leases(&self) -> StoreResult<usize>;
+    ) -> StoreResult<Option<Failure>>;
+    /// Requeues every lease that expired, each recorded as a lost attempt of its worker with the
+    /// consequences `fail` has.
+    fn expire_leases(&self) -> StoreResult<Vec<Failure>>;
+    /// Gives every lease `lease_s` from now: a restarted coordinator's workers have that long to
+    /// report back before their leases count as lost.
+    fn extend_all_leases(&self, lease_s: f64) -> StoreResult<usize>;
+    /// Queued tasks that have failed, of active jobs, that no live healthy worker may take (each
+    /// failed it or is blocklisted for its job), while a live healthy worker (heard from within
+    /// `silent_s`) exists.
+    fn stranded_tasks(&self, silent_s: f64) -> StoreResult<Vec<TaskRow>>;
+    /// The error of a task's last failed or lost attempt.
+    fn last_error(&self, task_id: i64) -> StoreResult<Option<String>>;
     /// Registers a worker, or refreshes one that registers again with its id; it is `idle`.
     fn register_worker(&self, id: &str, name: &str, threads: u32, version: &str)
     -> StoreResult<()>;
@@ -691,9 +902,27 @@ pub(crate) trait JobStore: Send {
 
 impl SqliteStore {
     /// Opens (creating if needed) the database at `path`.
-    pub fn open(path: &Path) -> rusqlite::Result<SqliteStore> {
+    pub fn open(path: &Path) -> StoreResult<SqliteStore> {
         let conn = Connection::open(path)?;
         conn.busy_timeout(std::time::Duration::from_secs(10))?;
+        // A damaged file is refused before anything is written to it: a coordinator that
+        // started on it would accept jobs it cannot record.
+        let problems: Vec<String> = {
+            let mut st = conn.prepare("PRAGMA quick_check")?;
+            st.query_map([], |r| r.get(0))?
+                .collect::<rusqlite::Result<_>>()?
+        };
+        if problems != ["ok"] {
+            return Err(StoreError::new(format!(
+                "the database is damaged (SQLite's quick_check: {})",
+                problems
+                    .iter()
+                    .take(5)
+                    .cloned()
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            )));
+        }
         // Every query of the store is a cached statement (parsed once, not per result).
         conn.set_prepared_statement_cache_capacity(64);
         // And kept: without the query planner stability guarantee, SQLite (built with STAT4)
@@ -725,6 +954,7 @@ impl SqliteStore {
             ))?;
         }
         conn.execute_batch(TASKS_TABLE)?;
+        migrate(&conn)?;
         Ok(SqliteStore { conn })
     }
 }
@@ -941,6 +1171,13 @@ impl JobStore for SqliteStore {
              WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 AND state = ?5 AND kind = ?6",
             params![task_id, attempt, worker, T_DONE, T_LEASED, K_MERGE],
         )?;
+        if n == 1 {
+            cached_exec(
+                &self.conn,
+                "UPDATE workers SET last_done_at = ?2 WHERE id = ?1",
+                params![worker, now()],
+            )?;
+        }
         Ok(n == 1)
     }
     fn last_tile(&self, id: &str, pass: u32) -> StoreResult<Option<u32>> {
@@ -1010,19 +1247,33 @@ impl JobStore for SqliteStore {
     }
     fn lease(&self, worker: &str, lease_s: f64) -> StoreResult<Option<TaskRow>> {
         let tx = self.conn.unchecked_transaction()?;
+        let unhealthy: Option<String> = cached_row(
+            &tx,
+            "SELECT unhealthy FROM workers WHERE id = ?1",
+            [worker],
+            |r| r.get(0),
+        )
+        .optional()?
+        .flatten();
+        if unhealthy.is_some() {
+            return Ok(None);
+        }
         // Job by job (few), each an index lookup of (state, job, pass, tile): no sort of the
         // queue, however many tasks it holds.
         let jobs: Vec<String> = {
-            let mut st =
-                tx.prepare_cached("SELECT id FROM jobs WHERE state IN (?1, ?2) ORDER BY seq")?;
-            st.query_map(params![J_QUEUED, J_RUNNING], |r| r.get(0))?
+            let mut st = tx.prepare_cached(
+                "SELECT id FROM jobs WHERE state IN (?1, ?2) AND NOT EXISTS \
+                 (SELECT 1 FROM blocklist b WHERE b.job_id = jobs.id AND b.worker_id = ?3) \
+                 ORDER BY seq",
+            )?;
+            st.query_map(params![J_QUEUED, J_RUNNING, worker], |r| r.get(0))?
                 .collect::<rusqlite::Result<_>>()?
         };
         let mut id: Option<i64> = None;
         for job in &jobs {
             id = tx
                 .prepare_cached(NEXT_QUEUED)?
-                .query_row(params![T_QUEUED, job], |r| r.get(0))
+                .query_row(params![T_QUEUED, job, worker], |r| r.get(0))
                 .optional()?;
             if id.is_some() {
                 break;
@@ -1106,8 +1357,8 @@ impl JobStore for SqliteStore {
             )?;
             cached_exec(
                 &tx,
-                "UPDATE workers SET tasks_done = tasks_done + 1 WHERE id = ?1",
-                [worker],
+                "UPDATE workers SET tasks_done = tasks_done + 1, last_done_at = ?2 WHERE id = ?1",
+                params![worker, now()],
             )?;
         }
         if n != 1 {
@@ -1124,34 +1375,85 @@ impl JobStore for SqliteStore {
         attempt: u32,
         worker: &str,
         error: &str,
-    ) -> StoreResult<Option<u32>> {
-        let n = cached_exec(
-            &self.conn,
-            "UPDATE tasks SET state = ?5, worker_id = NULL, lease_expires = NULL, \
-             failures = failures + 1, last_error = ?4 WHERE id = ?1 AND attempt = ?2 \
-             AND worker_id = ?3 AND state = ?6",
-            params![task_id, attempt, worker, error, T_QUEUED, T_LEASED],
-        )?;
-        if n == 0 {
+    ) -> StoreResult<Option<Failure>> {
+        let tx = self.conn.unchecked_transaction()?;
+        let task = cached_row(
+            &tx,
+            &format!(
+                "SELECT {TASK_COLS} FROM tasks WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 \
+                 AND state = ?4"
+            ),
+            params![task_id, attempt, worker, T_LEASED],
+            task_row,
+        )
+        .optional()?;
+        let Some(task) = task else {
             return Ok(None);
+        };
+        let f = record_failure(&tx, &task, worker, Outcome::Failed, error)?;
+        tx.commit()?;
+        Ok(Some(f))
+    }
+    fn expire_leases(&self) -> StoreResult<Vec<Failure>> {
+        let tx = self.conn.unchecked_transaction()?;
+        let expired: Vec<TaskRow> = {
+            let mut st = tx.prepare_cached(&format!(
+                "SELECT {TASK_COLS} FROM tasks WHERE state = ?2 AND lease_expires < ?1"
+            ))?;
+            st.query_map(params![now(), T_LEASED], task_row)?
+                .collect::<rusqlite::Result<_>>()?
+        };
+        let mut lost = Vec::with_capacity(expired.len());
+        for task in &expired {
+            let worker = task.worker_id.clone().unwrap_or_default();
+            let error = format!("worker {worker} went silent: its lease expired");
+            lost.push(record_failure(&tx, task, &worker, Outcome::Lost, &error)?);
         }
-        cached_row(
+        tx.commit()?;
+        Ok(lost)
+    }
+    fn extend_all_leases(&self, lease_s: f64) -> StoreResult<usize> {
+        Ok(self.conn.execute(
+            "UPDATE tasks SET lease_expires = ?1 WHERE state = ?2",
+            params![now() + lease_s, T_LEASED],
+        )?)
+    }
+    fn last_error(&self, task_id: i64) -> StoreResult<Option<String>> {
+        Ok(cached_row(
             &self.conn,
-            "SELECT failures FROM tasks WHERE id = ?1",
+            "SELECT last_error FROM tasks WHERE id = ?1",
             [task_id],
             |r| r.get(0),
         )
-        .map(Some)
-        .map_err(StoreError::from)
+        .optional()?
+        .flatten())
     }
-    fn expire_leases(&self) -> StoreResult<usize> {
-        self.conn
-            .execute(
-                "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL \
-             WHERE state = ?3 AND lease_expires < ?1",
-                params![now(), T_QUEUED, T_LEASED],
-            )
-            .map_err(StoreError::from)
+    fn stranded_tasks(&self, silent_s: f64) -> StoreResult<Vec<TaskRow>> {
+        let live = "w.state NOT IN (?2, ?3) AND w.last_seen >= ?4 AND w.unhealthy IS NULL";
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {TASK_COLS} FROM tasks WHERE state = ?1 \
+             AND id IN (SELECT task_id FROM failures) \
+             AND job_id IN (SELECT id FROM jobs WHERE state IN (?5, ?6)) \
+             AND EXISTS (SELECT 1 FROM workers w WHERE {live}) \
+             AND NOT EXISTS (SELECT 1 FROM workers w WHERE {live} \
+               AND NOT EXISTS (SELECT 1 FROM failures f \
+                 WHERE f.task_id = tasks.id AND f.worker_id = w.id) \
+               AND NOT EXISTS (SELECT 1 FROM blocklist b \
+                 WHERE b.job_id = tasks.job_id AND b.worker_id = w.id))"
+        ))?;
+        st.query_map(
+            params![
+                T_QUEUED,
+                WorkerState::Gone,
+                WorkerState::Left,
+                now() - silent_s,
+                J_QUEUED,
+                J_RUNNING
+            ],
+            task_row,
+        )?
+        .collect::<rusqlite::Result<_>>()
+        .map_err(StoreError::from)
     }
     fn register_worker(
         &self,
@@ -1210,14 +1512,24 @@ impl JobStore for SqliteStore {
             let (worker, task) = row?;
             held.entry(worker).or_default().push(task);
         }
+        let mut blocked: HashMap<String, Vec<String>> = HashMap::new();
+        let mut st = self
+            .conn
+            .prepare_cached("SELECT worker_id, job_id FROM blocklist ORDER BY since")?;
+        for row in st.query_map([], |r| Ok((r.get::<_, String>(0)?, r.get::<_, String>(1)?)))? {
+            let (worker, job) = row?;
+            blocked.entry(worker).or_default().push(job);
+        }
         let mut st = self.conn.prepare_cached(
-            "SELECT id, name, threads, version, registered_at, last_seen, state, tasks_done \
-             FROM workers ORDER BY registered_at",
+            "SELECT id, name, threads, version, registered_at, last_seen, state, tasks_done, \
+             unhealthy FROM workers ORDER BY registered_at",
         )?;
         st.query_map([], |r| {
             let id: String = r.get(0)?;
             Ok(WorkerInfo {
                 tasks: held.remove(&id).unwrap_or_default(),
+                blocklisted_jobs: blocked.remove(&id).unwrap_or_default(),
+                unhealthy: r.get(8)?,
                 id,
                 name: r.get(1)?,
                 threads: r.get(2)?,
@@ -1413,6 +1725,58 @@ mod tests {
         );
         drop(st);
         drop(db);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A database of every older schema version opens and is migrated to the current one with
+    /// its rows; one of a newer version is refused; a damaged one too.
+    #[test]
+    fn older_schemas_are_migrated_and_newer_or_damaged_ones_refused() {
+        let dir = std::env::temp_dir().join(format!("omis-store-{}", uuid::Uuid::new_v4()));
+        std::fs::create_dir_all(&dir).expect("temporary folder");
+        for from in 0..MIGRATIONS.len() {
+            let path = dir.join(format!("v{from}.sqlite"));
+            {
+                // The schema as version `from` had it, with a worker.
+                let conn = Connection::open(&path).expect("open");
+                conn.execute_batch(SCHEMA).expect("schema");
+                conn.execute_batch(TASKS_TABLE).expect("tasks");
+                for m in &MIGRATIONS[..from] {
+                    conn.execute_batch(m).expect("migration");
+                }
+                conn.execute_batch(&format!("PRAGMA user_version = {from};"))
+                    .expect("version");
+                conn.execute(
+                    "INSERT INTO workers (id, name, threads, version, registered_at, \
+                     last_seen, state) VALUES ('w', 'w', 1, 'old', 0, 0, 'idle')",
+                    [],
+                )
+                .expect("a worker");
+            }
+            let db = SqliteStore::open(&path).expect("migrated");
+            let version: i64 = db
+                .conn
+                .query_row("PRAGMA user_version", [], |r| r.get(0))
+                .expect("version");
+            assert_eq!(version, MIGRATIONS.len() as i64, "from {from}");
+            let workers = db.workers().expect("workers");
+            assert_eq!(workers.len(), 1, "from {from}");
+            assert_eq!(workers[0].unhealthy, None);
+            // Opening it again changes nothing.
+            drop(db);
+            SqliteStore::open(&path).expect("opens again");
+        }
+        let newer = dir.join("newer.sqlite");
+        {
+            let conn = Connection::open(&newer).expect("open");
+            conn.execute_batch("PRAGMA user_version = 999;")
+                .expect("version");
+        }
+        let e = SqliteStore::open(&newer).err().expect("refused");
+        assert!(e.to_string().contains("schema version 999"), "{e}");
+        let damaged = dir.join("damaged.sqlite");
+        std::fs::write(&damaged, vec![0x5au8; 16384]).expect("garbage");
+        assert!(SqliteStore::open(&damaged).is_err());
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

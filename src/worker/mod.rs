@@ -232,7 +232,7 @@ impl Worker {
                 let d = dir.clone();
                 tokio::task::spawn_blocking(move || {
                     let _ = std::fs::remove_dir_all(&d);
-                    bundle::unpack(&bytes, &d, u64::MAX)?;
+                    bundle::unpack(&bytes[..], &d, u64::MAX).map_err(|e| e.to_string())?;
                     std::fs::write(d.join(".complete"), b"").map_err(|e| e.to_string())
                 })
                 .await
@@ -491,8 +491,11 @@ pub(crate) async fn run(cfg: WorkerConfig) -> Result<()> {
     // within seconds, not after the whole-request timeouts: idle connections are probed every
     // 2 s after 5 s of silence, and unacknowledged data closes the connection after 10 s. A
     // slow link that still acknowledges is not cut off.
+    // Pooled connections are given up before the coordinator closes them as idle (its
+    // --header-timeout, 10 s by default), so that no request is sent on one it is closing.
     let http = reqwest::Client::builder()
         .connect_timeout(Duration::from_secs(5))
+        .pool_idle_timeout(Duration::from_secs(4))
         .tcp_keepalive(Duration::from_secs(5))
         .tcp_keepalive_interval(Duration::from_secs(2))
         .tcp_keepalive_retries(3);

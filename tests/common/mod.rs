@@ -2,6 +2,8 @@
 //! pool of a given size, and the rule for tests that need `../shared/scenes`.
 #![allow(dead_code)] // Each test crate uses a subset.
 
+pub mod service;
+
 use omis::film::{Film, Image};
 use omis::integrator::RenderSettings;
 use omis::job::{RenderOutput, Resolved};

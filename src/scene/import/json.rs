@@ -9,7 +9,7 @@ use crate::material::{Material, MaterialKind, Texture};
 use crate::scene::{MeshData, SceneBuilder, SceneError};
 use serde::Deserialize;
 use serde::de::DeserializeOwned;
-use serde_json::Value;
+use serde_json::value::RawValue;
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
@@ -19,13 +19,14 @@ struct SceneFile {
     camera: CameraDesc,
     #[serde(default)]
     render: RenderDesc,
-    /// Typed per entry (see [`typed`]) so that errors keep their JSON path.
+    /// Typed per entry (see [`typed`]) so that errors keep their JSON path. Kept as text until
+    /// then: a tree of JSON values would take tens of times the memory of an inline mesh.
     #[serde(default)]
-    materials: BTreeMap<String, Value>,
+    materials: BTreeMap<String, Box<RawValue>>,
     #[serde(default)]
-    shapes: Vec<Value>,
+    shapes: Vec<Box<RawValue>>,
     #[serde(default)]
-    lights: Vec<Value>,
+    lights: Vec<Box<RawValue>>,
 }
 
 #[derive(Deserialize)]
@@ -512,22 +513,49 @@ fn material(
 }
 
 /// Deserialises one JSON value, naming `loc` + the inner JSON path in errors.
-fn typed<T: DeserializeOwned>(file: &Path, loc: &str, v: &Value) -> Result<T, SceneError> {
-    serde_path_to_error::deserialize(v).map_err(|e| {
+fn typed<T: DeserializeOwned>(file: &Path, loc: &str, v: &RawValue) -> Result<T, SceneError> {
+    let de = &mut serde_json::Deserializer::from_str(v.get());
+    serde_path_to_error::deserialize(de).map_err(|e| {
         let inner = e.path().to_string();
         let location = if inner == "." || inner.is_empty() {
             loc.to_string()
         } else {
             format!("{loc}.{inner}")
         };
-        SceneError::new(file, location, e.into_inner().to_string())
+        SceneError::new(file, location, without_position(&e.into_inner()))
     })
 }
 
-fn type_tag<'v>(file: &Path, loc: &str, v: &'v Value) -> Result<&'v str, SceneError> {
-    v.get("type")
-        .and_then(Value::as_str)
-        .ok_or_else(|| SceneError::new(file, format!("{loc}.type"), "missing \"type\""))
+/// A JSON error's message without its line and column (which would count within the entry's
+/// text, not the file's).
+fn without_position(e: &serde_json::Error) -> String {
+    let m = e.to_string();
+    let suffix = format!(" at line {} column {}", e.line(), e.column());
+    match m.strip_suffix(&suffix) {
+        Some(m) => m.to_string(),
+        None => m,
+    }
+}
+
+/// The `"type"` of an entry, read without building anything of the rest of it.
+fn type_tag(file: &Path, loc: &str, v: &RawValue) -> Result<String, SceneError> {
+    #[derive(Deserialize)]
+    struct Tag {
+        #[serde(rename = "type")]
+        ty: Option<serde_json::Value>,
+    }
+    let missing = || SceneError::new(file, format!("{loc}.type"), "missing \"type\"");
+    let tag: Tag = serde_json::from_str(v.get()).map_err(|e| {
+        if e.is_data() {
+            missing()
+        } else {
+            SceneError::new(file, loc, without_position(&e))
+        }
+    })?;
+    match tag.ty {
+        Some(serde_json::Value::String(t)) => Ok(t),
+        _ => Err(missing()),
+    }
 }
 
 fn unknown_type(file: &Path, loc: &str, t: &str, known: &str) -> SceneError {
@@ -538,8 +566,8 @@ fn unknown_type(file: &Path, loc: &str, t: &str, known: &str) -> SceneError {
     )
 }
 
-fn material_desc(file: &Path, loc: &str, v: &Value) -> Result<MaterialDesc, SceneError> {
-    Ok(match type_tag(file, loc, v)? {
+fn material_desc(file: &Path, loc: &str, v: &RawValue) -> Result<MaterialDesc, SceneError> {
+    Ok(match type_tag(file, loc, v)?.as_str() {
         "lambert" => MaterialDesc::Lambert(typed(file, loc, v)?),
         "phong" => MaterialDesc::Phong(typed(file, loc, v)?),
         "mirror" => MaterialDesc::Mirror(typed(file, loc, v)?),
@@ -557,8 +585,8 @@ fn material_desc(file: &Path, loc: &str, v: &Value) -> Result<MaterialDesc, Scen
     })
 }
 
-fn shape_desc(file: &Path, loc: &str, v: &Value) -> Result<ShapeDesc, SceneError> {
-    Ok(match type_tag(file, loc, v)? {
+fn shape_desc(file: &Path, loc: &str, v: &RawValue) -> Result<ShapeDesc, SceneError> {
+    Ok(match type_tag(file, loc, v)?.as_str() {
         "mesh" => ShapeDesc::Mesh(typed(file, loc, v)?),
         "triangles" => ShapeDesc::Triangles(typed(file, loc, v)?),
         "quad" => ShapeDesc::Quad(typed(file, loc, v)?),
@@ -567,8 +595,8 @@ fn shape_desc(file: &Path, loc: &str, v: &Value) -> Result<ShapeDesc, SceneError
     })
 }
 
-fn light_desc(file: &Path, loc: &str, v: &Value) -> Result<LightDesc, SceneError> {
-    Ok(match type_tag(file, loc, v)? {
+fn light_desc(file: &Path, loc: &str, v: &RawValue) -> Result<LightDesc, SceneError> {
+    Ok(match type_tag(file, loc, v)?.as_str() {
         "point" => LightDesc::Point(typed(file, loc, v)?),
         t => return Err(unknown_type(file, loc, t, "point")),
     })

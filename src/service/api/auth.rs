@@ -16,8 +16,10 @@ fn check_token(headers: &HeaderMap, want: &Option<String>) -> Result<(), ApiErro
         .get(header::AUTHORIZATION)
         .and_then(|v| v.to_str().ok())
         .and_then(|v| {
+            // The scheme is case-insensitive (RFC 9110, section 11.1); the token is compared as
+            // sent, after exactly one space: nothing is trimmed from it.
             let (scheme, token) = v.split_once(' ')?;
-            scheme.eq_ignore_ascii_case("bearer").then(|| token.trim())
+            scheme.eq_ignore_ascii_case("bearer").then_some(token)
         });
     match got {
         Some(t) if constant_time_eq(t.as_bytes(), want.as_bytes()) => Ok(()),

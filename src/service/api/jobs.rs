@@ -1,15 +1,15 @@
 //! Jobs: submit (POST /v1/jobs), list, status, cancel, the event stream (Server-Sent Events)
 //! and the job's files (EXR, preview, error map, convergence plot).
 
-use super::errors::{ApiError, ApiResult, bad, parse_json, settings_error};
+use super::errors::{ApiError, ApiResult, JsonBody, bad, settings_error};
 use super::{AppState, references, scenes};
 use crate::service::protocol::{
-    JobEvent, JobLinks, JobList, JobRequest, JobStatus, QueuedEvent, SceneRef, SceneSource, SseData,
+    JobEvent, JobLinks, JobList, JobRequest, JobStatus, QueuedEvent, SceneMeta, SceneRef,
+    SceneSource, SseData,
 };
 use crate::service::store::{self, EventRow, JobRow};
 use crate::service::{App, jobs};
 use axum::Json;
-use axum::body::Bytes;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
@@ -19,8 +19,10 @@ use std::convert::Infallible;
 use std::time::Duration;
 
 /// POST /v1/jobs.
-pub(crate) async fn create_job(State(app): State<AppState>, body: Bytes) -> ApiResult<Response> {
-    let req: JobRequest = parse_json(&body)?;
+pub(crate) async fn create_job(
+    State(app): State<AppState>,
+    JsonBody(req): JsonBody<JobRequest>,
+) -> ApiResult<Response> {
     req.settings
         .validate(&app.cfg.limits)
         .map_err(settings_error)?;
@@ -29,6 +31,9 @@ pub(crate) async fn create_job(State(app): State<AppState>, body: Bytes) -> ApiR
     {
         return Err(bad("name", "at most 200 characters, no control characters"));
     }
+    // Loading the scene, resolving the settings (the automatic D_opt's pilot renders) and
+    // reading the reference take memory and time in proportion to the job: a few at once.
+    let _permit = app.validation().await?;
     let a = app.clone();
     let job = tokio::task::spawn_blocking(move || create_job_blocking(&a, req))
         .await
@@ -48,11 +53,27 @@ pub(crate) async fn create_job(State(app): State<AppState>, body: Bytes) -> ApiR
 }
 
 fn create_job_blocking(app: &App, req: JobRequest) -> ApiResult<JobRow> {
-    let (meta, mut scene) = match &req.scene {
+    let (meta, scene) = match &req.scene {
         SceneSource::Library(name) => scenes::store_library(app, name)?,
         SceneSource::Bundle(id) => scenes::load_bundle(app, id)?,
         SceneSource::Inline(v) => scenes::store_inline(app, v)?,
     };
+    let made_here = !matches!(req.scene, SceneSource::Bundle(_));
+    let created = create_job_with(app, &req, &meta, scene);
+    // A bundle this request made for a job it did not create is of no use to anyone.
+    if created.is_err() && made_here {
+        scenes::remove_bundle(app, &meta.id);
+    }
+    created
+}
+
+/// The job of `req` on its stored scene bundle `meta`, loaded as `scene`.
+fn create_job_with(
+    app: &App,
+    req: &JobRequest,
+    meta: &SceneMeta,
+    mut scene: crate::scene::Scene,
+) -> ApiResult<JobRow> {
     let resolved = req
         .settings
         .resolve(&mut scene, &app.cfg.limits)

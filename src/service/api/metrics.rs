@@ -88,6 +88,44 @@ pub(crate) async fn metrics(State(app): State<AppState>) -> ApiResult<Response> 
             v.load(Ordering::Relaxed)
         );
     }
+    let c = &app.server;
+    for (name, kind, help, v) in [
+        (
+            "omis_connections_open",
+            "gauge",
+            "HTTP connections open now.",
+            c.open.load(Ordering::Relaxed) as u64,
+        ),
+        (
+            "omis_connections_max",
+            "gauge",
+            "The cap on open HTTP connections (--max-connections, within the open-files limit).",
+            c.max_connections.load(Ordering::Relaxed) as u64,
+        ),
+        (
+            "omis_connections_accepted_total",
+            "counter",
+            "HTTP connections accepted.",
+            c.accepted.load(Ordering::Relaxed),
+        ),
+        (
+            "omis_connections_evicted_total",
+            "counter",
+            "Idle connections closed at the cap to make room for a new one.",
+            c.evicted.load(Ordering::Relaxed),
+        ),
+        (
+            "omis_connections_shed_total",
+            "counter",
+            "Connections answered 503 at the cap, every open one having a request in flight.",
+            c.shed.load(Ordering::Relaxed),
+        ),
+    ] {
+        let _ = writeln!(
+            out,
+            "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {v}"
+        );
+    }
     Ok((
         [(
             header::CONTENT_TYPE,

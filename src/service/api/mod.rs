@@ -11,13 +11,17 @@ mod scenes;
 mod workers;
 
 use super::App;
+use crate::service::server::Held;
 use axum::Router;
-use axum::extract::DefaultBodyLimit;
-use axum::http::StatusCode;
-use axum::middleware;
+use axum::body::Body;
+use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post, put};
-use errors::ApiError;
+pub(crate) use errors::ApiError;
 use std::sync::Arc;
+use tokio::sync::Semaphore;
 
 /// The state every handler gets.
 pub(crate) type AppState = Arc<App>;
@@ -68,6 +72,7 @@ pub(crate) fn router(app: AppState) -> Router {
         )
         .route("/v1/references", post(references::upload_reference))
         .route("/v1/workers", get(workers::list_workers))
+        .route_layer(middleware::from_fn_with_state(app.clone(), admit_client))
         .route_layer(middleware::from_fn_with_state(
             app.clone(),
             auth::client_auth,
@@ -81,6 +86,7 @@ pub(crate) fn router(app: AppState) -> Router {
         .route("/v1/worker/tasks/{id}/input", get(workers::merge_input))
         .route("/v1/worker/tasks/{id}/result", put(workers::upload_result))
         .route("/v1/worker/tasks/{id}/fail", post(workers::fail_task))
+        .route_layer(middleware::from_fn_with_state(app.clone(), admit_worker))
         .route_layer(middleware::from_fn_with_state(
             app.clone(),
             auth::worker_auth,
@@ -98,6 +104,40 @@ pub(crate) fn router(app: AppState) -> Router {
             errors::json_errors,
         ))
         .with_state(app)
+}
+
+/// Runs `req` if its class of routes has a request slot free (`sem`), else answers 503 at once.
+/// The slot is held until the response's body has been sent: an event stream holds one while
+/// it is open. With the classes' caps below the connection cap (`service::server`), requests in
+/// flight never fill every connection, so there is room for `/healthz` and a newcomer.
+async fn admit(sem: &Arc<Semaphore>, class: &str, req: Request, next: Next) -> Response {
+    let Ok(permit) = sem.clone().try_acquire_owned() else {
+        let mut r = ApiError {
+            status: StatusCode::SERVICE_UNAVAILABLE,
+            error: format!("too many {class} requests in flight; retry shortly"),
+            field: None,
+        }
+        .into_response();
+        r.headers_mut()
+            .insert(header::RETRY_AFTER, HeaderValue::from_static("1"));
+        return r;
+    };
+    next.run(req).await.map(|inner| {
+        Body::new(Held {
+            inner,
+            _guard: permit,
+        })
+    })
+}
+
+/// The request cap of the client routes (`Config::max_client_requests`).
+async fn admit_client(State(app): State<AppState>, req: Request, next: Next) -> Response {
+    admit(&app.client_requests, "client", req, next).await
+}
+
+/// The request cap of the worker routes (`Config::max_worker_requests`).
+async fn admit_worker(State(app): State<AppState>, req: Request, next: Next) -> Response {
+    admit(&app.worker_requests, "worker", req, next).await
 }
 
 /// An id the server made or accepts: letters, digits, `-`, `_`, `.` (not first), at most 128.

@@ -5,60 +5,95 @@ use super::errors::{ApiError, ApiResult, bad};
 use super::{AppState, is_safe_id};
 use crate::film::exr_io;
 use crate::service::protocol::{JobState, ReferenceInfo, ReferenceSource};
-use crate::service::{App, exr_header, store};
+use crate::service::{App, exr_header, upload};
 use axum::Json;
-use axum::body::Bytes;
+use axum::body::Body;
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
+use std::path::Path;
 
-/// POST /v1/references: an OpenEXR image.
+/// POST /v1/references: an OpenEXR image, written to disk as it arrives, checked from its
+/// headers and then block by block: its beauty must be finite.
 pub(crate) async fn upload_reference(
     State(app): State<AppState>,
-    body: Bytes,
+    body: Body,
 ) -> ApiResult<Response> {
     let id = uuid::Uuid::new_v4().to_string();
     let path = app.paths.reference(&id);
+    if let Some(dir) = path.parent() {
+        tokio::fs::create_dir_all(dir)
+            .await
+            .map_err(|e| ApiError::disk("cannot store the reference", e))?;
+    }
+    upload::body_to_file(body, &path, app.cfg.max_upload_bytes).await?;
+    let _permit = app.validation().await?;
     let max = app.cfg.limits.max_resolution as usize;
-    let img = tokio::task::spawn_blocking(move || {
-        store::write_atomic(&path, &body).map_err(ApiError::internal)?;
-        // The header first: a small file can claim (and hold, compressed) a huge frame. At
-        // most an RGBA image at the largest resolution a job may have.
-        let max_samples = 4 * (max as u64) * (max as u64);
-        if let Err(e) = exr_header::check(&path, max, max_samples) {
+    let p = path.clone();
+    let checked = tokio::task::spawn_blocking(move || check_reference(&p, max))
+        .await
+        .map_err(ApiError::internal)?;
+    let (width, height) = match checked {
+        Ok(size) => size,
+        Err(e) => {
             let _ = std::fs::remove_file(&path);
-            let status = if e.starts_with("not a readable EXR") {
-                StatusCode::BAD_REQUEST
-            } else {
-                StatusCode::UNPROCESSABLE_ENTITY
-            };
-            return Err(ApiError::field(
-                status,
-                "body",
-                format!("the reference must be an OpenEXR image within the limits: {e}"),
-            ));
+            return Err(e);
         }
-        exr_io::read_exr(&path).map_err(|e| {
-            let _ = std::fs::remove_file(&path);
-            let msg = e.replace(&format!("{}: ", path.display()), "");
-            bad(
-                "body",
-                format!("the reference must be an OpenEXR image: {msg}"),
-            )
-        })
-    })
-    .await
-    .map_err(ApiError::internal)??;
-    let info = ReferenceInfo {
-        id,
-        width: img.width,
-        height: img.height,
     };
+    let info = ReferenceInfo { id, width, height };
     Ok((StatusCode::CREATED, Json(info)).into_response())
 }
 
-/// The path of a new job's reference image, checked to be `width` x `height`. Runs on a
-/// blocking thread.
+/// Checks an uploaded reference: its headers first (a small file can claim, and hold
+/// compressed, a huge frame: at most an RGBA image at the largest resolution a job may have),
+/// then its beauty block by block, every value finite. Returns the beauty's size.
+fn check_reference(path: &Path, max_resolution: usize) -> ApiResult<(usize, usize)> {
+    let max_samples = 4 * (max_resolution as u64) * (max_resolution as u64);
+    if let Err(e) = exr_header::check(path, max_resolution, max_samples) {
+        let status = if e.starts_with("not a readable EXR") {
+            StatusCode::BAD_REQUEST
+        } else {
+            StatusCode::UNPROCESSABLE_ENTITY
+        };
+        return Err(ApiError::field(
+            status,
+            "body",
+            format!("the reference must be an OpenEXR image within the limits: {e}"),
+        ));
+    }
+    let hide = |e: String| e.replace(&format!("{}: ", path.display()), "");
+    let mut size = (0, 0);
+    let mut non_finite = 0u64;
+    exr_io::for_each_beauty_line(
+        path,
+        |w, h| {
+            size = (w, h);
+            Ok(())
+        },
+        |_, _, _, values| non_finite += values.iter().filter(|v| !v.is_finite()).count() as u64,
+    )
+    .map_err(|e| {
+        bad(
+            "body",
+            format!("the reference must be an OpenEXR image: {}", hide(e)),
+        )
+    })?;
+    if non_finite > 0 {
+        return Err(ApiError::field(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "body",
+            format!(
+                "the reference's beauty ({}x{}) has {non_finite} values that are NaN or \
+                 infinite: an error measured against it would mean nothing",
+                size.0, size.1
+            ),
+        ));
+    }
+    Ok(size)
+}
+
+/// The path of a new job's reference image, checked (from its headers) to be `width` x
+/// `height`. Runs on a blocking thread.
 pub(crate) fn job_reference(
     app: &App,
     src: &ReferenceSource,
@@ -86,15 +121,12 @@ pub(crate) fn job_reference(
             (app.paths.output(id, "image.exr"), "reference.job")
         }
     };
-    let img =
-        exr_io::read_exr(&path).map_err(|_| bad(field, "no such reference image".to_string()))?;
-    if (img.width, img.height) != (width as usize, height as usize) {
+    let (w, h) = exr_io::beauty_size(&path)
+        .map_err(|_| bad(field, "no such reference image".to_string()))?;
+    if (w, h) != (width as usize, height as usize) {
         return Err(bad(
             field,
-            format!(
-                "the reference is {}x{}, the job renders {width}x{height}",
-                img.width, img.height
-            ),
+            format!("the reference is {w}x{h}, the job renders {width}x{height}"),
         ));
     }
     Ok(path.display().to_string())

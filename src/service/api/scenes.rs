@@ -5,28 +5,54 @@ use super::errors::{ApiError, ApiResult, bad};
 use super::{AppState, is_safe_id};
 use crate::scene::Scene;
 use crate::service::protocol::{SceneLibrary, SceneMeta, SceneUploadQuery};
+use crate::service::upload;
 use crate::service::{App, bundle, store};
 use axum::Json;
-use axum::body::Bytes;
+use axum::body::Body;
 use axum::extract::{Query, State};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
+use std::io::Write;
 
-/// POST /v1/scenes: a tar bundle.
+/// POST /v1/scenes: a tar bundle, written to disk as it arrives, then unpacked and its scene
+/// loaded to check it (`App::validations` at a time).
 pub(crate) async fn upload_scene(
     State(app): State<AppState>,
     Query(q): Query<SceneUploadQuery>,
-    body: Bytes,
+    body: Body,
 ) -> ApiResult<Response> {
-    if body.is_empty() {
+    let id = uuid::Uuid::new_v4().to_string();
+    let dir = app.paths.scene(&id);
+    tokio::fs::create_dir_all(&dir)
+        .await
+        .map_err(|e| ApiError::disk("cannot store the bundle", e))?;
+    let stored = upload::body_to_file(body, &dir.join(BUNDLE), app.cfg.max_upload_bytes).await;
+    let n = match stored {
+        Ok(n) => n,
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&dir);
+            return Err(e.into());
+        }
+    };
+    if n == 0 {
+        let _ = std::fs::remove_dir_all(&dir);
         return Err(bad("body", "empty body; send a tar archive of the scene"));
     }
+    let _permit = app.validation().await?;
     let a = app.clone();
     let (meta, _) =
-        tokio::task::spawn_blocking(move || store_bundle(&a, &body, q.main.as_deref(), "body"))
+        tokio::task::spawn_blocking(move || store_bundle(&a, &id, q.main.as_deref(), "body"))
             .await
             .map_err(ApiError::internal)??;
     Ok((StatusCode::CREATED, Json(meta)).into_response())
+}
+
+/// The file of a stored bundle's tar archive, in its folder.
+const BUNDLE: &str = "bundle.tar";
+
+/// The tar archive of stored bundle `id`.
+pub(crate) fn bundle_path(app: &App, id: &str) -> std::path::PathBuf {
+    app.paths.scene(id).join(BUNDLE)
 }
 
 /// GET /v1/scenes: the library's scene names.
@@ -117,24 +143,56 @@ pub(crate) fn store_library(app: &App, name: &str) -> ApiResult<(SceneMeta, Scen
     let lib = path.parent().unwrap_or(&path);
     let (tar, main) =
         bundle::pack(&path).map_err(|e| bad("scene.library", hide_folder(&e, lib)))?;
-    store_bundle(app, &tar, Some(&main), "scene.library")
+    let id = new_bundle(app, |f| f.write_all(&tar))?;
+    store_bundle(app, &id, Some(&main), "scene.library")
 }
 
-/// An inline JSON scene as a bundle of one file. Runs on a blocking thread.
-pub(crate) fn store_inline(app: &App, scene: &serde_json::Value) -> ApiResult<(SceneMeta, Scene)> {
-    if !scene.is_object() {
+/// An inline JSON scene (its text as sent) as a bundle of one file. Runs on a blocking thread.
+pub(crate) fn store_inline(
+    app: &App,
+    scene: &serde_json::value::RawValue,
+) -> ApiResult<(SceneMeta, Scene)> {
+    if !scene.get().trim_start().starts_with('{') {
         return Err(bad("scene.inline", "must be a scene object"));
     }
-    let text = serde_json::to_vec_pretty(scene).map_err(ApiError::internal)?;
-    let mut tar = tar::Builder::new(Vec::new());
-    let mut h = tar::Header::new_gnu();
-    h.set_size(text.len() as u64);
-    h.set_mode(0o644);
-    h.set_cksum();
-    tar.append_data(&mut h, "scene.json", text.as_slice())
-        .map_err(ApiError::internal)?;
-    let bytes = tar.into_inner().map_err(ApiError::internal)?;
-    store_bundle(app, &bytes, Some("scene.json"), "scene.inline")
+    let text = scene.get().as_bytes();
+    let id = new_bundle(app, |f| {
+        let mut tar = tar::Builder::new(f);
+        let mut h = tar::Header::new_gnu();
+        h.set_size(text.len() as u64);
+        h.set_mode(0o644);
+        h.set_cksum();
+        tar.append_data(&mut h, INLINE_MAIN, text)?;
+        tar.finish()
+    })?;
+    store_bundle(app, &id, Some(INLINE_MAIN), "scene.inline")
+}
+
+/// The scene file of a bundle made from an inline scene.
+const INLINE_MAIN: &str = "scene.json";
+
+/// A new bundle's folder with its tar archive written by `write`; returns its id.
+fn new_bundle(
+    app: &App,
+    write: impl FnOnce(&mut std::fs::File) -> std::io::Result<()>,
+) -> ApiResult<String> {
+    let id = uuid::Uuid::new_v4().to_string();
+    let dir = app.paths.scene(&id);
+    let written = std::fs::create_dir_all(&dir)
+        .and_then(|()| std::fs::File::create(dir.join(BUNDLE)))
+        .and_then(|mut f| write(&mut f));
+    if let Err(e) = written {
+        let _ = std::fs::remove_dir_all(&dir);
+        return Err(ApiError::disk("cannot store the bundle", e));
+    }
+    Ok(id)
+}
+
+/// Removes stored bundle `id` (a job that made it was refused).
+pub(crate) fn remove_bundle(app: &App, id: &str) {
+    if is_safe_id(id) {
+        let _ = std::fs::remove_dir_all(app.paths.scene(id));
+    }
 }
 
 /// An uploaded bundle by id, loaded. Runs on a blocking thread.
@@ -147,20 +205,32 @@ pub(crate) fn load_bundle(app: &App, id: &str) -> ApiResult<(SceneMeta, Scene)> 
     Ok((meta, scene))
 }
 
-/// Stores a bundle: unpacks it under `scenes/<id>/files`, loads it to check it, keeps the tar for
-/// workers. Runs on a blocking thread.
+/// Checks and records bundle `id`, whose tar archive is in its folder: unpacks it under `files`,
+/// loads its scene to check it, writes its metadata. On any error the folder is removed. Runs
+/// on a blocking thread.
 fn store_bundle(
     app: &App,
-    tar: &[u8],
+    id: &str,
     main: Option<&str>,
     field: &str,
 ) -> ApiResult<(SceneMeta, Scene)> {
-    let id = uuid::Uuid::new_v4().to_string();
-    let dir = app.paths.scene(&id);
+    let dir = app.paths.scene(id);
     let files_dir = dir.join("files");
     let result = (|| {
-        let files =
-            bundle::unpack(tar, &files_dir, app.cfg.max_upload_bytes).map_err(|e| bad(field, e))?;
+        let tar = std::fs::File::open(dir.join(BUNDLE))
+            .map_err(|e| ApiError::disk("cannot read the stored bundle", e))?;
+        let bytes = tar.metadata().map(|m| m.len()).unwrap_or(0);
+        let files = bundle::unpack(
+            std::io::BufReader::new(tar),
+            &files_dir,
+            app.cfg.max_upload_bytes,
+        )
+        .map_err(|e| match e {
+            bundle::BundleError::Invalid(m) => bad(field, m),
+            bundle::BundleError::Disk { path, source } => {
+                ApiError::disk(&format!("cannot unpack '{path}' of the bundle"), source)
+            }
+        })?;
         let main = bundle::choose_main(&files, main).map_err(|e| bad(field, e))?;
         let scene = Scene::load(&files_dir.join(&main))
             // Name the file inside the bundle, not the server's path.
@@ -175,18 +245,22 @@ fn store_bundle(
             ));
         }
         let meta = SceneMeta {
-            id: id.clone(),
+            id: id.to_string(),
             main,
             files,
-            bytes: tar.len() as u64,
+            bytes,
             triangles: scene.stats.triangles,
             width: scene.camera.width,
             height: scene.camera.height,
-            warnings: scene.warnings.clone(),
+            warnings: scene
+                .warnings
+                .iter()
+                .map(|w| hide_folder(w, &files_dir))
+                .collect(),
         };
-        std::fs::write(dir.join("bundle.tar"), tar).map_err(ApiError::internal)?;
         let json = serde_json::to_vec_pretty(&meta).map_err(ApiError::internal)?;
-        store::write_atomic(&dir.join("meta.json"), &json).map_err(ApiError::internal)?;
+        store::write_atomic(&dir.join("meta.json"), &json)
+            .map_err(|e| ApiError::disk("cannot record the bundle", e))?;
         Ok((meta, scene))
     })();
     if result.is_err() {

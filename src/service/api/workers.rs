@@ -1,17 +1,17 @@
 //! Workers: the worker protocol under /v1/worker/* (register, lease, heartbeat, deregister,
 //! scene download, result upload, failure report) and the worker list (GET /v1/workers).
 
-use super::errors::{ApiError, ApiResult, bad, parse_json};
+use super::errors::{ApiError, ApiResult, JsonBody, bad};
 use super::{AppState, is_safe_id, scenes};
 use crate::film::{Tile, wire};
-use crate::service::buffers::{self, BodyError, Pooled};
+use crate::service::buffers::{self, Pooled};
 use crate::service::protocol::{
     DeregisterAnswer, DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, JobEvent,
     JobState, Lease, LeaseRequest, LeasedJob, LeasedTask, OkAnswer, RegisterRequest, Registration,
     ResultAnswer, ResultQuery, TaskKind, TaskState, TileDoneEvent, WorkerList, WorkerState,
 };
 use crate::service::store::{JobRow, TaskRow};
-use crate::service::{Metrics, jobs, merge};
+use crate::service::{Metrics, jobs, merge, upload};
 use axum::Json;
 use axum::body::{Body, Bytes};
 use axum::extract::{Path, Query, State};
@@ -36,9 +36,8 @@ fn unknown_worker() -> ApiError {
 /// POST /v1/worker/register.
 pub(crate) async fn register(
     State(app): State<AppState>,
-    body: Bytes,
+    JsonBody(r): JsonBody<RegisterRequest>,
 ) -> ApiResult<Json<Registration>> {
-    let r: RegisterRequest = parse_json(&body)?;
     let id = match r.id {
         Some(id) if is_safe_id(&id) => id,
         Some(_) => return Err(bad("id", "not a worker id")),
@@ -61,8 +60,10 @@ pub(crate) async fn register(
 }
 
 /// POST /v1/worker/lease: a task, or 204 after `wait_s` without one.
-pub(crate) async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult<Response> {
-    let r: LeaseRequest = parse_json(&body)?;
+pub(crate) async fn lease(
+    State(app): State<AppState>,
+    JsonBody(r): JsonBody<LeaseRequest>,
+) -> ApiResult<Response> {
     if !app.db().touch_worker(&r.worker_id, None)? {
         return Err(unknown_worker());
     }
@@ -139,9 +140,8 @@ pub(crate) async fn lease(State(app): State<AppState>, body: Bytes) -> ApiResult
 /// POST /v1/worker/heartbeat.
 pub(crate) async fn heartbeat(
     State(app): State<AppState>,
-    body: Bytes,
+    JsonBody(r): JsonBody<HeartbeatRequest>,
 ) -> ApiResult<Json<HeartbeatAnswer>> {
-    let r: HeartbeatRequest = parse_json(&body)?;
     let db = app.db();
     let state = if r.tasks.is_empty() {
         WorkerState::Idle
@@ -163,9 +163,8 @@ pub(crate) async fn heartbeat(
 /// POST /v1/worker/deregister: the worker is `left`, its leases go back to the queue.
 pub(crate) async fn deregister(
     State(app): State<AppState>,
-    body: Bytes,
+    JsonBody(r): JsonBody<DeregisterRequest>,
 ) -> ApiResult<Json<DeregisterAnswer>> {
-    let r: DeregisterRequest = parse_json(&body)?;
     let released = {
         let db = app.db();
         if !db.touch_worker(&r.worker_id, Some(WorkerState::Left))? {
@@ -191,15 +190,20 @@ pub(crate) async fn worker_scene(
     if scenes::scene_meta(&app, &id).is_none() {
         return Err(ApiError::not_found("scene", &id));
     }
-    let bytes = tokio::fs::read(app.paths.scene(&id).join("bundle.tar"))
+    // Sent as it is read: workers download bundles together, and one may be as large as an
+    // upload may be.
+    let (body, len) = upload::file_body(scenes::bundle_path(&app, &id))
         .await
-        .map_err(ApiError::internal)?;
+        .map_err(|e| ApiError::disk("cannot read the bundle", e))?;
     Ok((
-        [(
-            header::CONTENT_TYPE,
-            HeaderValue::from_static("application/x-tar"),
-        )],
-        bytes,
+        [
+            (
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("application/x-tar"),
+            ),
+            (header::CONTENT_LENGTH, HeaderValue::from(len)),
+        ],
+        body,
     )
         .into_response())
 }
@@ -259,12 +263,7 @@ fn current_task(app: &AppState, task_id: i64, q: &ResultQuery) -> ApiResult<(Tas
 
 /// An upload's body, read into a reused buffer: 413 over `--max-upload-mb`, 400 if unreadable.
 async fn read_upload(app: &AppState, body: Body) -> ApiResult<Pooled> {
-    buffers::read_body(body, app.cfg.max_upload_bytes, &app.buffers)
-        .await
-        .map_err(|e| match e {
-            BodyError::TooLarge(m) => ApiError::field(StatusCode::PAYLOAD_TOO_LARGE, "body", m),
-            BodyError::Read(m) => ApiError::field(StatusCode::BAD_REQUEST, "body", m),
-        })
+    Ok(buffers::read_body(body, app.cfg.max_upload_bytes, &app.buffers).await?)
 }
 
 /// GET /v1/worker/tasks/{id}/input: a merge task's input (`film::merge`), streamed.
@@ -474,9 +473,8 @@ pub(crate) async fn upload_result(
 pub(crate) async fn fail_task(
     State(app): State<AppState>,
     Path(task_id): Path<i64>,
-    body: Bytes,
+    JsonBody(r): JsonBody<FailRequest>,
 ) -> ApiResult<Json<OkAnswer>> {
-    let r: FailRequest = parse_json(&body)?;
     let task = app
         .db()
         .task(task_id)?

@@ -72,6 +72,20 @@ pub(crate) fn parse_with(text: &str, resolver: Resolver) -> Result<SceneBuilder,
             format!("the root element is <{}>, expected <scene>", root.tag),
         ));
     }
+    if let Some(v) = root.attr("version")
+        && !v.starts_with("0.")
+    {
+        // Mitsuba 2 and 3 rename plugins and parameters (`to_world`, `hdrfilm`, `max_depth`,
+        // ...): read as 0.5 such a file loses its lights and renders black.
+        return Err(SceneError::new(
+            file,
+            format!("line {}", root.line),
+            format!(
+                "scene version {v}: a Mitsuba 2/3 file; this importer reads Mitsuba 0.5 files \
+                 (version 0.x) only, and refuses others rather than render them wrongly"
+            ),
+        ));
+    }
     let mut defaults = HashMap::new();
     for c in &root.children {
         if c.tag == "default"
@@ -90,14 +104,6 @@ pub(crate) fn parse_with(text: &str, resolver: Resolver) -> Result<SceneBuilder,
         meshes: HashMap::new(),
         default_bsdf: None,
     };
-    if let Some(v) = root.attr("version")
-        && !v.starts_with("0.")
-    {
-        cx.warn(
-            &root,
-            format!("scene version {v}: this importer reads Mitsuba 0.5 files"),
-        );
-    }
     cx.preload_meshes(&root)?;
     let mut sensor_seen = false;
     for c in &root.children {

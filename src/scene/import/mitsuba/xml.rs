@@ -55,6 +55,11 @@ impl Lines {
     }
 }
 
+/// Deepest nesting of elements a scene file may have. Real scenes nest a dozen levels at most
+/// (scene, shape, bsdf, nested bsdfs, texture, property); the tree is built without recursion,
+/// but walking and dropping it recurse, so the depth is bounded where it is read.
+pub(crate) const MAX_XML_DEPTH: usize = 128;
+
 /// Parses XML text into its tree of elements; errors name the line.
 pub(super) fn parse_xml(text: &str, file: &Path) -> R<Node> {
     let lines = Lines::new(text);
@@ -98,6 +103,16 @@ pub(super) fn parse_xml(text: &str, file: &Path) -> R<Node> {
             Ok(Event::Eof) => break,
             Ok(Event::Start(e)) => {
                 let n = element(&e, pos)?;
+                if stack.len() >= MAX_XML_DEPTH {
+                    return Err(SceneError::new(
+                        file,
+                        format!("line {}", n.line),
+                        format!(
+                            "<{}> is nested more than {MAX_XML_DEPTH} elements deep",
+                            n.tag
+                        ),
+                    ));
+                }
                 stack.push(n);
             }
             Ok(Event::Empty(e)) => {

@@ -4,8 +4,8 @@
 //! pbrt-v4 (Pharr, Jakob and Humphreys, *Physically Based Rendering*, 4th ed., 2023; the
 //! pbrt-v4 file format documentation, and the v3-to-v4 conversion of pbrt-v4's `--upgrade`)
 //! adds directives, renames every material, the film and most samplers, and changes the type or
-//! the meaning of some shared parameters. [`first_v4_construct`] finds the first construct that
-//! only pbrt-v4 has:
+//! the meaning of some shared parameters. [`v4_constructs`] finds the constructs that only
+//! pbrt-v4 has:
 //!
 //! - the directives `ColorSpace`, `Option`, `Attribute` and `Import`;
 //! - the material types `diffuse`, `coateddiffuse`, `coatedconductor`, `conductor`,
@@ -68,10 +68,19 @@ impl Decl<'_> {
     }
 }
 
-/// The place and a description of the first construct in `tokens` that only pbrt-v4 has, or
-/// `None` for a file that reads the same as pbrt-v3 (see the module documentation). Malformed
-/// text is left to the parser.
-pub(super) fn first_v4_construct(tokens: &[Token]) -> Option<(Loc, String)> {
+/// The places and descriptions of the first `most` directives in `tokens` that only pbrt-v4
+/// has (one construct each, in file order), and how many such directives there are in all: none
+/// for a file that reads the same as pbrt-v3 (see the module documentation). Malformed text is
+/// left to the parser.
+pub(super) fn v4_constructs(tokens: &[Token], most: usize) -> (Vec<(Loc, String)>, usize) {
+    let mut found = Vec::new();
+    let mut count = 0;
+    let mut note = |f: (Loc, String)| {
+        count += 1;
+        if found.len() < most {
+            found.push(f);
+        }
+    };
     let mut i = 0;
     while i < tokens.len() {
         let Token {
@@ -108,17 +117,18 @@ pub(super) fn first_v4_construct(tokens: &[Token]) -> Option<(Loc, String)> {
                 Some(a) => format!("{directive} \"{a}\""),
                 None => directive.to_string(),
             };
-            return Some((*loc, what));
+            note((*loc, what));
+            continue;
         }
         let mut decls = Vec::new();
         if nargs > 0 {
             i = scan_params(tokens, i, &mut decls);
         }
-        if let Some(found) = v4_in(directive, *loc, &args, &decls) {
-            return Some(found);
+        if let Some(f) = v4_in(directive, *loc, &args, &decls) {
+            note(f);
         }
     }
-    None
+    (found, count)
 }
 
 /// Reads the parameter list that starts at `i` into `decls`; returns the index after it.
@@ -255,7 +265,11 @@ mod tests {
 
     fn scan(text: &str) -> Option<(u32, String)> {
         let tokens = tokenize(text, 0, Path::new("t.pbrt")).expect("tokens");
-        first_v4_construct(&tokens).map(|(l, w)| (l.line, w))
+        v4_constructs(&tokens, 1)
+            .0
+            .into_iter()
+            .next()
+            .map(|(l, w)| (l.line, w))
     }
 
     #[test]

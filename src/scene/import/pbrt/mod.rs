@@ -141,21 +141,33 @@ pub(crate) fn parse_with(text: &str, resolver: Resolver) -> Result<SceneBuilder,
     Ok(b)
 }
 
-/// Refuses the tokens of a pbrt-v4 file with the first construct that shows it.
+/// pbrt-v4 constructs a refusal names at most.
+const V4_NAMED: usize = 6;
+
+/// Refuses the tokens of a pbrt-v4 file with the constructs that show it (the first
+/// `V4_NAMED`, and how many more there are).
 fn refuse_v4(tokens: &[Token], file: &Path) -> R<()> {
-    match dialect::first_v4_construct(tokens) {
-        None => Ok(()),
-        Some((loc, what)) => Err(SceneError::new(
-            file,
-            format!("line {}", loc.line),
-            format!(
-                "pbrt-v4 file (line {}: {what}): only pbrt-v3 is imported, and pbrt-v4 renames \
-                 materials and changes the meaning of shared parameters; the file is refused \
-                 rather than read as pbrt-v3",
-                loc.line
-            ),
-        )),
+    let (found, count) = dialect::v4_constructs(tokens, V4_NAMED);
+    let Some((first, _)) = found.first() else {
+        return Ok(());
+    };
+    let mut list = found
+        .iter()
+        .map(|(loc, what)| format!("line {}: {what}", loc.line))
+        .collect::<Vec<_>>()
+        .join("; ");
+    if count > found.len() {
+        list.push_str(&format!("; and {} more", count - found.len()));
     }
+    Err(SceneError::new(
+        file,
+        format!("line {}", first.line),
+        format!(
+            "pbrt-v4 file ({list}): only pbrt-v3 is imported, and pbrt-v4 renames materials and \
+             changes the meaning of shared parameters; the file is refused rather than read as \
+             pbrt-v3"
+        ),
+    ))
 }
 
 impl Parser {
