@@ -3,119 +3,24 @@
 //! the same job (the tiling-invariance property across processes), whatever dies on the way.
 //! Every process a test starts is killed when the test ends, also when it fails.
 
+mod common;
+
+use common::repo;
+use common::service::{EXE, get_json, http, post, register, serve, worker};
 use omis::film::{Image, exr_io};
 use omis::job::{JobSettings, Limits};
 use omis::scene::Scene;
 use reqwest::blocking::Client;
 use serde_json::{Value, json};
-use std::io::{BufRead, BufReader, Read};
+use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
-const EXE: &str = env!("CARGO_BIN_EXE_omis");
 const WAIT: Duration = Duration::from_secs(180);
 
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
 fn folder(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("omis-svc-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).expect("temp dir");
-    d
-}
-
-/// A child process killed (SIGKILL) and reaped on drop.
-struct Proc(Child);
-
-impl Proc {
-    fn kill9(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        self.kill9();
-    }
-}
-
-/// `omis serve` on a free loopback port; returns the process and its URL.
-fn serve(data: &Path, extra: &[&str]) -> (Proc, String) {
-    let scenes = repo().join("scenes");
-    let mut child = Command::new(EXE)
-        .args(["serve", "--bind", "127.0.0.1:0", "--data"])
-        .arg(data)
-        .arg("--scenes")
-        .arg(&scenes)
-        .args(extra)
-        .env("OMIS_LOG", "warn")
-        .env_remove("OMIS_TOKEN")
-        .env_remove("OMIS_WORKER_TOKEN")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("start omis serve");
-    let stdout = child.stdout.take().expect("stdout");
-    let proc = Proc(child);
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut lines = BufReader::new(stdout).lines();
-        if let Some(Ok(l)) = lines.next() {
-            let _ = tx.send(l);
-        }
-        for _ in lines {}
-    });
-    let line = rx
-        .recv_timeout(Duration::from_secs(60))
-        .expect("omis serve printed its address");
-    let url = line
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| panic!("unexpected first line: {line}"))
-        .to_string();
-    (proc, url)
-}
-
-fn worker(url: &str, name: &str, extra: &[&str]) -> Proc {
-    Proc(
-        Command::new(EXE)
-            .args([
-                "worker",
-                "--coordinator",
-                url,
-                "--threads",
-                "1",
-                "--name",
-                name,
-            ])
-            .args(extra)
-            .env("OMIS_LOG", "warn")
-            .stdin(Stdio::null())
-            .spawn()
-            .expect("start omis worker"),
-    )
-}
-
-fn http() -> Client {
-    Client::builder()
-        .timeout(Duration::from_secs(60))
-        .build()
-        .expect("client")
-}
-
-fn post(c: &Client, url: &str, body: &Value) -> (u16, Value) {
-    let r = c.post(url).json(body).send().expect("POST");
-    let s = r.status().as_u16();
-    (s, r.json().unwrap_or(Value::Null))
-}
-
-fn get_json(c: &Client, url: &str) -> Value {
-    let r = c.get(url).send().expect("GET");
-    assert!(r.status().is_success(), "GET {url}: {}", r.status());
-    r.json().expect("JSON")
+    common::folder("svc", name)
 }
 
 /// The settings of the test jobs: a small Cornell box, BDPT with optimal MIS, several passes.
@@ -436,16 +341,6 @@ fn tile_result_of(settings: &Value, task: &Value, seed: u64) -> Vec<u8> {
         ..task["samples"][1].as_u64().expect("s1") as u32;
     let film = omis::integrator::render_tile(&scene, &r.render, rect, range.clone());
     omis::film::wire::encode_banded(film, range, &r.grid())
-}
-
-fn register(c: &Client, url: &str, name: &str) -> String {
-    let (s, v) = post(
-        c,
-        &format!("{url}/v1/worker/register"),
-        &json!({ "name": name, "threads": 1 }),
-    );
-    assert_eq!(s, 200, "{v}");
-    v["worker_id"].as_str().expect("id").to_string()
 }
 
 fn lease(c: &Client, url: &str, worker: &str) -> Value {

@@ -4,71 +4,15 @@
 //! workers list the tasks they hold, and the health check's exit status. (The page itself runs
 //! in a browser in `.ci/browser-test`.)
 
-use reqwest::blocking::Client;
-use serde_json::{Value, json};
-use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::time::Duration;
+mod common;
 
-const EXE: &str = env!("CARGO_BIN_EXE_omis");
+use common::service::{EXE, http, serve};
+use serde_json::{Value, json};
+use std::path::PathBuf;
+use std::process::Command;
 
 fn folder(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("omis-web-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).expect("temp dir");
-    d
-}
-
-/// A child process killed and reaped on drop (also when the test fails).
-struct Proc(Child);
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn serve(data: &Path, extra: &[&str]) -> (Proc, String) {
-    let mut child = Command::new(EXE)
-        .args(["serve", "--bind", "127.0.0.1:0", "--data"])
-        .arg(data)
-        .arg("--scenes")
-        .arg(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("scenes"))
-        .args(extra)
-        .env("OMIS_LOG", "warn")
-        .env_remove("OMIS_TOKEN")
-        .env_remove("OMIS_WORKER_TOKEN")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("start omis serve");
-    let stdout = child.stdout.take().expect("stdout");
-    let proc = Proc(child);
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut lines = BufReader::new(stdout).lines();
-        if let Some(Ok(l)) = lines.next() {
-            let _ = tx.send(l);
-        }
-        for _ in lines {}
-    });
-    let line = rx
-        .recv_timeout(Duration::from_secs(60))
-        .expect("omis serve printed its address");
-    let url = line
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| panic!("unexpected first line: {line}"))
-        .to_string();
-    (proc, url)
-}
-
-fn http() -> Client {
-    Client::builder()
-        .timeout(Duration::from_secs(30))
-        .build()
-        .expect("client")
+    common::folder("web", name)
 }
 
 fn header(r: &reqwest::blocking::Response, name: &str) -> String {
