@@ -988,3 +988,50 @@ fn kill_local_worker() -> bool {
     }
     any
 }
+
+#[test]
+fn requests_past_a_class_cap_get_503_while_health_and_workers_still_answer() {
+    let dir = folder("admission");
+    let (_server, url) = serve(&dir.join("data"), &["--max-client-requests", "2"]);
+    let c = http();
+    let job = small_job(&c, &url, 1);
+    // Two event streams hold the client routes' two slots while they are open.
+    let streams: Vec<_> = (0..2)
+        .map(|_| {
+            c.get(format!("{url}/v1/jobs/{job}/events"))
+                .send()
+                .expect("GET events")
+        })
+        .collect();
+    assert!(streams.iter().all(|r| r.status().as_u16() == 200));
+    let r = c.get(format!("{url}/v1/jobs")).send().expect("GET jobs");
+    assert_eq!(r.status().as_u16(), 503);
+    assert_eq!(
+        r.headers().get("retry-after").and_then(|v| v.to_str().ok()),
+        Some("1")
+    );
+    let v: Value = r.json().expect("json");
+    assert!(
+        v["error"]
+            .as_str()
+            .unwrap_or("")
+            .contains("too many client requests"),
+        "{v}"
+    );
+    healthy(&c, &url);
+    register(&c, &url, "still-served");
+    // A stream closed gives its slot back.
+    drop(streams);
+    let start = Instant::now();
+    loop {
+        let s = c.get(format!("{url}/v1/jobs")).send().expect("GET jobs");
+        if s.status().as_u16() == 200 {
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "no slot came back"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}

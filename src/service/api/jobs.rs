@@ -93,7 +93,8 @@ fn create_job_with(
         * resolved.height as i64;
     let settings = serde_json::to_string(&req.settings).map_err(ApiError::internal)?;
     let res = serde_json::to_string(&resolved).map_err(ApiError::internal)?;
-    std::fs::create_dir_all(app.paths.job(&id)).map_err(ApiError::internal)?;
+    std::fs::create_dir_all(app.paths.job(&id))
+        .map_err(|e| ApiError::disk("cannot make the job's folder", e))?;
     app.db().insert_job(&store::NewJob {
         id: &id,
         name: req.name.as_deref(),

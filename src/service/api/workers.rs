@@ -414,7 +414,7 @@ pub(crate) async fn upload_result(
                 merge::held(&r, job.passes_done),
                 &body[..],
             )
-            .map_err(ApiError::internal)?;
+            .map_err(|e| ApiError::disk("cannot store the result", e))?;
         Ok(Ok(stored))
     })
     .await

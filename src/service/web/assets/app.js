@@ -622,7 +622,7 @@ async function workersView(signal) {
         h('th', { class: 'num' }, 'Tasks done'), h('th', { class: 'num' }, 'Tiles / min (last minute)'),
         h('th', { class: 'num' }, 'Tiles / min (overall)'), h('th', { class: 'num' }, 'Last seen'))),
       body),
-    h('p', { class: 'hint' }, 'A task is one tile for one pass, or the merge of a finished pass into one band group of tiles. Workers that left (drained) or went silent past twice the lease time are listed dimmed.'));
+    h('p', { class: 'hint' }, 'A task is one tile for one pass, or the merge of a finished pass into one band group of tiles. Workers that left (drained) or went silent past twice the lease time are listed dimmed. A worker that failed tasks of 3 jobs since its last result is unhealthy and gets no task (hover for why); one that failed 3 tasks of a job is kept from that job.'));
   await every(2000, signal, async () => {
     const { workers } = await apiJson('/v1/workers', { signal });
     const now = Date.now() / 1000;
@@ -642,7 +642,12 @@ async function workersView(signal) {
       const tasks = w.tasks || [];
       return h('tr', { class: ['left', 'gone'].includes(w.state) ? 'departed' : '' },
         h('td', {}, w.name, ' ', h('span', { class: 'muted mono' }, short(w.id))),
-        h('td', {}, stateBadge(w.state)),
+        h('td', {}, stateBadge(w.state),
+          w.unhealthy ? [' ', h('span', { class: 'state state-failed', title: w.unhealthy }, 'unhealthy')] : '',
+          (w.blocklisted_jobs || []).length
+            ? [' ', h('span', { class: 'muted', title: w.blocklisted_jobs.join(', ') },
+              `kept from ${w.blocklisted_jobs.length} job${w.blocklisted_jobs.length > 1 ? 's' : ''}`)]
+            : ''),
         h('td', { class: 'num' }, w.threads),
         h('td', {}, tasks.length
           ? tasks.map((t, i) => [i ? ', ' : '', h('a', { href: `#/jobs/${t.job_id}` }, `job ${short(t.job_id)}`),
