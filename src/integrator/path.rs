@@ -54,6 +54,8 @@ pub fn li(
     };
     let mut l = Rgb::ZERO;
     let mut beta = Rgb::ONE;
+    // The product of the samples' `eta_scale`: 1 / the radiance scaling of the refractions so far.
+    let mut eta_scale = 1.0f32;
     let mut ray = ray;
     // Previous scattering vertex: position and BSDF pdf of the sampled direction; None after the
     // camera or a delta bounce (emission is then counted with weight 1).
@@ -102,11 +104,15 @@ pub fn li(
             break;
         };
         beta *= s.f * (s.wi.dot(hit.ns).abs() / s.pdf);
+        eta_scale *= s.eta_scale;
         prev = if s.delta { None } else { Some((hit.p, s.pdf)) };
         ray = Scene::spawn_ray(hit.p, hit.ng, s.wi);
         depth += 1;
         if depth >= RR_START_DEPTH {
-            let q = max_component(beta).min(0.95);
+            // Judged without refraction's radiance scaling (pbrt-v3's `etaScale`; Mitsuba 3
+            // does the same): inside glass the throughput is scaled by 1 / eta^2 until the path
+            // leaves it, which alone would end paths the scaling will give back.
+            let q = (max_component(beta) * eta_scale).min(0.95);
             if !(sampler.next_1d() < q) {
                 break;
             }

@@ -257,6 +257,12 @@ pub struct BsdfSample {
     pub delta: bool,
     /// The density of sampling wo from wi, `pdf(wi, wo)` (0 for a delta sample, as `pdf`).
     pub pdf_rev: f32,
+    /// 1 / the radiance scaling of a refraction in `f` (Veach's thesis, section 5.2): eta^2
+    /// for a transmission into the side the lobe's index belongs to, 1 / eta^2 out of it, 1
+    /// otherwise. A path tracer's Russian roulette multiplies it into the throughput it judges
+    /// by, so that paths inside glass are not ended for the scaling alone (pbrt-v3's
+    /// `etaScale`).
+    pub eta_scale: f32,
 }
 
 /// The BSDF at one surface point: a resolved lobe in the shading frame, plus the geometric normal
@@ -517,12 +523,23 @@ impl Bsdf {
         } else {
             self.swapped_pdf(self.lobe.pdf(li, lo), li, wi)
         };
+        let eta_scale = match self.lobe {
+            Lobe::Dielectric { eta, .. } if lo.z * li.z < 0.0 && mode == Mode::Radiance => {
+                if lo.z > 0.0 {
+                    eta * eta
+                } else {
+                    1.0 / (eta * eta)
+                }
+            }
+            _ => 1.0,
+        };
         Some(BsdfSample {
             wi,
             f,
             pdf: s.pdf,
             delta: s.delta,
             pdf_rev,
+            eta_scale,
         })
     }
 }
