@@ -88,6 +88,18 @@ fn mitsuba(version: &str, inner: &str) -> String {
     )
 }
 
+/// A Mitsuba 3 scene lit by an environment map, which it cannot be rendered without.
+fn mitsuba3_with_environment() -> String {
+    r#"<scene version="3.0.0">
+    <sensor type="perspective"><float name="fov" value="45"/>
+        <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>
+    <emitter type="envmap"><string name="filename" value="sky.exr"/></emitter>
+    <shape type="sphere"/>
+</scene>
+"#
+    .to_string()
+}
+
 /// A scene nested `depth` elements deep inside its shape.
 fn nested_mitsuba(depth: usize) -> String {
     mitsuba(
@@ -137,8 +149,9 @@ fn hostile_scenes() -> Vec<(&'static str, String, Vec<u8>)> {
         ),
         (
             "mitsuba3.xml",
-            mitsuba("3.0.0", ""),
-            b"scene version 3.0.0: a Mitsuba 2/3 file".to_vec(),
+            mitsuba3_with_environment(),
+            b"cannot be rendered as the file means it (1 reason): line 4: emitter \"envmap\""
+                .to_vec(),
         ),
         (
             "v4.pbrt",

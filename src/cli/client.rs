@@ -1,6 +1,7 @@
 //! HTTP client of the coordinator's API, for `submit`, `status`, `download`, `cancel` and the
 //! embedded service behind `omis render`.
 
+use crate::scene::SceneParams;
 use crate::service::bundle;
 use crate::service::protocol::{
     ErrorBody, EventKind, JobEvent, JobRequest, JobState, JobStatus, ReferenceInfo, SceneMeta,
@@ -73,10 +74,12 @@ impl Client {
             .with_context(|| format!("{what}: bad JSON answer"))
     }
 
-    /// Uploads a scene file and everything it reads as a bundle; returns the bundle id.
-    pub(crate) async fn upload_scene(&self, scene: &Path) -> Result<String> {
+    /// Uploads a scene file and everything it reads (with the parameter values `params`) as a
+    /// bundle; returns the bundle id.
+    pub(crate) async fn upload_scene(&self, scene: &Path, params: &SceneParams) -> Result<String> {
         let s = scene.to_path_buf();
-        let (tar, main) = tokio::task::spawn_blocking(move || bundle::pack(&s))
+        let params = params.clone();
+        let (tar, main) = tokio::task::spawn_blocking(move || bundle::pack(&s, &params))
             .await?
             .map_err(anyhow::Error::msg)?;
         self.upload_bundle(tar, main).await
@@ -252,10 +255,14 @@ fn final_state(kind: EventKind) -> Option<JobState> {
 
 /// The job request for a scene argument: an existing file is uploaded as a bundle, anything
 /// else names a scene of the server's library.
-pub(crate) async fn scene_source(client: &Client, scene: &str) -> Result<SceneSource> {
+pub(crate) async fn scene_source(
+    client: &Client,
+    scene: &str,
+    params: &SceneParams,
+) -> Result<SceneSource> {
     let p = Path::new(scene);
     if p.is_file() {
-        Ok(SceneSource::Bundle(client.upload_scene(p).await?))
+        Ok(SceneSource::Bundle(client.upload_scene(p, params).await?))
     } else if p.components().count() == 1 && !scene.contains('.') || scene.starts_with("library:") {
         Ok(SceneSource::Library(
             scene.trim_start_matches("library:").to_string(),

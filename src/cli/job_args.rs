@@ -9,6 +9,10 @@ use clap::Args;
 
 #[derive(Args, Clone, Debug)]
 pub struct JobArgs {
+    /// A value for a parameter of the scene file (Mitsuba's `$name`), winning over its
+    /// `<default>`: `--define spp=64` (repeatable).
+    #[arg(long = "define", value_name = "NAME=VALUE")]
+    pub defines: Vec<String>,
     /// Samples per pixel (default: the scene's, else 16).
     #[arg(long)]
     pub spp: Option<u32>,
@@ -114,7 +118,16 @@ impl JobArgs {
             }
             None => None,
         };
+        let mut defines = std::collections::BTreeMap::new();
+        for d in &self.defines {
+            let (k, v) = d
+                .split_once('=')
+                .filter(|(k, _)| !k.is_empty())
+                .ok_or_else(|| anyhow::anyhow!("--define: expected NAME=VALUE, got '{d}'"))?;
+            defines.insert(k.to_string(), v.to_string());
+        }
         let s = JobSettings {
+            defines: crate::scene::SceneParams::new(defines),
             resolution,
             spp: self.spp,
             time_budget_s: self.time_budget,

@@ -84,7 +84,7 @@ fn cores() -> usize {
 
 pub fn run(a: RenderArgs) -> Result<()> {
     let settings = a.job.settings()?;
-    let mut scene = Scene::load(&a.scene).map_err(anyhow::Error::msg)?;
+    let mut scene = Scene::load_with(&a.scene, &settings.defines).map_err(anyhow::Error::msg)?;
     for w in &scene.warnings {
         eprintln!("omis: warning: {w}");
     }

@@ -359,7 +359,7 @@ pub(crate) async fn wait_job(c: &Client, status: &JobStatus, quiet: bool) -> Res
 pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
     runtime()?.block_on(async move {
         let c = a.server.client()?;
-        let scene = client::scene_source(&c, &a.scene).await?;
+        let scene = client::scene_source(&c, &a.scene, &a.job.settings()?.defines).await?;
         let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), a.name.as_deref()).await?;
         let id = st.id.clone();
         if !a.wait {

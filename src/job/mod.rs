@@ -13,7 +13,7 @@ use crate::integrator::path::DirectStrategy;
 use crate::integrator::{self, IntegratorKind, RenderSettings, Techniques};
 use crate::mis::MisKind;
 use crate::sampler::SamplerKind;
-use crate::scene::Scene;
+use crate::scene::{Scene, SceneParams};
 use serde::{Deserialize, Serialize};
 
 /// A setting that is out of range: which one (its JSON name) and why.
@@ -40,6 +40,10 @@ impl FieldError {
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct JobSettings {
+    /// Values of the scene file's parameters (Mitsuba's `$name`; only Mitsuba 2/3 files have
+    /// them), winning over the file's `<default>`s.
+    #[serde(skip_serializing_if = "SceneParams::is_empty")]
+    pub defines: SceneParams,
     /// [width, height]; default: the scene's.
     pub resolution: Option<[u32; 2]>,
     /// Samples per pixel; default: the scene's, else 16 (unless a time budget is given).
@@ -169,6 +173,7 @@ pub fn auto_tile_size(width: u32, height: u32, light: bool) -> u32 {
 impl Default for JobSettings {
     fn default() -> Self {
         JobSettings {
+            defines: SceneParams::default(),
             resolution: None,
             spp: None,
             time_budget_s: None,
@@ -254,6 +259,9 @@ fn check_tiles(width: u32, height: u32, tile: u32, limits: &Limits) -> Result<()
 /// A job's settings resolved against its scene: everything a worker needs to render a task.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Resolved {
+    /// Values of the scene file's parameters, with which every process loads the scene.
+    #[serde(default, skip_serializing_if = "SceneParams::is_empty")]
+    pub defines: SceneParams,
     /// Image width in pixels.
     pub width: u32,
     /// Image height in pixels.
@@ -636,6 +644,7 @@ impl JobSettings {
             render.optimal_max_depth = c.chosen;
         }
         Ok(Resolved {
+            defines: self.defines.clone(),
             width,
             height,
             render,
@@ -841,6 +850,7 @@ mod tests {
     #[test]
     fn pass_ranges_cover_the_samples_once() {
         let mut r = Resolved {
+            defines: SceneParams::default(),
             width: 4,
             height: 4,
             render: RenderSettings::default(),
@@ -913,6 +923,7 @@ mod tests {
     #[test]
     fn the_last_pass_is_fitted_to_the_time_budget() {
         let mut r = Resolved {
+            defines: SceneParams::default(),
             width: 4,
             height: 4,
             render: RenderSettings::default(),

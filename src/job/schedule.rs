@@ -56,6 +56,7 @@ impl Resolved {
         pass_size: u32,
     ) -> Resolved {
         Resolved {
+            defines: Default::default(),
             width: scene.camera.width,
             height: scene.camera.height,
             render: settings.clone(),

@@ -199,11 +199,39 @@ fn ids<T>(list: &[T]) -> Vec<u32> {
 /// Above this many area lights the light-pdf sum of a direction uses the emitter BVH.
 const EMITTER_BVH_THRESHOLD: usize = 8;
 
+/// Values of a scene file's parameters (Mitsuba's `$name`), by name: given with
+/// `--define name=value` or a job's `defines`, they win over the file's `<default>`s.
+#[derive(Clone, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(transparent)]
+pub struct SceneParams(std::collections::BTreeMap<String, String>);
+
+impl SceneParams {
+    /// Parameters of the given values.
+    pub fn new(values: std::collections::BTreeMap<String, String>) -> SceneParams {
+        SceneParams(values)
+    }
+
+    /// The values by name.
+    pub fn values(&self) -> &std::collections::BTreeMap<String, String> {
+        &self.0
+    }
+
+    /// Whether no parameter is given.
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+}
+
 impl Scene {
     /// Loads a scene file, choosing the loader by extension (and the pbrt dialect by contents);
     /// see `import::load`.
     pub fn load(path: &Path) -> Result<Scene, SceneError> {
-        import::load(path)
+        import::load(path, &SceneParams::default())
+    }
+
+    /// `load` with values for the file's parameters (only Mitsuba 2/3 files have parameters).
+    pub fn load_with(path: &Path, params: &SceneParams) -> Result<Scene, SceneError> {
+        import::load(path, params)
     }
 
     /// The closest surface hit along `ray`, if any.

@@ -2,14 +2,14 @@
 //! includes), with paths relative to the scene's folder. Clients upload them, the coordinator
 //! keeps them, workers download and cache them.
 
-use crate::scene::Scene;
+use crate::scene::{Scene, SceneParams};
 use std::io::Read;
 use std::path::{Component, Path, PathBuf};
 
-/// Packs `scene` (loaded to learn the files it reads) into a tar archive. Returns the archive and
-/// the scene file's name inside it.
-pub fn pack(scene_path: &Path) -> Result<(Vec<u8>, String), String> {
-    let scene = Scene::load(scene_path).map_err(|e| e.to_string())?;
+/// Packs `scene` (loaded with `params` to learn the files it reads) into a tar archive. Returns
+/// the archive and the scene file's name inside it.
+pub fn pack(scene_path: &Path, params: &SceneParams) -> Result<(Vec<u8>, String), String> {
+    let scene = Scene::load_with(scene_path, params).map_err(|e| e.to_string())?;
     pack_files(scene_path, &scene.files)
 }
 

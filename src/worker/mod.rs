@@ -201,8 +201,10 @@ impl Worker {
 
     /// The scene of a bundle at the job's resolution, loaded once.
     async fn scene(&self, job: &LeasedJob) -> Result<Arc<Scene>, String> {
+        // The same bundle with other parameter values is another scene.
+        let defines = serde_json::to_string(&job.resolved.defines).unwrap_or_default();
         let key = (
-            job.scene_id.clone(),
+            format!("{}{defines}", job.scene_id),
             job.resolved.width,
             job.resolved.height,
         );
@@ -240,8 +242,9 @@ impl Worker {
             }
             let main = dir.join(&job.scene_main);
             let (w, h) = (job.resolved.width, job.resolved.height);
+            let params = job.resolved.defines.clone();
             tokio::task::spawn_blocking(move || {
-                let mut scene = Scene::load(&main).map_err(|e| e.to_string())?;
+                let mut scene = Scene::load_with(&main, &params).map_err(|e| e.to_string())?;
                 if (scene.camera.width, scene.camera.height) != (w, h) {
                     scene.camera = scene.camera.with_resolution(w, h)?;
                 }

@@ -1,4 +1,5 @@
-//! Scene importers: our JSON format, OBJ and PLY meshes, pbrt-v3 and Mitsuba 0.5 files.
+//! Scene importers: our JSON format, OBJ and PLY meshes, pbrt-v3, Mitsuba 0.5 and Mitsuba 3
+//! files.
 //!
 //! Every loader receives a `Resolver` (inside the [`SceneBuilder`] it fills) and reaches the
 //! files a scene names only through it: a `SceneFile` cannot be made any other way, and the
@@ -9,27 +10,39 @@ mod common;
 pub mod json;
 pub(crate) mod mesh;
 pub(crate) mod mitsuba;
+mod mitsuba3;
 pub mod pbrt;
 mod resolve;
+pub(crate) mod xml;
 
 pub(crate) use resolve::Resolver;
 
-use super::{Scene, SceneBuilder, SceneError};
+use super::{Scene, SceneError, SceneParams};
 use std::path::Path;
 
 /// Loads a scene file, choosing the importer by extension (and, for `.pbrt`, the dialect by the
-/// contents); the scene's `files` are those its resolver handed out.
-pub(crate) fn load(path: &Path) -> Result<Scene, SceneError> {
+/// contents; for `.xml`, Mitsuba's version by the root element) with values for its parameters;
+/// the scene's `files` are those its resolver handed out.
+pub(crate) fn load(path: &Path, params: &SceneParams) -> Result<Scene, SceneError> {
     let resolver = Resolver::new(path);
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
         .unwrap_or("")
         .to_ascii_lowercase();
-    let parse: fn(&str, Resolver) -> Result<SceneBuilder, SceneError> = match ext.as_str() {
-        "json" => json::parse_with,
-        "pbrt" => pbrt::parse_with,
-        "xml" => mitsuba::parse_with,
+    let no_params = |path: &Path| {
+        if params.is_empty() {
+            Ok(())
+        } else {
+            Err(SceneError::new(
+                path,
+                "parameters",
+                "parameters (--define, a job's defines) apply only to Mitsuba 2/3 files",
+            ))
+        }
+    };
+    let text = match ext.as_str() {
+        "json" | "pbrt" | "xml" => resolver.read_scene()?,
         other => {
             return Err(SceneError::new(
                 path,
@@ -38,8 +51,18 @@ pub(crate) fn load(path: &Path) -> Result<Scene, SceneError> {
             ));
         }
     };
-    let text = resolver.read_scene()?;
-    parse(&text, resolver)?.build()
+    let builder = match ext.as_str() {
+        "json" => {
+            no_params(path)?;
+            json::parse_with(&text, resolver)?
+        }
+        "pbrt" => {
+            no_params(path)?;
+            pbrt::parse_with(&text, resolver)?
+        }
+        _ => mitsuba::parse_with(&text, resolver, params)?,
+    };
+    builder.build()
 }
 
 #[cfg(test)]

@@ -1,25 +1,26 @@
-//! The XML tree of a Mitsuba file, with the line of every element, and `$name` substitution
-//! from `<default>` elements.
+//! The XML tree of a scene file (Mitsuba's formats), with the line of every element, and the
+//! properties of an object element as its importers read them.
 
-use super::R;
 use crate::scene::SceneError;
 use quick_xml::XmlVersion;
 use quick_xml::events::{BytesStart, Event};
-use std::collections::HashMap;
+use std::cell::Cell;
 use std::path::Path;
 
+type R<T> = Result<T, SceneError>;
+
 /// An element: tag, attributes in order, children, and the line its tag starts on.
-#[derive(Debug)]
-pub(super) struct Node {
-    pub(super) tag: String,
-    pub(super) attrs: Vec<(String, String)>,
-    pub(super) children: Vec<Node>,
-    pub(super) line: u32,
+#[derive(Clone, Debug)]
+pub(crate) struct Node {
+    pub(crate) tag: String,
+    pub(crate) attrs: Vec<(String, String)>,
+    pub(crate) children: Vec<Node>,
+    pub(crate) line: u32,
 }
 
 impl Node {
     /// The value of attribute `k`.
-    pub(super) fn attr(&self, k: &str) -> Option<&str> {
+    pub(crate) fn attr(&self, k: &str) -> Option<&str> {
         self.attrs
             .iter()
             .find(|(a, _)| a == k)
@@ -27,7 +28,7 @@ impl Node {
     }
 
     /// `<tag type="x">` for messages.
-    pub(super) fn label(&self) -> String {
+    pub(crate) fn label(&self) -> String {
         match (self.attr("type"), self.attr("name")) {
             (Some(t), _) => format!("<{} type=\"{t}\">", self.tag),
             (None, Some(n)) => format!("<{} name=\"{n}\">", self.tag),
@@ -61,7 +62,7 @@ impl Lines {
 pub(crate) const MAX_XML_DEPTH: usize = 128;
 
 /// Parses XML text into its tree of elements; errors name the line.
-pub(super) fn parse_xml(text: &str, file: &Path) -> R<Node> {
+pub(crate) fn parse_xml(text: &str, file: &Path) -> R<Node> {
     let lines = Lines::new(text);
     let mut reader = quick_xml::Reader::from_str(text);
     reader.config_mut().trim_text(true);
@@ -154,41 +155,94 @@ pub(super) fn parse_xml(text: &str, file: &Path) -> R<Node> {
     root.ok_or_else(|| SceneError::new(file, "line 1", "no XML element in the file"))
 }
 
-/// Replaces `$name` in attribute values with `<default name= value=>` values.
-pub(super) fn substitute(
-    node: &mut Node,
-    defaults: &HashMap<String, String>,
-    file: &Path,
-) -> R<()> {
-    for (_, v) in &mut node.attrs {
-        if v.contains('$') {
-            let mut out = String::new();
-            let mut rest = v.as_str();
-            while let Some(i) = rest.find('$') {
-                out.push_str(&rest[..i]);
-                let after = &rest[i + 1..];
-                let n = after
-                    .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
-                    .unwrap_or(after.len());
-                let key = &after[..n];
-                let val = defaults.get(key).ok_or_else(|| {
-                    SceneError::new(
-                        file,
-                        format!("line {}", node.line),
-                        format!("undefined parameter ${key}"),
-                    )
-                })?;
-                out.push_str(val);
-                rest = &after[n..];
-            }
-            out.push_str(rest);
-            *v = out;
+/// The children of an object element, with a flag per child telling whether anything read it.
+pub(crate) struct Props<'n> {
+    pub(crate) node: &'n Node,
+    used: Vec<Cell<bool>>,
+}
+
+impl<'n> Props<'n> {
+    /// The properties of `node`, none read yet.
+    pub(crate) fn new(node: &'n Node) -> Self {
+        Props {
+            node,
+            used: node.children.iter().map(|_| Cell::new(false)).collect(),
         }
     }
-    for c in &mut node.children {
-        substitute(c, defaults, file)?;
+
+    /// The last child named `name` (any tag).
+    pub(crate) fn get(&self, name: &str) -> Option<&'n Node> {
+        let (i, n) = self
+            .node
+            .children
+            .iter()
+            .enumerate()
+            .rev()
+            .find(|(_, c)| c.attr("name") == Some(name))?;
+        self.used[i].set(true);
+        Some(n)
     }
-    Ok(())
+
+    /// Whether a child is named `name`.
+    pub(crate) fn has(&self, name: &str) -> bool {
+        self.node
+            .children
+            .iter()
+            .any(|c| c.attr("name") == Some(name))
+    }
+
+    /// Children with tag `tag` and no `name` attribute (nested objects).
+    pub(crate) fn objects(&self, tag: &str) -> Vec<&'n Node> {
+        let mut out = Vec::new();
+        for (i, c) in self.node.children.iter().enumerate() {
+            if c.tag == tag && c.attr("name").is_none() {
+                self.used[i].set(true);
+                out.push(c);
+            }
+        }
+        out
+    }
+
+    /// Children with tag `tag`, named or not.
+    pub(crate) fn any_with_tag(&self, tag: &str) -> Vec<&'n Node> {
+        let mut out = Vec::new();
+        for (i, c) in self.node.children.iter().enumerate() {
+            if c.tag == tag {
+                self.used[i].set(true);
+                out.push(c);
+            }
+        }
+        out
+    }
+
+    /// Marks property `name` read (its value does not change the image).
+    pub(crate) fn consume(&self, name: &str) {
+        let _ = self.get(name);
+    }
+
+    /// The children nothing read.
+    pub(crate) fn unused(&self) -> Vec<&'n Node> {
+        self.node
+            .children
+            .iter()
+            .zip(&self.used)
+            .filter(|(_, u)| !u.get())
+            .map(|(c, _)| c)
+            .collect()
+    }
+}
+
+/// Numbers separated by commas or white space.
+pub(crate) fn split_numbers(s: &str) -> Result<Vec<f32>, String> {
+    s.split(|c: char| c == ',' || c.is_whitespace())
+        .filter(|t| !t.is_empty())
+        .map(|t| {
+            t.parse::<f32>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| format!("malformed number '{t}'"))
+        })
+        .collect()
 }
 
 #[cfg(test)]

@@ -74,6 +74,11 @@ fn create_job_with(
     meta: &SceneMeta,
     mut scene: crate::scene::Scene,
 ) -> ApiResult<JobRow> {
+    if !req.settings.defines.is_empty() {
+        // The bundle was checked with the file's own defaults; the job renders it with its
+        // parameter values.
+        scene = scenes::load_bundle_with(app, &meta.id, &req.settings.defines)?.1;
+    }
     let resolved = req
         .settings
         .resolve(&mut scene, &app.cfg.limits)

@@ -141,8 +141,8 @@ fn library_names(app: &App) -> Vec<String> {
 pub(crate) fn store_library(app: &App, name: &str) -> ApiResult<(SceneMeta, Scene)> {
     let path = library_file(app, name)?;
     let lib = path.parent().unwrap_or(&path);
-    let (tar, main) =
-        bundle::pack(&path).map_err(|e| bad("scene.library", hide_folder(&e, lib)))?;
+    let (tar, main) = bundle::pack(&path, &Default::default())
+        .map_err(|e| bad("scene.library", hide_folder(&e, lib)))?;
     let id = new_bundle(app, |f| f.write_all(&tar))?;
     store_bundle(app, &id, Some(&main), "scene.library")
 }
@@ -197,11 +197,26 @@ pub(crate) fn remove_bundle(app: &App, id: &str) {
 
 /// An uploaded bundle by id, loaded. Runs on a blocking thread.
 pub(crate) fn load_bundle(app: &App, id: &str) -> ApiResult<(SceneMeta, Scene)> {
+    load_bundle_with(app, id, &Default::default())
+}
+
+/// A stored bundle by id, loaded with the parameter values `params` (errors name
+/// `settings.defines`, whose values make the difference). Runs on a blocking thread.
+pub(crate) fn load_bundle_with(
+    app: &App,
+    id: &str,
+    params: &crate::scene::SceneParams,
+) -> ApiResult<(SceneMeta, Scene)> {
     let meta = scene_meta(app, id)
         .ok_or_else(|| bad("scene.bundle", format!("no scene bundle '{id}'")))?;
     let files = app.paths.scene(id).join("files");
-    let scene = Scene::load(&files.join(&meta.main))
-        .map_err(|e| bad("scene.bundle", hide_folder(&e.to_string(), &files)))?;
+    let field = if params.is_empty() {
+        "scene.bundle"
+    } else {
+        "settings.defines"
+    };
+    let scene = Scene::load_with(&files.join(&meta.main), params)
+        .map_err(|e| bad(field, hide_folder(&e.to_string(), &files)))?;
     Ok((meta, scene))
 }
 

@@ -1,10 +1,9 @@
 //! The `<integrator>` (its depth limit) and the `<sensor>` with its film and sampler.
 
-use super::props::Props;
-use super::xml::Node;
 use super::{Ctx, R, UNLIMITED_DEPTH};
 use crate::geometry::{Transform, Vec3};
 use crate::scene::import::common::camera_from;
+use crate::scene::import::xml::{Node, Props};
 
 impl Ctx {
     /// Takes the default max depth from an `<integrator>`.

@@ -1,13 +1,12 @@
 //! BSDFs: Mitsuba 0.5's bsdf plugins mapped onto our materials, and the named indices of
 //! refraction and conductors they may give.
 
-use super::props::Props;
-use super::xml::Node;
 use super::{Ctx, Obj, R};
 use crate::geometry::{Rgb, Vec3};
 use crate::material::microfacet::MIN_ALPHA;
 use crate::material::{Material, MaterialKind, Texture};
 use crate::scene::import::common::{COPPER_ETA, COPPER_K};
+use crate::scene::import::xml::{Node, Props};
 
 /// Mitsuba's named indices of refraction (Mitsuba 0.5 documentation, table of IOR values).
 fn named_ior(name: &str) -> Option<f32> {

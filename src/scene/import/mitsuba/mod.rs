@@ -23,16 +23,16 @@ mod materials;
 mod props;
 mod shapes;
 mod textures;
-mod xml;
 
 use super::common::{Bitmaps, Warnings};
 use super::resolve::Resolver;
 use crate::material::{Material, Texture};
-use crate::scene::{MeshData, SceneBuilder, SceneError};
-use props::Props;
+use crate::scene::import::xml::Props;
+use crate::scene::import::xml::{Node, parse_xml};
+use crate::scene::{MeshData, SceneBuilder, SceneError, SceneParams};
 use std::collections::HashMap;
+use std::path::Path;
 use std::path::PathBuf;
-use xml::{Node, parse_xml, substitute};
 
 type R<T> = Result<T, SceneError>;
 
@@ -61,29 +61,40 @@ struct Ctx {
     default_bsdf: Option<u32>,
 }
 
-/// Parses Mitsuba 0.5 XML text, reading the files it names through `resolver`.
-pub(crate) fn parse_with(text: &str, resolver: Resolver) -> Result<SceneBuilder, SceneError> {
+/// Parses Mitsuba XML text, reading the files it names through `resolver`: a Mitsuba 2 or 3
+/// file (its root's version) goes to `mitsuba3` with `params`, a Mitsuba 0.5 file is read here.
+pub(crate) fn parse_with(
+    text: &str,
+    resolver: Resolver,
+    params: &SceneParams,
+) -> Result<SceneBuilder, SceneError> {
     let file = &resolver.scene_file().to_path_buf();
     let mut root = parse_xml(text, file)?;
+    if let Some(v) = root.attr("version") {
+        match super::mitsuba3::major_version(v) {
+            Some(m) if m >= 2 => return super::mitsuba3::parse(root, resolver, params),
+            Some(_) => {}
+            None => {
+                return Err(SceneError::new(
+                    file,
+                    format!("line {}", root.line),
+                    format!("malformed scene version \"{v}\""),
+                ));
+            }
+        }
+    }
+    if !params.is_empty() {
+        return Err(SceneError::new(
+            file,
+            "parameters",
+            "parameters (--define, a job's defines) apply only to Mitsuba 2/3 files; this is a Mitsuba 0.5 file",
+        ));
+    }
     if root.tag != "scene" {
         return Err(SceneError::new(
             file,
             format!("line {}", root.line),
             format!("the root element is <{}>, expected <scene>", root.tag),
-        ));
-    }
-    if let Some(v) = root.attr("version")
-        && !v.starts_with("0.")
-    {
-        // Mitsuba 2 and 3 rename plugins and parameters (`to_world`, `hdrfilm`, `max_depth`,
-        // ...): read as 0.5 such a file loses its lights and renders black.
-        return Err(SceneError::new(
-            file,
-            format!("line {}", root.line),
-            format!(
-                "scene version {v}: a Mitsuba 2/3 file; this importer reads Mitsuba 0.5 files \
-                 (version 0.x) only, and refuses others rather than render them wrongly"
-            ),
         ));
     }
     let mut defaults = HashMap::new();
@@ -205,4 +216,37 @@ impl Ctx {
         self.ids.insert(id.to_string(), o);
         Ok(())
     }
+}
+
+/// Replaces `$name` in attribute values with `<default name= value=>` values.
+fn substitute(node: &mut Node, defaults: &HashMap<String, String>, file: &Path) -> R<()> {
+    for (_, v) in &mut node.attrs {
+        if v.contains('$') {
+            let mut out = String::new();
+            let mut rest = v.as_str();
+            while let Some(i) = rest.find('$') {
+                out.push_str(&rest[..i]);
+                let after = &rest[i + 1..];
+                let n = after
+                    .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+                    .unwrap_or(after.len());
+                let key = &after[..n];
+                let val = defaults.get(key).ok_or_else(|| {
+                    SceneError::new(
+                        file,
+                        format!("line {}", node.line),
+                        format!("undefined parameter ${key}"),
+                    )
+                })?;
+                out.push_str(val);
+                rest = &after[n..];
+            }
+            out.push_str(rest);
+            *v = out;
+        }
+    }
+    for c in &mut node.children {
+        substitute(c, defaults, file)?;
+    }
+    Ok(())
 }

@@ -1,101 +1,10 @@
 //! The properties of an object element (`<float name="radius" value="2"/>`, ...) and their
 //! typed values: numbers, colours, points and transforms.
 
-use super::xml::Node;
 use super::{Ctx, R};
 use crate::geometry::{Frame, Mat4, Rgb, Vec3};
 use crate::material::texture::srgb_to_linear;
-use std::cell::Cell;
-
-/// The children of an object element, with a flag per child telling whether anything read it.
-pub(super) struct Props<'n> {
-    pub(super) node: &'n Node,
-    used: Vec<Cell<bool>>,
-}
-
-impl<'n> Props<'n> {
-    /// The properties of `node`, none read yet.
-    pub(super) fn new(node: &'n Node) -> Self {
-        Props {
-            node,
-            used: node.children.iter().map(|_| Cell::new(false)).collect(),
-        }
-    }
-
-    /// The last child named `name` (any tag).
-    pub(super) fn get(&self, name: &str) -> Option<&'n Node> {
-        let (i, n) = self
-            .node
-            .children
-            .iter()
-            .enumerate()
-            .rev()
-            .find(|(_, c)| c.attr("name") == Some(name))?;
-        self.used[i].set(true);
-        Some(n)
-    }
-
-    /// Whether a child is named `name`.
-    pub(super) fn has(&self, name: &str) -> bool {
-        self.node
-            .children
-            .iter()
-            .any(|c| c.attr("name") == Some(name))
-    }
-
-    /// Children with tag `tag` and no `name` attribute (nested objects).
-    pub(super) fn objects(&self, tag: &str) -> Vec<&'n Node> {
-        let mut out = Vec::new();
-        for (i, c) in self.node.children.iter().enumerate() {
-            if c.tag == tag && c.attr("name").is_none() {
-                self.used[i].set(true);
-                out.push(c);
-            }
-        }
-        out
-    }
-
-    /// Children with tag `tag`, named or not.
-    pub(super) fn any_with_tag(&self, tag: &str) -> Vec<&'n Node> {
-        let mut out = Vec::new();
-        for (i, c) in self.node.children.iter().enumerate() {
-            if c.tag == tag {
-                self.used[i].set(true);
-                out.push(c);
-            }
-        }
-        out
-    }
-
-    /// Marks property `name` read (its value does not change the image).
-    pub(super) fn consume(&self, name: &str) {
-        let _ = self.get(name);
-    }
-
-    /// The children nothing read.
-    pub(super) fn unused(&self) -> Vec<&'n Node> {
-        self.node
-            .children
-            .iter()
-            .zip(&self.used)
-            .filter(|(_, u)| !u.get())
-            .map(|(c, _)| c)
-            .collect()
-    }
-}
-
-/// Numbers separated by commas or white space.
-pub(super) fn split_numbers(s: &str) -> Result<Vec<f32>, String> {
-    s.split(|c: char| c == ',' || c.is_whitespace())
-        .filter(|t| !t.is_empty())
-        .map(|t| {
-            t.parse::<f32>()
-                .ok()
-                .filter(|v| v.is_finite())
-                .ok_or_else(|| format!("malformed number '{t}'"))
-        })
-        .collect()
-}
+use crate::scene::import::xml::{Node, Props, split_numbers};
 
 impl Ctx {
     pub(super) fn value_attr<'a>(&self, n: &'a Node) -> R<&'a str> {

@@ -1,13 +1,12 @@
 //! Shapes (`obj`, `ply`, `rectangle`, `cube`, `disk`, `sphere`) with their bsdfs and nested
 //! area emitters, and point emitters.
 
-use super::props::Props;
-use super::xml::Node;
 use super::{Ctx, Obj, R};
 use crate::geometry::{Rgb, Transform, Vec2, Vec3};
 use crate::scene::MeshData;
 use crate::scene::import::common::{default_lambert, uniform_scale};
 use crate::scene::import::mesh::{read_obj, read_ply};
+use crate::scene::import::xml::{Node, Props};
 use rayon::prelude::*;
 use std::path::PathBuf;
 

@@ -1,10 +1,9 @@
 //! Textures: `bitmap` and `scale`, and the colour properties that may be textured.
 
-use super::props::Props;
-use super::xml::Node;
 use super::{Ctx, Obj, R};
 use crate::geometry::Rgb;
 use crate::material::{Bitmap, Texture};
+use crate::scene::import::xml::{Node, Props};
 use std::sync::Arc;
 
 impl Ctx {
