@@ -88,12 +88,12 @@ fn mitsuba(version: &str, inner: &str) -> String {
     )
 }
 
-/// A Mitsuba 3 scene lit by an environment map, which it cannot be rendered without.
+/// A Mitsuba 3 scene lit by a sun-and-sky model, which it cannot be rendered without.
 fn mitsuba3_with_environment() -> String {
     r#"<scene version="3.0.0">
     <sensor type="perspective"><float name="fov" value="45"/>
         <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>
-    <emitter type="envmap"><string name="filename" value="sky.exr"/></emitter>
+    <emitter type="sunsky"/>
     <shape type="sphere"/>
 </scene>
 "#
@@ -150,7 +150,7 @@ fn hostile_scenes() -> Vec<(&'static str, String, Vec<u8>)> {
         (
             "mitsuba3.xml",
             mitsuba3_with_environment(),
-            b"cannot be rendered as the file means it (1 reason): line 4: emitter \"envmap\""
+            b"cannot be rendered as the file means it (1 reason): line 4: emitter \"sunsky\""
                 .to_vec(),
         ),
         (

@@ -231,9 +231,9 @@ fn what_we_cannot_render_is_refused_naming_every_construct() {
     let text = scene(&format!(
         r#"
     <integrator type="path"><boolean name="hide_emitters" value="true"/></integrator>
-    <emitter type="envmap"><string name="filename" value="sky.exr"/></emitter>
-    <emitter type="spot"/>
+    <emitter type="sunsky"/>
     <shape type="rectangle"><bsdf type="thindielectric"/></shape>
+    <shape type="rectangle"><bsdf type="null"/></shape>
     <medium type="homogeneous" id="fog"/>
     {LIGHT}"#
     ));
@@ -246,8 +246,8 @@ fn what_we_cannot_render_is_refused_naming_every_construct() {
             "scene.xml",
             "5 reasons",
             "hide_emitters",
-            "emitter \"envmap\"",
-            "emitter \"spot\"",
+            "emitter \"sunsky\"",
+            "null bsdf",
             "thindielectric",
             "participating media",
         ],

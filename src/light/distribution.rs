@@ -70,6 +70,23 @@ impl Distribution1D {
     }
 }
 
+impl Distribution1D {
+    /// [`Distribution1D::sample`] and where in its bin `u` fell, in [0, 1): the same u reused to
+    /// place a continuous sample inside the bin.
+    #[inline]
+    pub fn sample_remapped(&self, u: f32) -> (usize, f32, f32) {
+        let (i, p) = self.sample(u);
+        let lo = self.cdf[i];
+        let width = self.cdf[i + 1] - lo;
+        let r = if width > 0.0 {
+            ((u as f64 - lo) / width).clamp(0.0, 1.0 - f64::EPSILON) as f32
+        } else {
+            0.5
+        };
+        (i, p, r.min(1.0 - f32::EPSILON))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

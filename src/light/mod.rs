@@ -1,13 +1,16 @@
-//! Emitters: one-sided triangle area lights, sphere lights and point lights, with light selection
-//! proportional to power.
+//! Emitters: one-sided triangle area lights, sphere lights, point and spot lights, and the dome
+//! that carries light from infinitely far away (an environment, a distant sun: `environment`),
+//! with light selection proportional to power.
 //!
 //! [`SceneBuilder::build`](crate::scene::SceneBuilder::build) turns emissive primitives and
 //! point lights into [`Light`]s and the selection [`Distribution1D`]; integrators sample them
 //! through [`Scene`](crate::scene::Scene) (next-event estimation, BDPT light subpaths).
 
 mod distribution;
+pub mod environment;
 
 pub use distribution::Distribution1D;
+pub use environment::{Environment, Sky, Sun};
 
 use crate::geometry::warp::uniform_sphere;
 use crate::geometry::{Frame, PI, Rgb, Vec2, Vec3, luminance};
@@ -47,6 +50,32 @@ pub enum Light {
         position: Vec3,
         /// Radiant intensity (power per unit solid angle).
         intensity: Rgb,
+    },
+    /// A point light emitting within a cone (Mitsuba 3's `spot`): full intensity within
+    /// `beam` of the axis, falling off linearly in angle to zero at `cutoff`.
+    Spot {
+        /// Position in world space.
+        position: Vec3,
+        /// The frame whose `n` is the cone's axis.
+        frame: Frame,
+        /// Radiant intensity on the axis.
+        intensity: Rgb,
+        /// Half-angle of full intensity, radians.
+        beam: f32,
+        /// Half-angle of the cone, radians.
+        cutoff: f32,
+        /// cos(cutoff).
+        cos_cutoff: f32,
+    },
+    /// The inside of a sphere around the scene, emitting toward its centre the radiance the sky
+    /// sends from each direction (`environment`): the scene's light from infinitely far away.
+    Dome {
+        /// Centre of the sphere.
+        center: Vec3,
+        /// Radius (everything the scene holds, the camera included, lies inside).
+        radius: f32,
+        /// Radiance by direction.
+        sky: std::sync::Arc<Sky>,
     },
 }
 
@@ -88,12 +117,13 @@ impl Light {
         })
     }
 
-    /// True for lights that BSDF sampling cannot hit (point lights).
+    /// True for lights that BSDF sampling cannot hit (point and spot lights).
     pub fn is_delta(&self) -> bool {
-        matches!(self, Light::Point { .. })
+        matches!(self, Light::Point { .. } | Light::Spot { .. })
     }
 
-    /// Emitted power (luminance), used for light selection.
+    /// Emitted power (luminance), used for light selection. The dome's is the sky's flux onto
+    /// a disc as large as the scene (pbrt-v3's power of infinite lights), not its own.
     pub fn power(&self) -> f32 {
         match self {
             Light::Triangle { area, radiance, .. } => PI * area * luminance(*radiance),
@@ -101,6 +131,32 @@ impl Light {
                 radius, radiance, ..
             } => PI * 4.0 * PI * radius * radius * luminance(*radiance),
             Light::Point { intensity, .. } => 4.0 * PI * luminance(*intensity),
+            Light::Spot {
+                intensity,
+                beam,
+                cutoff,
+                ..
+            } => {
+                // The cone's solid angle at the mean of the two half-angles (pbrt-v3's).
+                let cos_mid = (0.5 * (beam + cutoff)).cos();
+                2.0 * PI * (1.0 - cos_mid) * luminance(*intensity)
+            }
+            Light::Dome { radius, sky, .. } => sky.power(*radius / DOME_MARGIN),
+        }
+    }
+
+    /// The intensity of a spot light toward `w` (unit, from the light): Mitsuba 3's falloff,
+    /// linear in angle from the beam to the cutoff.
+    fn spot_intensity(frame: &Frame, intensity: Rgb, beam: f32, cutoff: f32, w: Vec3) -> Rgb {
+        let cos = w.dot(frame.n);
+        if cos <= cutoff.cos() {
+            return Rgb::ZERO;
+        }
+        let theta = cos.clamp(-1.0, 1.0).acos();
+        if theta <= beam {
+            intensity
+        } else {
+            intensity * ((cutoff - theta) / (cutoff - beam))
         }
     }
 
@@ -118,7 +174,15 @@ impl Light {
                     Rgb::ZERO
                 }
             }
-            Light::Point { .. } => Rgb::ZERO,
+            Light::Point { .. } | Light::Spot { .. } => Rgb::ZERO,
+            // Toward the centre the dome sends what the sky sends from the opposite direction.
+            Light::Dome { sky, .. } => {
+                if n.dot(w) > 0.0 {
+                    sky.radiance(-w)
+                } else {
+                    Rgb::ZERO
+                }
+            }
         }
     }
 
@@ -247,6 +311,54 @@ impl Light {
                     delta: true,
                 })
             }
+            Light::Spot {
+                position,
+                frame,
+                intensity,
+                beam,
+                cutoff,
+                ..
+            } => {
+                let d = position - p_ref;
+                let dist2 = d.length_squared();
+                let dist = dist2.sqrt();
+                if !(dist > 0.0) {
+                    return None;
+                }
+                let wi = d / dist;
+                let i = Self::spot_intensity(&frame, intensity, beam, cutoff, -wi);
+                if i == Rgb::ZERO {
+                    return None;
+                }
+                finite_sample(LightSample {
+                    p: position,
+                    n: Vec3::ZERO,
+                    wi,
+                    dist,
+                    le: i / dist2,
+                    pdf: 1.0,
+                    delta: true,
+                })
+            }
+            Light::Dome {
+                center,
+                radius,
+                ref sky,
+            } => {
+                let (wi, pdf) = sky.sample(u)?;
+                let dist = dome_exit(center, radius, p_ref, wi)?;
+                let p = p_ref + wi * dist;
+                let n = (center - p).normalize();
+                finite_sample(LightSample {
+                    p,
+                    n,
+                    wi,
+                    dist,
+                    le: sky.radiance(wi),
+                    pdf,
+                    delta: false,
+                })
+            }
         }
     }
 
@@ -319,9 +431,20 @@ impl Light {
                     if pdf.is_finite() { pdf } else { 0.0 }
                 }
             }
-            Light::Point { .. } => 0.0,
+            Light::Point { .. } | Light::Spot { .. } => 0.0,
+            // Every ray from inside leaves through the dome once.
+            Light::Dome { ref sky, .. } => sky.pdf(wi),
         }
     }
+}
+
+/// The dome's radius over the radius of everything it encloses.
+pub const DOME_MARGIN: f32 = 1.5;
+
+/// Distance from `p` (inside) along unit `d` to where it leaves the sphere (`center`, `radius`).
+pub fn dome_exit(center: Vec3, radius: f32, p: Vec3, d: Vec3) -> Option<f32> {
+    let (_, t1) = crate::accel::SphereGeom { center, radius }.roots(p, d)?;
+    (t1 > 0.0 && t1.is_finite()).then_some(t1)
 }
 
 /// A ray leaving a light (BDPT light subpaths), with the densities that produced it.
@@ -386,6 +509,54 @@ impl Light {
                     pdf_dir: crate::geometry::warp::UNIFORM_SPHERE_PDF,
                 });
             }
+            Light::Spot {
+                position,
+                frame,
+                intensity,
+                beam,
+                cutoff,
+                cos_cutoff,
+            } => {
+                let dir = frame
+                    .to_world(crate::geometry::warp::uniform_cone(u_dir, cos_cutoff))
+                    .normalize();
+                let le = Self::spot_intensity(&frame, intensity, beam, cutoff, dir);
+                return (le != Rgb::ZERO).then_some(EmissionSample {
+                    p: position,
+                    n: Vec3::ZERO,
+                    dir,
+                    le,
+                    pdf_pos: 1.0,
+                    pdf_dir: crate::geometry::warp::uniform_cone_pdf(cos_cutoff),
+                });
+            }
+            Light::Dome {
+                center,
+                radius,
+                ref sky,
+            } => {
+                // A point uniformly on the dome and a direction by the sky's density, turned
+                // inward when it points out: every point gets a direction (techniques that use
+                // the point alone, like light tracing's connection to the camera, count on its
+                // density), and a direction's density is the sky's for it and for its opposite.
+                let n_out = uniform_sphere(u_pos);
+                let p = center + n_out * radius;
+                let n = -n_out;
+                let (to_sky, _) = sky.sample(u_dir)?;
+                let dir = if n.dot(to_sky) < 0.0 { -to_sky } else { to_sky };
+                let pdf_dir = sky.pdf(-dir) + sky.pdf(dir);
+                if !(pdf_dir > 0.0) || n.dot(dir) == 0.0 {
+                    return None;
+                }
+                return Some(EmissionSample {
+                    p,
+                    n,
+                    dir,
+                    le: sky.radiance(-dir),
+                    pdf_pos: 1.0 / (4.0 * PI * radius * radius),
+                    pdf_dir,
+                });
+            }
         };
         let local = crate::geometry::warp::cosine_hemisphere(u_dir);
         let dir = Frame::from_normal(n).to_world(local);
@@ -416,6 +587,26 @@ impl Light {
                 crate::geometry::warp::cosine_hemisphere_pdf(n.dot(dir)),
             ),
             Light::Point { .. } => (1.0, crate::geometry::warp::UNIFORM_SPHERE_PDF),
+            Light::Spot {
+                frame, cos_cutoff, ..
+            } => (
+                1.0,
+                if frame.n.dot(dir) > cos_cutoff {
+                    crate::geometry::warp::uniform_cone_pdf(cos_cutoff)
+                } else {
+                    0.0
+                },
+            ),
+            Light::Dome {
+                radius, ref sky, ..
+            } => (
+                1.0 / (4.0 * PI * radius * radius),
+                if n.dot(dir) > 0.0 {
+                    sky.pdf(-dir) + sky.pdf(dir)
+                } else {
+                    0.0
+                },
+            ),
         }
     }
 }

@@ -3,6 +3,10 @@
 use crate::geometry::{Rgb, Vec2};
 use std::sync::Arc;
 
+/// The most texels of a floating-point image a scene may use (12 bytes each in memory): an
+/// 8K x 8K environment map. Other formats go through the `image` crate's own allocation limit.
+pub const MAX_TEXELS: usize = 1 << 26;
+
 /// An RGB image in linear space, rows top to bottom.
 #[derive(Debug)]
 pub struct Bitmap {
@@ -34,6 +38,12 @@ impl Bitmap {
     /// linear) or already linear (taken as stored, e.g. roughness or bump data).
     pub fn load_with(path: &std::path::Path, srgb: bool) -> Result<Bitmap, String> {
         use image::ColorType;
+        let exr = path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("exr"));
+        if exr {
+            return Self::load_exr(path);
+        }
         let img = image::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
         let (w, h) = (img.width() as usize, img.height() as usize);
         if w == 0 || h == 0 {
@@ -61,6 +71,44 @@ impl Bitmap {
             height: h,
             texels,
         })
+    }
+
+    /// An OpenEXR image's first RGB(A) layer, linear, its data window checked against the
+    /// image limits first (a small file may claim a huge frame).
+    fn load_exr(path: &std::path::Path) -> Result<Bitmap, String> {
+        use exr::prelude::*;
+        let bad = |e: exr::error::Error| format!("{}: {e}", path.display());
+        let meta = exr::meta::MetaData::read_from_file(path, false).map_err(bad)?;
+        let too_large = meta
+            .headers
+            .iter()
+            .any(|h| h.layer_size.width().saturating_mul(h.layer_size.height()) > MAX_TEXELS);
+        if too_large {
+            return Err(format!("{}: more than {MAX_TEXELS} texels", path.display()));
+        }
+        let img = read_first_rgba_layer_from_file(
+            path,
+            |size, _| (size.width(), vec![Rgb::ZERO; size.width() * size.height()]),
+            |(w, px): &mut (usize, Vec<Rgb>), pos, (r, g, b, _a): (f32, f32, f32, f32)| {
+                px[pos.y() * *w + pos.x()] = Rgb::new(r, g, b);
+            },
+        )
+        .map_err(bad)?;
+        let size = img.layer_data.size;
+        let (w, h) = (size.width(), size.height());
+        if w == 0 || h == 0 {
+            return Err(format!("{}: empty image", path.display()));
+        }
+        Ok(Bitmap {
+            width: w,
+            height: h,
+            texels: Texels::F32(img.layer_data.channel_data.pixels.1),
+        })
+    }
+
+    /// Every texel, linear, rows top to bottom.
+    pub fn to_rgb(&self) -> Vec<Rgb> {
+        self.texels().collect()
     }
 
     #[inline]

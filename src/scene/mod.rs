@@ -169,6 +169,19 @@ pub struct Scene {
     emitters_occlude: bool,
     /// No ray meets two emitters (see [`one_emitter_per_ray`]).
     one_emitter_per_ray: bool,
+    /// The dome that carries the sky's light, outside every primitive (`Light::Dome`).
+    dome: Option<Dome>,
+}
+
+/// The sphere a scene's sky shines in from: a ray that leaves the scene hits its inside.
+#[derive(Clone, Copy, Debug)]
+struct Dome {
+    center: Vec3,
+    radius: f32,
+    /// Its light (`Light::Dome`).
+    light: u32,
+    /// Its material: black, so that a path that reaches the sky ends there.
+    material: u32,
 }
 
 /// The world-space geometry of the triangles and spheres, in the scene's order.
@@ -234,11 +247,38 @@ impl Scene {
         import::load(path, params)
     }
 
-    /// The closest surface hit along `ray`, if any.
+    /// The closest surface hit along `ray`, if any: a primitive, or where the ray leaves
+    /// through the dome when the scene has a sky.
     #[inline]
     pub fn intersect(&self, ray: &Ray) -> Option<SurfaceHit> {
-        let h = self.accel.intersect(ray)?;
-        Some(self.surface_hit(ray, h.prim, h.t, h.bary))
+        match self.accel.intersect(ray) {
+            Some(h) => Some(self.surface_hit(ray, h.prim, h.t, h.bary)),
+            None => self.dome_hit(ray),
+        }
+    }
+
+    /// Where `ray` (from inside) leaves through the dome.
+    fn dome_hit(&self, ray: &Ray) -> Option<SurfaceHit> {
+        let d = self.dome.as_ref()?;
+        let len = ray.d.length();
+        let t = crate::light::dome_exit(d.center, d.radius, ray.o, ray.d / len)? / len;
+        let n = (d.center - ray.at(t)).normalize();
+        Some(SurfaceHit {
+            p: d.center - n * d.radius,
+            t,
+            ng: n,
+            ns: n,
+            uv: Vec2::ZERO,
+            material: d.material,
+            light: d.light,
+            prim: Prim::Sphere(u32::MAX),
+        })
+    }
+
+    /// The sphere around the scene the sky shines in from, if the scene has a sky: (centre,
+    /// radius).
+    pub fn dome(&self) -> Option<(Vec3, f32)> {
+        self.dome.map(|d| (d.center, d.radius))
     }
 
     fn surface_hit(&self, ray: &Ray, prim: Prim, t: f32, bary: Vec2) -> SurfaceHit {
@@ -378,6 +418,13 @@ impl Scene {
                 });
             }
         }
+        // Every ray leaves through the dome.
+        if let Some(d) = &self.dome {
+            let pmf = sel.pmf(d.light as usize);
+            if pmf > 0.0 {
+                sum += pmf * self.lights[d.light as usize].pdf_li(p, wi);
+            }
+        }
         sum
     }
 
@@ -464,6 +511,8 @@ pub struct SceneBuilder {
     spheres: Vec<Sphere>,
     sphere_emission: Vec<Rgb>,
     point_lights: Vec<Light>,
+    environment: Option<std::sync::Arc<crate::light::Environment>>,
+    sun: Option<crate::light::Sun>,
     /// Settings the scene file suggests.
     pub defaults: SceneDefaults,
     warnings: Vec<String>,
@@ -484,6 +533,8 @@ impl SceneBuilder {
             spheres: Vec::new(),
             sphere_emission: Vec::new(),
             point_lights: Vec::new(),
+            environment: None,
+            sun: None,
             defaults: SceneDefaults::default(),
             warnings: Vec::new(),
         }
@@ -711,6 +762,61 @@ impl SceneBuilder {
         Ok(())
     }
 
+    /// Adds a spot light at `position` pointing along `axis` (Mitsuba 3's `spot`): `intensity`
+    /// on the axis, full within `beam` degrees, falling off linearly to 0 at `cutoff` degrees.
+    pub fn add_spot_light(
+        &mut self,
+        position: Vec3,
+        axis: Vec3,
+        intensity: Rgb,
+        (beam, cutoff): (f32, f32),
+        location: &str,
+    ) -> Result<(), SceneError> {
+        if !position.is_finite() || !within_world(position) {
+            return Err(self.err(location, beyond_world("the spot light", position)));
+        }
+        let axis = axis.normalize_or_zero();
+        if axis == Vec3::ZERO || !axis.is_finite() {
+            return Err(self.err(location, "the spot light has no direction"));
+        }
+        if !(intensity.is_finite() && intensity.min_element() >= 0.0) {
+            return Err(self.err(location, "intensity must be finite and >= 0"));
+        }
+        if !(cutoff > 0.0 && cutoff <= 90.0 && beam > 0.0 && beam <= cutoff) {
+            return Err(self.err(
+                location,
+                format!("the spot's cutoff {cutoff} and beam {beam} must be 0 < beam <= cutoff <= 90 degrees"),
+            ));
+        }
+        let cutoff = cutoff.to_radians();
+        self.point_lights.push(Light::Spot {
+            position,
+            frame: crate::geometry::Frame::from_normal(axis),
+            intensity,
+            beam: beam.to_radians().min(cutoff),
+            cutoff,
+            cos_cutoff: cutoff.cos(),
+        });
+        Ok(())
+    }
+
+    /// Sets the environment (at most one: the last call wins).
+    pub fn set_environment(&mut self, env: crate::light::Environment) {
+        self.environment = Some(std::sync::Arc::new(env));
+    }
+
+    /// Adds a distant sun (at most one: a second is an error).
+    pub fn add_sun(&mut self, sun: crate::light::Sun, location: &str) -> Result<(), SceneError> {
+        if self.sun.is_some() {
+            return Err(self.err(location, "more than one directional light is not supported"));
+        }
+        if !(sun.radiance.is_finite() && sun.radiance.min_element() >= 0.0) {
+            return Err(self.err(location, "irradiance must be finite and >= 0"));
+        }
+        self.sun = Some(sun);
+        Ok(())
+    }
+
     /// Validates and builds the scene: lights, the light-selection distribution and the BVHs.
     pub fn build(mut self) -> Result<Scene, SceneError> {
         let camera = self
@@ -757,6 +863,10 @@ impl SceneBuilder {
             });
         }
         lights.append(&mut self.point_lights);
+        let dome = self.dome(&camera, lights.len() as u32).map(|(d, light)| {
+            lights.push(light);
+            d
+        });
         let powers: Vec<f32> = lights.iter().map(|l| l.power()).collect();
         let light_select = Distribution1D::new(&powers);
 
@@ -787,8 +897,13 @@ impl SceneBuilder {
             None
         };
         let coplanar = coplanar_triangle_lights(&lights, &area_lights);
-        let emitters_occlude = !coplanar;
-        let one_emitter_per_ray = one_emitter_per_ray(&lights, &area_lights, coplanar);
+        // The dome stands behind every other emitter.
+        let emitters_occlude = !coplanar || (dome.is_some() && !area_lights.is_empty());
+        let one_emitter_per_ray = if dome.is_some() {
+            area_lights.is_empty()
+        } else {
+            one_emitter_per_ray(&lights, &area_lights, coplanar)
+        };
         let stats = SceneStats {
             triangles: self.triangles.len(),
             spheres: self.spheres.len(),
@@ -814,8 +929,75 @@ impl SceneBuilder {
             area_lights,
             emitters_occlude,
             one_emitter_per_ray,
+            dome,
         })
     }
+
+    /// The dome of the scene's sky, if it has one, around its primitives and `camera`, with its
+    /// light (index `light`) and a black material.
+    fn dome(&mut self, camera: &Camera, light: u32) -> Option<(Dome, Light)> {
+        if self.environment.is_none() && self.sun.is_none() {
+            return None;
+        }
+        let (lo, hi) = bounds_of(&self.positions, &self.spheres);
+        let (lo, hi) = (lo.min(camera.position), hi.max(camera.position));
+        let center = 0.5 * (lo + hi);
+        let r = (0.5 * (hi - lo).length()).max(1e-3 * center.length().max(1.0));
+        let env = self.environment.take();
+        let sun = self.sun.take();
+        // Light sampling splits between sun and environment by their irradiance.
+        let sun_prob = match (&env, &sun) {
+            (Some(e), Some(s)) => {
+                let (a, b) = (s.irradiance(), crate::geometry::PI * e.mean_luminance());
+                if a + b > 0.0 {
+                    (a / (a + b)).clamp(0.05, 0.95)
+                } else {
+                    0.5
+                }
+            }
+            _ => 0.0,
+        };
+        let material = self.add_material(Material::new(
+            "the sky's dome (black)",
+            crate::material::MaterialKind::Lambert {
+                albedo: crate::material::Texture::Constant(Rgb::ZERO),
+            },
+            true,
+        ));
+        let radius = r * crate::light::DOME_MARGIN;
+        let sky = crate::light::Sky { env, sun, sun_prob };
+        Some((
+            Dome {
+                center,
+                radius,
+                light,
+                material,
+            },
+            Light::Dome {
+                center,
+                radius,
+                sky: std::sync::Arc::new(sky),
+            },
+        ))
+    }
+}
+
+/// The bounds of triangle vertices and spheres (a point at the origin when there are none).
+fn bounds_of(positions: &[Vec3], spheres: &[Sphere]) -> (Vec3, Vec3) {
+    let mut lo = Vec3::splat(f32::INFINITY);
+    let mut hi = Vec3::splat(f32::NEG_INFINITY);
+    for p in positions {
+        lo = lo.min(*p);
+        hi = hi.max(*p);
+    }
+    for s in spheres {
+        lo = lo.min(s.center - s.radius);
+        hi = hi.max(s.center + s.radius);
+    }
+    if lo.x > hi.x {
+        return (Vec3::ZERO, Vec3::ZERO);
+    }
+    (lo, hi)
 }
 
 /// The most coplanar triangle lights whose interiors are checked pair by pair for

@@ -67,6 +67,7 @@ pub(crate) fn parse(root: Node, resolver: Resolver, params: &SceneParams) -> R<S
         meshes: HashMap::new(),
         default_bsdf: None,
         black_bsdf: None,
+        environment_seen: false,
     };
     let root = cx.expand(root, &file, 0)?;
     if root.tag != "scene" {
@@ -165,6 +166,8 @@ struct Ctx {
     meshes: HashMap<PathBuf, Result<MeshData, String>>,
     default_bsdf: Option<u32>,
     black_bsdf: Option<u32>,
+    /// An environment emitter was read (a scene has at most one).
+    environment_seen: bool,
 }
 
 impl Ctx {
