@@ -232,7 +232,7 @@ fn what_we_cannot_render_is_refused_naming_every_construct() {
         r#"
     <integrator type="path"><boolean name="hide_emitters" value="true"/></integrator>
     <emitter type="sunsky"/>
-    <shape type="rectangle"><bsdf type="thindielectric"/></shape>
+    <shape type="bsplinecurve"/>
     <shape type="rectangle"><bsdf type="null"/></shape>
     <medium type="homogeneous" id="fog"/>
     {LIGHT}"#
@@ -248,7 +248,7 @@ fn what_we_cannot_render_is_refused_naming_every_construct() {
             "hide_emitters",
             "emitter \"sunsky\"",
             "null bsdf",
-            "thindielectric",
+            "shape \"bsplinecurve\"",
             "participating media",
         ],
     );

@@ -49,6 +49,16 @@ pub enum Lobe {
         /// Scale of the transmitted part.
         t: Rgb,
     },
+    /// A thin sheet of dielectric (a window pane): mirror reflection with the sheet's total
+    /// reflectance, else straight through, unbent.
+    ThinDielectric {
+        /// Index of refraction of the sheet over its surroundings'.
+        eta: f32,
+        /// Scale of the reflected part.
+        r: Rgb,
+        /// Scale of the transmitted part.
+        t: Rgb,
+    },
     /// GGX rough conductor with complex Fresnel, reflectance scaled by `scale`.
     Conductor {
         /// The microfacet distribution.
@@ -99,7 +109,10 @@ fn reflect_z(w: Vec3) -> Vec3 {
 impl Lobe {
     /// True for mirror and smooth dielectric lobes.
     pub fn is_delta(&self) -> bool {
-        matches!(self, Lobe::Mirror { .. } | Lobe::Dielectric { .. })
+        matches!(
+            self,
+            Lobe::Mirror { .. } | Lobe::Dielectric { .. } | Lobe::ThinDielectric { .. }
+        )
     }
 
     /// True for the black lobe.
@@ -113,7 +126,9 @@ impl Lobe {
             Lobe::Black => 0.0,
             Lobe::Lambert { r } | Lobe::Mirror { r } => max_component(r),
             Lobe::Phong { kd, ks, .. } => max_component(kd + ks),
-            Lobe::Dielectric { r, t, .. } => max_component(r.max(t)),
+            Lobe::Dielectric { r, t, .. } | Lobe::ThinDielectric { r, t, .. } => {
+                max_component(r.max(t))
+            }
             Lobe::Conductor { scale, .. } => max_component(scale),
             Lobe::Plastic { kd, ks, .. } => max_component(kd + ks * 0.1).min(1.0),
         }
@@ -121,7 +136,15 @@ impl Lobe {
 
     /// Transmissive lobes see both sides of the surface; the others are reflection-only.
     pub fn transmits(&self) -> bool {
-        matches!(self, Lobe::Dielectric { .. })
+        matches!(self, Lobe::Dielectric { .. } | Lobe::ThinDielectric { .. })
+    }
+
+    /// The reflectance of a thin sheet: Fresnel's R at the first interface, and every
+    /// reflection between its two faces, R + T^2 R / (1 - R^2) = 2 R / (1 + R) (Mitsuba's
+    /// `thindielectric`).
+    fn thin_reflectance(cos: f32, eta: f32) -> f32 {
+        let r = fresnel::dielectric(cos, eta);
+        2.0 * r / (1.0 + r)
     }
 
     fn plastic_spec_prob(ks: Rgb, kd: Rgb, f_o: f32) -> f32 {
@@ -134,7 +157,10 @@ impl Lobe {
     pub fn eval(&self, wo: Vec3, wi: Vec3, mode: Mode) -> Rgb {
         let _ = mode;
         match *self {
-            Lobe::Black | Lobe::Mirror { .. } | Lobe::Dielectric { .. } => Rgb::ZERO,
+            Lobe::Black
+            | Lobe::Mirror { .. }
+            | Lobe::Dielectric { .. }
+            | Lobe::ThinDielectric { .. } => Rgb::ZERO,
             Lobe::Lambert { r } => {
                 if wo.z > 0.0 && wi.z > 0.0 {
                     r * INV_PI
@@ -234,7 +260,10 @@ impl Lobe {
     /// Solid-angle density with which [`sample`](Self::sample) produces `wi` (0 for delta lobes).
     pub fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
         match *self {
-            Lobe::Black | Lobe::Mirror { .. } | Lobe::Dielectric { .. } => 0.0,
+            Lobe::Black
+            | Lobe::Mirror { .. }
+            | Lobe::Dielectric { .. }
+            | Lobe::ThinDielectric { .. } => 0.0,
             Lobe::Lambert { .. } => {
                 if wo.z > 0.0 {
                     cosine_hemisphere_pdf(wi.z)
@@ -346,6 +375,25 @@ impl Lobe {
                     })
                 }
             }
+            Lobe::ThinDielectric { eta, r, t } => {
+                if wo.z == 0.0 {
+                    return None;
+                }
+                let cos_o = wo.z.abs();
+                let f = Self::thin_reflectance(cos_o, eta);
+                // Out on the other side along the same line: nothing to compress, either way.
+                let (wi, w, p) = if u_lobe < f {
+                    (reflect_z(wo), r, f)
+                } else {
+                    (-wo, t, 1.0 - f)
+                };
+                Some(LocalSample {
+                    wi,
+                    f: w * (p / cos_o),
+                    pdf: p,
+                    delta: true,
+                })
+            }
             Lobe::Conductor { ggx, .. } => {
                 if wo.z <= 0.0 {
                     return None;
@@ -386,6 +434,10 @@ impl Lobe {
             Lobe::Dielectric { eta, .. } => {
                 let eta_rel = if wo.z > 0.0 { eta } else { 1.0 / eta };
                 let f = fresnel::dielectric(wo.z.abs(), eta_rel);
+                if wo.z * wi.z > 0.0 { f } else { 1.0 - f }
+            }
+            Lobe::ThinDielectric { eta, .. } => {
+                let f = Self::thin_reflectance(wo.z.abs(), eta);
                 if wo.z * wi.z > 0.0 { f } else { 1.0 - f }
             }
             _ => 0.0,

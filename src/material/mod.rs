@@ -54,6 +54,16 @@ pub enum MaterialKind {
         /// Scale of the transmitted part.
         transmittance: Rgb,
     },
+    /// A thin sheet of glass (a window): reflection with the sheet's total reflectance,
+    /// transmission straight through (Mitsuba's `thindielectric`, pbrt-v4's `thindielectric`).
+    ThinDielectric {
+        /// The sheet's index of refraction over its surroundings'.
+        ior: f32,
+        /// Scale of the reflected part.
+        reflectance: Rgb,
+        /// Scale of the transmitted part.
+        transmittance: Rgb,
+    },
     /// Metal: a GGX microfacet conductor (Walter et al. 2007, "Microfacet models for refraction
     /// through rough surfaces", EGSR) with the complex Fresnel term.
     RoughConductor {
@@ -159,6 +169,15 @@ impl Material {
                 r: *reflectance,
                 t: *transmittance,
             },
+            MaterialKind::ThinDielectric {
+                ior,
+                reflectance,
+                transmittance,
+            } => Lobe::ThinDielectric {
+                eta: *ior,
+                r: *reflectance,
+                t: *transmittance,
+            },
             MaterialKind::RoughConductor {
                 eta,
                 k,
@@ -210,7 +229,7 @@ impl Material {
             MaterialKind::Lambert { albedo } => luminance(albedo.average()),
             MaterialKind::Phong { kd, ks, .. } => luminance(*kd + *ks),
             MaterialKind::Mirror { reflectance } => luminance(*reflectance),
-            MaterialKind::Dielectric { .. } => 1.0,
+            MaterialKind::Dielectric { .. } | MaterialKind::ThinDielectric { .. } => 1.0,
             MaterialKind::RoughConductor { scale, .. } => luminance(*scale),
             MaterialKind::Plastic { diffuse, .. } => luminance(diffuse.average()),
         }

@@ -191,7 +191,8 @@ pub fn linear_to_srgb(c: f32) -> f32 {
     }
 }
 
-/// A reflectance: constant, or a bitmap looked up by uv.
+/// A reflectance: constant, a bitmap looked up by uv, a checkerboard, or another texture seen
+/// through a transform of its coordinates.
 #[derive(Clone, Debug)]
 pub enum Texture {
     /// The same value everywhere.
@@ -203,6 +204,22 @@ pub enum Texture {
         /// A factor applied to every texel.
         scale: Rgb,
     },
+    /// Mitsuba 3's `checkerboard`: two values in cells of half a unit of uv, `c0` in the cells
+    /// where u and v (Mitsuba's, v running down the image) fall on the same side of 1/2.
+    Checker {
+        /// The value of the cells [0, 1/2)^2 and [1/2, 1)^2.
+        c0: Rgb,
+        /// The value of the others.
+        c1: Rgb,
+    },
+    /// `inner` looked up at an affine transform of the coordinates, given as Mitsuba writes it
+    /// (its `to_uv`: rows (a, b, c) and (d, e, f) acting on Mitsuba's uv, whose v is 1 - ours).
+    Mapped {
+        /// The texture looked up.
+        inner: Box<Texture>,
+        /// The transform's two rows.
+        rows: [[f32; 3]; 2],
+    },
 }
 
 impl Texture {
@@ -212,6 +229,38 @@ impl Texture {
         match self {
             Texture::Constant(c) => *c,
             Texture::Bitmap { image, scale } => image.lookup(uv) * *scale,
+            Texture::Checker { c0, c1 } => {
+                let (u, v) = (uv.x, 1.0 - uv.y);
+                let mx = u - u.floor() > 0.5;
+                let my = v - v.floor() > 0.5;
+                if mx == my { *c0 } else { *c1 }
+            }
+            Texture::Mapped { inner, rows } => {
+                let (u, v) = (uv.x, 1.0 - uv.y);
+                let [a, b] = rows;
+                let u2 = a[0] * u + a[1] * v + a[2];
+                let v2 = b[0] * u + b[1] * v + b[2];
+                inner.eval(Vec2::new(u2, 1.0 - v2))
+            }
+        }
+    }
+
+    /// The texture times `s` everywhere.
+    pub fn scaled(self, s: Rgb) -> Texture {
+        match self {
+            Texture::Constant(c) => Texture::Constant(c * s),
+            Texture::Bitmap { image, scale } => Texture::Bitmap {
+                image,
+                scale: scale * s,
+            },
+            Texture::Checker { c0, c1 } => Texture::Checker {
+                c0: c0 * s,
+                c1: c1 * s,
+            },
+            Texture::Mapped { inner, rows } => Texture::Mapped {
+                inner: Box::new(inner.scaled(s)),
+                rows,
+            },
         }
     }
 
@@ -220,6 +269,8 @@ impl Texture {
         match self {
             Texture::Constant(c) => *c,
             Texture::Bitmap { image, scale } => image.average() * *scale,
+            Texture::Checker { c0, c1 } => 0.5 * (*c0 + *c1),
+            Texture::Mapped { inner, .. } => inner.average(),
         }
     }
 
@@ -228,6 +279,8 @@ impl Texture {
         match self {
             Texture::Constant(c) => *c,
             Texture::Bitmap { image, scale } => image.max() * *scale,
+            Texture::Checker { c0, c1 } => c0.max(*c1),
+            Texture::Mapped { inner, .. } => inner.max_value(),
         }
     }
 }

@@ -182,6 +182,14 @@ pub fn delta_kinds() -> Kinds {
                 transmittance: Rgb::new(1.0, 0.9, 0.8),
             },
         ),
+        (
+            "thin dielectric 1.5".into(),
+            MaterialKind::ThinDielectric {
+                ior: 1.5,
+                reflectance: Rgb::ONE,
+                transmittance: Rgb::new(1.0, 0.9, 0.8),
+            },
+        ),
     ]
 }
 

@@ -86,13 +86,7 @@ impl Ctx {
                     Some(i) => self.texture(i)?,
                     None => self.spectrum_tex(&p, "texture", Rgb::ONE)?,
                 };
-                match inner_t {
-                    Texture::Constant(c) => Texture::Constant(c * s),
-                    Texture::Bitmap { image, scale } => Texture::Bitmap {
-                        image,
-                        scale: scale * s,
-                    },
-                }
+                inner_t.scaled(s)
             }
             other => {
                 // checkerboard, gridtexture, vertexcolors, wireframe, curvature, ...

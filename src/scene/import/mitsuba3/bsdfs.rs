@@ -347,15 +347,6 @@ impl Ctx {
                         self.warn(&n, format!("bitmap wrap_mode \"{w}\" is wrapped as repeat"))
                     }
                 }
-                if let Some(t) = p.get("to_uv") {
-                    let m = self.transform(t)?;
-                    if m != crate::geometry::Mat4::IDENTITY {
-                        self.refuse(
-                            &n,
-                            "bitmap to_uv (a texture-space transform) is not supported",
-                        );
-                    }
-                }
                 p.consume("format");
                 p.consume("accel");
                 let file = self
@@ -372,13 +363,47 @@ impl Ctx {
                     scale: Rgb::ONE,
                 }
             }
+            "checkerboard" => Texture::Checker {
+                c0: self.checker_color(&p, "color0", 0.4)?,
+                c1: self.checker_color(&p, "color1", 0.2)?,
+            },
             other => {
                 self.refuse(&n, format!("texture \"{other}\" is not supported"));
                 Texture::Constant(Rgb::splat(0.5))
             }
         };
+        let t = match p.get("to_uv") {
+            Some(tn) if matches!(t, Texture::Bitmap { .. } | Texture::Checker { .. }) => {
+                // Mitsuba 3 keeps the 2D affine part of the 4x4 it parses: rows 0 and 1,
+                // columns 0, 1 and 3.
+                let m = self.transform(tn)?;
+                if m == crate::geometry::Mat4::IDENTITY {
+                    t
+                } else {
+                    let (r0, r1) = (m.row(0), m.row(1));
+                    Texture::Mapped {
+                        inner: Box::new(t),
+                        rows: [[r0.x, r0.y, r0.w], [r1.x, r1.y, r1.w]],
+                    }
+                }
+            }
+            _ => t,
+        };
         self.report_unused(&p, &format!("texture \"{ty}\""));
         Ok(t)
+    }
+
+    /// A checkerboard's colour: Mitsuba 3 accepts a constant there (its textures would nest
+    /// lookups in cells, which a checker of two values cannot hold, so they are refused).
+    fn checker_color(&mut self, p: &Props, name: &str, default: f32) -> R<Rgb> {
+        match p.get(name) {
+            None => Ok(Rgb::splat(default)),
+            Some(v) if matches!(v.tag.as_str(), "texture" | "ref") => {
+                self.refuse(v, format!("checkerboard: a textured {name} is not supported"));
+                Ok(Rgb::splat(default))
+            }
+            Some(v) => self.color(v, ColorUse::Bounded),
+        }
     }
 
     /// Warns about every property of `p` nothing read.
@@ -493,26 +518,25 @@ impl Ctx {
                         ),
                     );
                 }
-                if ty == "thindielectric" {
-                    self.refuse(
-                        n,
-                        "thindielectric (a thin sheet of glass: no refraction) is not supported",
-                    );
-                }
                 let int = self.ior(&p, "int_ior", 1.5046)?;
                 let ext = self.ior(&p, "ext_ior", 1.000277)?;
                 let reflectance = self.color_prop(&p, "specular_reflectance", Rgb::ONE, &what)?;
                 let transmittance =
                     self.color_prop(&p, "specular_transmittance", Rgb::ONE, &what)?;
-                Material::new(
-                    name.clone(),
+                let kind = if ty == "thindielectric" {
+                    MaterialKind::ThinDielectric {
+                        ior: int / ext,
+                        reflectance,
+                        transmittance,
+                    }
+                } else {
                     MaterialKind::Dielectric {
                         ior: int / ext,
                         reflectance,
                         transmittance,
-                    },
-                    true,
-                )
+                    }
+                };
+                Material::new(name.clone(), kind, true)
             }
             "plastic" | "roughplastic" => {
                 let alpha = if ty == "plastic" {
