@@ -107,7 +107,19 @@ impl Environment {
 
     fn build_distribution(&mut self, width: usize, height: usize) {
         // Cell (i, j) covers u in [i, i + 1) / width and v in [j, j + 1) / height; its weight is
-        // the radiance at its centre times its solid angle (sin theta dtheta dphi).
+        // the mean of the filtered radiance over it times its solid angle (sin theta dtheta
+        // dphi). The bilinear filter spreads a bright texel over the neighbouring cells, so a
+        // weight from the cell's centre alone would leave half a sun's rim sampled as sky:
+        // horizontally the filter's kink sits on the centre (the trapezoid rule on its halves
+        // is exact), vertically it falls anywhere (the trapezoid rule on quarters).
+        const XS: [(f32, f32); 3] = [(0.0, 0.25), (0.5, 0.5), (1.0, 0.25)];
+        const YS: [(f32, f32); 5] = [
+            (0.0, 0.125),
+            (0.25, 0.25),
+            (0.5, 0.25),
+            (0.75, 0.25),
+            (1.0, 0.125),
+        ];
         let mut weights = vec![0f32; width * height];
         let mut total = 0f64;
         let mut area = 0f64;
@@ -115,9 +127,14 @@ impl Environment {
             let theta = (j as f32 + 0.5) / height as f32 * PI;
             let sin = theta.sin();
             for i in 0..width {
-                let u = (i as f32 + 0.5) / width as f32;
-                let v = (j as f32 + 0.5) / height as f32;
-                let l = luminance(self.lookup(u, v));
+                let mut l = 0.0;
+                for (dy, wy) in YS {
+                    let v = (j as f32 + dy) / height as f32;
+                    for (dx, wx) in XS {
+                        let u = (i as f32 + dx) / width as f32;
+                        l += wx * wy * luminance(self.lookup(u, v));
+                    }
+                }
                 weights[j * width + i] = l * sin;
                 total += (l * sin) as f64;
                 area += sin as f64;

@@ -49,6 +49,18 @@ pub enum Lobe {
         /// Scale of the transmitted part.
         t: Rgb,
     },
+    /// Rough dielectric: GGX microfacet reflection and refraction (Walter et al. 2007,
+    /// "Microfacet Models for Refraction through Rough Surfaces", EGSR, eqs. 20 and 21).
+    RoughDielectric {
+        /// The microfacet distribution (the same seen from either side).
+        ggx: Ggx,
+        /// Interior / exterior index of refraction.
+        eta: f32,
+        /// Scale of the reflected part.
+        r: Rgb,
+        /// Scale of the transmitted part.
+        t: Rgb,
+    },
     /// A thin sheet of dielectric (a window pane): mirror reflection with the sheet's total
     /// reflectance, else straight through, unbent.
     ThinDielectric {
@@ -126,9 +138,9 @@ impl Lobe {
             Lobe::Black => 0.0,
             Lobe::Lambert { r } | Lobe::Mirror { r } => max_component(r),
             Lobe::Phong { kd, ks, .. } => max_component(kd + ks),
-            Lobe::Dielectric { r, t, .. } | Lobe::ThinDielectric { r, t, .. } => {
-                max_component(r.max(t))
-            }
+            Lobe::Dielectric { r, t, .. }
+            | Lobe::RoughDielectric { r, t, .. }
+            | Lobe::ThinDielectric { r, t, .. } => max_component(r.max(t)),
             Lobe::Conductor { scale, .. } => max_component(scale),
             Lobe::Plastic { kd, ks, .. } => max_component(kd + ks * 0.1).min(1.0),
         }
@@ -136,7 +148,107 @@ impl Lobe {
 
     /// Transmissive lobes see both sides of the surface; the others are reflection-only.
     pub fn transmits(&self) -> bool {
-        matches!(self, Lobe::Dielectric { .. } | Lobe::ThinDielectric { .. })
+        matches!(
+            self,
+            Lobe::Dielectric { .. } | Lobe::RoughDielectric { .. } | Lobe::ThinDielectric { .. }
+        )
+    }
+
+    /// The microfacet normal of a rough dielectric that takes wo to wi (local frame, the
+    /// interior below), oriented up, and whether the pair refracts; None where no microfacet
+    /// facing both directions does (Walter et al. 2007 eq. 13 for reflection, eq. 16 for
+    /// refraction; back-facing microfacets discarded). The pair and its swap give the same
+    /// normal bit for bit: refraction weighs the direction below by the interior index.
+    #[inline]
+    fn rough_dielectric_normal(wo: Vec3, wi: Vec3, eta: f32) -> Option<(Vec3, bool)> {
+        if wo.z == 0.0 || wi.z == 0.0 {
+            return None;
+        }
+        let refracts = (wo.z > 0.0) != (wi.z > 0.0);
+        if refracts && eta == 1.0 {
+            return None;
+        }
+        let h = if !refracts {
+            wo + wi
+        } else if wo.z > 0.0 {
+            wo + wi * eta
+        } else {
+            wi + wo * eta
+        };
+        let h = h.normalize();
+        let h = if h.z < 0.0 { -h } else { h };
+        let faces = |w: Vec3| {
+            let c = w.dot(h);
+            c != 0.0 && (c > 0.0) == (w.z > 0.0)
+        };
+        if !h.is_finite() || h.z == 0.0 || !faces(wo) || !faces(wi) {
+            return None;
+        }
+        Some((h, refracts))
+    }
+
+    /// The Fresnel reflectance at microfacet `h` for light arriving along `w`.
+    #[inline]
+    fn rough_dielectric_fresnel(w: Vec3, h: Vec3, eta: f32) -> f32 {
+        let eta_rel = if w.z > 0.0 { eta } else { 1.0 / eta };
+        fresnel::dielectric(w.dot(h).abs(), eta_rel)
+    }
+
+    /// f(wo, wi) of a rough dielectric (Walter et al. 2007 eqs. 20, 21), written in the pair's
+    /// direction above (a) and below (b) so that f_rad(wi, wo) = f_imp(wo, wi) holds in f32 as
+    /// it does exactly: (1 - F) D G |a.h| |b.h| / (|a.z| |b.z| (a.h + eta b.h)^2), times eta^2
+    /// for radiance arriving from inside or importance from outside (Veach 1997 §5.2).
+    fn rough_dielectric_eval(
+        ggx: &Ggx,
+        eta: f32,
+        r: Rgb,
+        t: Rgb,
+        wo: Vec3,
+        wi: Vec3,
+        mode: Mode,
+    ) -> Rgb {
+        let Some((h, refracts)) = Self::rough_dielectric_normal(wo, wi, eta) else {
+            return Rgb::ZERO;
+        };
+        let dg = ggx.d(h) * ggx.g2(wo, wi);
+        if !refracts {
+            let f = Self::rough_dielectric_fresnel(wo, h, eta);
+            return r * (f * dg / (4.0 * wo.z * wi.z).abs());
+        }
+        let (a, b) = if wo.z > 0.0 { (wo, wi) } else { (wi, wo) };
+        let (a_h, b_h) = (a.dot(h), b.dot(h));
+        let f = Self::rough_dielectric_fresnel(a, h, eta);
+        let denom = a_h + eta * b_h;
+        let mut ft = (1.0 - f) * dg * (a_h * b_h / (a.z * b.z * denom * denom)).abs();
+        if (wo.z > 0.0) == (mode == Mode::Importance) {
+            ft *= eta * eta;
+        }
+        t * ft
+    }
+
+    /// The density of wi from `sample` of a rough dielectric: the density of wo's visible
+    /// normal (seen from wo's side) times the Jacobian of reflection (Walter et al. 2007 eq. 14)
+    /// or refraction (eq. 17), times the probability F or 1 - F of the choice.
+    fn rough_dielectric_pdf(ggx: &Ggx, eta: f32, wo: Vec3, wi: Vec3) -> f32 {
+        let Some((h, refracts)) = Self::rough_dielectric_normal(wo, wi, eta) else {
+            return 0.0;
+        };
+        let f = Self::rough_dielectric_fresnel(wo, h, eta);
+        // From inside, `sample` mirrors the surface: wo's z and the normal's tangent part flip.
+        let p_h = if wo.z > 0.0 {
+            ggx.visible_normal_pdf(wo, h)
+        } else {
+            ggx.visible_normal_pdf(Vec3::new(wo.x, wo.y, -wo.z), Vec3::new(-h.x, -h.y, h.z))
+        };
+        let wo_h = wo.dot(h).abs();
+        if !refracts {
+            return f * p_h / (4.0 * wo_h);
+        }
+        // |wi.h| / (wi.h + wo.h / eta_rel)^2 with eta_rel = wi's index over wo's.
+        let (a, b) = if wo.z > 0.0 { (wo, wi) } else { (wi, wo) };
+        let denom = a.dot(h) + eta * b.dot(h);
+        let jacobian = wi.dot(h).abs() * if wo.z > 0.0 { eta * eta } else { 1.0 } / (denom * denom);
+        (1.0 - f) * p_h * jacobian
     }
 
     /// The reflectance of a thin sheet: Fresnel's R at the first interface, and every
@@ -167,6 +279,9 @@ impl Lobe {
                 } else {
                     Rgb::ZERO
                 }
+            }
+            Lobe::RoughDielectric { ggx, eta, r, t } => {
+                Self::rough_dielectric_eval(&ggx, eta, r, t, wo, wi, mode)
             }
             Lobe::Phong { kd, ks, n, .. } => {
                 if wo.z <= 0.0 || wi.z <= 0.0 {
@@ -279,6 +394,7 @@ impl Lobe {
                 (1.0 - q) * cosine_hemisphere_pdf(wi.z) + q * power_cosine_pdf(c, n)
             }
             Lobe::Conductor { ggx, .. } => ggx.reflection_pdf(wo, wi),
+            Lobe::RoughDielectric { ggx, eta, .. } => Self::rough_dielectric_pdf(&ggx, eta, wo, wi),
             Lobe::Plastic {
                 ggx, kd, ks, eta, ..
             } => {
@@ -393,6 +509,38 @@ impl Lobe {
                     pdf: p,
                     delta: true,
                 })
+            }
+            Lobe::RoughDielectric { ggx, eta, .. } => {
+                if wo.z == 0.0 {
+                    return None;
+                }
+                // Sampled from above: the surface mirrored when wo is inside.
+                let (up, eta_up) = if wo.z > 0.0 {
+                    (wo, eta)
+                } else {
+                    (Vec3::new(wo.x, wo.y, -wo.z), 1.0 / eta)
+                };
+                let h = ggx.sample_visible_normal(up, u);
+                let cos_o = up.dot(h);
+                let f = fresnel::dielectric(cos_o, eta_up);
+                let reflect = u_lobe < f;
+                let wi_up = if reflect {
+                    2.0 * cos_o * h - up
+                } else {
+                    let cos_t = fresnel::refracted_cos(cos_o, eta_up)?;
+                    (-up / eta_up + h * (cos_o / eta_up - cos_t)).normalize()
+                };
+                // A microfacet can send the ray to the other side than its choice meant; the
+                // density counts only the rays on the side chosen.
+                if (wi_up.z > 0.0) != reflect {
+                    return None;
+                }
+                let wi = if wo.z > 0.0 {
+                    wi_up
+                } else {
+                    Vec3::new(wi_up.x, wi_up.y, -wi_up.z)
+                };
+                continuous(wi)
             }
             Lobe::Conductor { ggx, .. } => {
                 if wo.z <= 0.0 {

@@ -54,6 +54,20 @@ pub enum MaterialKind {
         /// Scale of the transmitted part.
         transmittance: Rgb,
     },
+    /// Frosted glass: GGX microfacet reflection and refraction (Walter et al. 2007,
+    /// "Microfacet Models for Refraction through Rough Surfaces", EGSR).
+    RoughDielectric {
+        /// Interior / exterior index of refraction.
+        ior: f32,
+        /// GGX roughness along the tangent.
+        alpha_u: f32,
+        /// GGX roughness along the bitangent.
+        alpha_v: f32,
+        /// Scale of the reflected part.
+        reflectance: Rgb,
+        /// Scale of the transmitted part.
+        transmittance: Rgb,
+    },
     /// A thin sheet of glass (a window): reflection with the sheet's total reflectance,
     /// transmission straight through (Mitsuba's `thindielectric`, pbrt-v4's `thindielectric`).
     ThinDielectric {
@@ -124,12 +138,12 @@ impl Material {
         }
     }
 
-    /// Whether the lobe depends on the surface coordinates (a bitmap texture): hits on other
+    /// Whether the lobe depends on the surface coordinates (any texture but a constant): hits on other
     /// materials need no uv.
     pub fn uses_uv(&self) -> bool {
         match &self.kind {
             MaterialKind::Lambert { albedo: t } | MaterialKind::Plastic { diffuse: t, .. } => {
-                matches!(t, Texture::Bitmap { .. })
+                !matches!(t, Texture::Constant(_))
             }
             _ => false,
         }
@@ -165,6 +179,29 @@ impl Material {
                 reflectance,
                 transmittance,
             } => Lobe::Dielectric {
+                eta: *ior,
+                r: *reflectance,
+                t: *transmittance,
+            },
+            // Index 1 refracts every microfacet's ray straight on: no interface at all.
+            MaterialKind::RoughDielectric {
+                ior,
+                reflectance,
+                transmittance,
+                ..
+            } if *ior == 1.0 => Lobe::ThinDielectric {
+                eta: 1.0,
+                r: *reflectance,
+                t: *transmittance,
+            },
+            MaterialKind::RoughDielectric {
+                ior,
+                alpha_u,
+                alpha_v,
+                reflectance,
+                transmittance,
+            } => Lobe::RoughDielectric {
+                ggx: Ggx::new(*alpha_u, *alpha_v),
                 eta: *ior,
                 r: *reflectance,
                 t: *transmittance,
@@ -229,7 +266,9 @@ impl Material {
             MaterialKind::Lambert { albedo } => luminance(albedo.average()),
             MaterialKind::Phong { kd, ks, .. } => luminance(*kd + *ks),
             MaterialKind::Mirror { reflectance } => luminance(*reflectance),
-            MaterialKind::Dielectric { .. } | MaterialKind::ThinDielectric { .. } => 1.0,
+            MaterialKind::Dielectric { .. }
+            | MaterialKind::RoughDielectric { .. }
+            | MaterialKind::ThinDielectric { .. } => 1.0,
             MaterialKind::RoughConductor { scale, .. } => luminance(*scale),
             MaterialKind::Plastic { diffuse, .. } => luminance(diffuse.average()),
         }
@@ -323,6 +362,11 @@ impl Bsdf {
         self.lobe.is_delta()
     }
 
+    /// True when light passes through the surface (dielectrics), which then has two sides.
+    pub fn transmits(&self) -> bool {
+        self.lobe.transmits()
+    }
+
     /// Continuation probability for Russian roulette: the lobe's albedo estimate, in [0, 1].
     pub fn continuation(&self) -> f32 {
         let a = self.lobe.albedo_estimate();
@@ -362,8 +406,14 @@ impl Bsdf {
         let mut lo = wo.local;
         let mut li = self.frame.to_local(wi);
         if self.lobe.transmits() {
-            // Geometric and shading classification of reflection vs transmission must agree.
-            if (go * gi > 0.0) != (lo.z * li.z > 0.0) || lo.z * go <= 0.0 {
+            // Geometric and shading classification of reflection vs transmission must agree
+            // (signs compared, not multiplied: products of tiny cosines underflow to zero).
+            let up = |c: f32| c > 0.0;
+            if lo.z == 0.0
+                || li.z == 0.0
+                || (up(go) == up(gi)) != (up(lo.z) == up(li.z))
+                || up(lo.z) != up(go)
+            {
                 return None;
             }
             return Some((lo, li));
@@ -479,7 +529,10 @@ impl Bsdf {
     /// shading normal its geometric side says.
     #[inline]
     fn swapped_ok(&self, li: Vec3, wi: Vec3) -> bool {
-        !(self.lobe.transmits() && li.z * wi.dot(self.ng) <= 0.0)
+        !self.lobe.transmits() || {
+            let gi = wi.dot(self.ng);
+            li.z != 0.0 && gi != 0.0 && (li.z > 0.0) == (gi > 0.0)
+        }
     }
 
     /// Solid-angle density of sampling wi from wo. Zero for delta lobes; never negative or NaN.
@@ -543,7 +596,9 @@ impl Bsdf {
             self.swapped_pdf(self.lobe.pdf(li, lo), li, wi)
         };
         let eta_scale = match self.lobe {
-            Lobe::Dielectric { eta, .. } if lo.z * li.z < 0.0 && mode == Mode::Radiance => {
+            Lobe::Dielectric { eta, .. } | Lobe::RoughDielectric { eta, .. }
+                if lo.z * li.z < 0.0 && mode == Mode::Radiance =>
+            {
                 if lo.z > 0.0 {
                     eta * eta
                 } else {

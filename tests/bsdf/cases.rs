@@ -166,6 +166,28 @@ pub fn plastic_kinds() -> Kinds {
     ]
 }
 
+pub fn rough_dielectric(ior: f32, ax: f32, ay: f32) -> (String, MaterialKind) {
+    (
+        format!("rough dielectric {ior} ggx {ax}x{ay}"),
+        MaterialKind::RoughDielectric {
+            ior,
+            alpha_u: ax,
+            alpha_v: ay,
+            reflectance: Rgb::ONE,
+            transmittance: Rgb::new(1.0, 0.9, 0.8),
+        },
+    )
+}
+
+pub fn rough_dielectric_kinds() -> Kinds {
+    vec![
+        rough_dielectric(1.5, 0.1, 0.1),
+        rough_dielectric(1.33, 0.5, 0.5),
+        rough_dielectric(1.0 / 1.5, 0.3, 0.3),
+        rough_dielectric(1.5, 0.05, 0.4),
+    ]
+}
+
 pub fn delta_kinds() -> Kinds {
     vec![
         (
@@ -199,6 +221,7 @@ pub fn smooth_kinds() -> Kinds {
         phong_kinds(),
         conductor_kinds(),
         plastic_kinds(),
+        rough_dielectric_kinds(),
     ]
     .concat()
 }
@@ -282,6 +305,7 @@ pub fn chi2_family_size() -> usize {
         [lambert_kinds(), phong_kinds()].concat(),
         conductor_kinds(),
         plastic_kinds(),
+        rough_dielectric_kinds(),
     ]
     .iter()
     .map(|k| chi2_cases_for(k).len())

@@ -101,6 +101,7 @@ enum MaterialDesc {
     Phong(PhongMaterial),
     Mirror(MirrorMaterial),
     Dielectric(DielectricMaterial),
+    RoughDielectric(RoughDielectricMaterial),
     RoughConductor(RoughConductorMaterial),
     Plastic(PlasticMaterial),
 }
@@ -147,6 +148,27 @@ struct DielectricMaterial {
     ior: f32,
     #[serde(default = "ext_ior_default")]
     ext_ior: f32,
+    #[serde(default = "one")]
+    reflectance: Color,
+    #[serde(default = "one")]
+    transmittance: Color,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RoughDielectricMaterial {
+    #[serde(rename = "type")]
+    _type: String,
+    #[serde(default = "ior_default")]
+    ior: f32,
+    #[serde(default = "ext_ior_default")]
+    ext_ior: f32,
+    #[serde(default)]
+    alpha: Option<f32>,
+    #[serde(default)]
+    alpha_u: Option<f32>,
+    #[serde(default)]
+    alpha_v: Option<f32>,
     #[serde(default = "one")]
     reflectance: Color,
     #[serde(default = "one")]
@@ -455,6 +477,35 @@ fn material(
                 true,
             )
         }
+        MaterialDesc::RoughDielectric(RoughDielectricMaterial {
+            ior,
+            ext_ior,
+            alpha,
+            alpha_u,
+            alpha_v,
+            reflectance,
+            transmittance,
+            ..
+        }) => {
+            let au = alpha_u.or(*alpha).unwrap_or(0.1);
+            let av = alpha_v.or(*alpha).unwrap_or(au);
+            check_positive(file, &at("ior"), *ior)?;
+            check_positive(file, &at("ext_ior"), *ext_ior)?;
+            check_positive(file, &at("alpha"), au)?;
+            check_positive(file, &at("alpha"), av)?;
+            check_color(file, &at("reflectance"), reflectance.rgb())?;
+            check_color(file, &at("transmittance"), transmittance.rgb())?;
+            (
+                MaterialKind::RoughDielectric {
+                    ior: ior / ext_ior,
+                    alpha_u: au,
+                    alpha_v: av,
+                    reflectance: reflectance.rgb(),
+                    transmittance: transmittance.rgb(),
+                },
+                true,
+            )
+        }
         MaterialDesc::RoughConductor(RoughConductorMaterial {
             eta,
             k,
@@ -572,6 +623,7 @@ fn material_desc(file: &Path, loc: &str, v: &RawValue) -> Result<MaterialDesc, S
         "phong" => MaterialDesc::Phong(typed(file, loc, v)?),
         "mirror" => MaterialDesc::Mirror(typed(file, loc, v)?),
         "dielectric" => MaterialDesc::Dielectric(typed(file, loc, v)?),
+        "rough_dielectric" => MaterialDesc::RoughDielectric(typed(file, loc, v)?),
         "rough_conductor" => MaterialDesc::RoughConductor(typed(file, loc, v)?),
         "plastic" => MaterialDesc::Plastic(typed(file, loc, v)?),
         t => {
@@ -579,7 +631,7 @@ fn material_desc(file: &Path, loc: &str, v: &RawValue) -> Result<MaterialDesc, S
                 file,
                 loc,
                 t,
-                "lambert, phong, mirror, dielectric, rough_conductor, plastic",
+                "lambert, phong, mirror, dielectric, rough_dielectric, rough_conductor, plastic",
             ));
         }
     })

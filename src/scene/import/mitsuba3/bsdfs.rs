@@ -399,7 +399,10 @@ impl Ctx {
         match p.get(name) {
             None => Ok(Rgb::splat(default)),
             Some(v) if matches!(v.tag.as_str(), "texture" | "ref") => {
-                self.refuse(v, format!("checkerboard: a textured {name} is not supported"));
+                self.refuse(
+                    v,
+                    format!("checkerboard: a textured {name} is not supported"),
+                );
                 Ok(Rgb::splat(default))
             }
             Some(v) => self.color(v, ColorUse::Bounded),
@@ -509,21 +512,25 @@ impl Ctx {
                 })
             }
             "dielectric" | "roughdielectric" | "thindielectric" => {
-                if ty == "roughdielectric" {
-                    let (au, av) = self.roughness(n, &p, &what)?;
-                    self.warn(
-                        n,
-                        format!(
-                            "roughdielectric (alpha {au}, {av}) is traced as a smooth dielectric"
-                        ),
-                    );
-                }
+                let rough = if ty == "roughdielectric" {
+                    Some(self.roughness(n, &p, &what)?)
+                } else {
+                    None
+                };
                 let int = self.ior(&p, "int_ior", 1.5046)?;
                 let ext = self.ior(&p, "ext_ior", 1.000277)?;
                 let reflectance = self.color_prop(&p, "specular_reflectance", Rgb::ONE, &what)?;
                 let transmittance =
                     self.color_prop(&p, "specular_transmittance", Rgb::ONE, &what)?;
-                let kind = if ty == "thindielectric" {
+                let kind = if let Some((alpha_u, alpha_v)) = rough {
+                    MaterialKind::RoughDielectric {
+                        ior: int / ext,
+                        alpha_u,
+                        alpha_v,
+                        reflectance,
+                        transmittance,
+                    }
+                } else if ty == "thindielectric" {
                     MaterialKind::ThinDielectric {
                         ior: int / ext,
                         reflectance,
