@@ -399,7 +399,10 @@ impl Ctx {
         match p.get(name) {
             None => Ok(Rgb::splat(default)),
             Some(v) if matches!(v.tag.as_str(), "texture" | "ref") => {
-                self.refuse(v, format!("checkerboard: a textured {name} is not supported"));
+                self.refuse(
+                    v,
+                    format!("checkerboard: a textured {name} is not supported"),
+                );
                 Ok(Rgb::splat(default))
             }
             Some(v) => self.color(v, ColorUse::Bounded),
