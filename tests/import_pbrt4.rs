@@ -367,6 +367,24 @@ fn plymesh_reads_ascii_binary_and_gzipped_files() {
         assert_eq!(s.triangles.len(), 2, "{file}");
         assert_eq!(s.positions[0], Vec3::new(-1.0, -1.0, -3.0), "{file}");
     }
+    // An `Import`ed file and the mesh it names are in the scene's file list, which is what
+    // `omis submit` and `omis render --server` pack into the bundle.
+    common::write(
+        &d,
+        "geometry.pbrt",
+        "Translate 0 0 -3\nShape \"plymesh\" \"string filename\" \"packed.ply.gz\"\n",
+    );
+    let s = load(&common::write(
+        &d,
+        "imports.pbrt",
+        &scene("Import \"geometry.pbrt\"\n"),
+    ));
+    let names: Vec<String> = s
+        .files
+        .iter()
+        .filter_map(|f| Some(f.file_name()?.to_str()?.to_string()))
+        .collect();
+    assert_eq!(names, ["geometry.pbrt", "packed.ply.gz"]);
     let e = load_err(&common::write(&d, "broken.pbrt", &body("broken.ply.gz")));
     assert_has(&e, &["broken.pbrt", "line 7", "broken.ply.gz", "gzip"]);
 }
