@@ -160,7 +160,7 @@ fn every_refusal_is_named_at_once_with_its_file_and_line() {
         &scene(
             "LightSource \"goniometric\" \"string filename\" \"g.exr\"\n\
              Import \"part.pbrt\"\n\
-             LightSource \"infinite\" \"string filename\" \"sky.exr\"\n\
+             LightSource \"projection\" \"string filename\" \"p.exr\"\n\
              Material \"diffuse\" \"spectrum reflectance\" [ 400 0.1 700 0.9 ]\n\
              Shape \"curve\"\n",
         ),
@@ -174,7 +174,7 @@ fn every_refusal_is_named_at_once_with_its_file_and_line() {
             "(5 reasons)",
             "line 6: LightSource \"goniometric\" is not supported",
             "part.pbrt line 2: material \"interface\"",
-            "line 8: LightSource \"infinite\" with an image",
+            "line 8: LightSource \"projection\" is not supported",
             "line 9: \"spectrum reflectance\": sampled spectra",
             "line 10: Shape \"curve\"",
         ],
@@ -387,4 +387,60 @@ fn plymesh_reads_ascii_binary_and_gzipped_files() {
     assert_eq!(names, ["geometry.pbrt", "packed.ply.gz"]);
     let e = load_err(&common::write(&d, "broken.pbrt", &body("broken.ply.gz")));
     assert_has(&e, &["broken.pbrt", "line 7", "broken.ply.gz", "gzip"]);
+}
+
+#[test]
+fn an_equal_area_octahedral_sky_is_resampled_in_pbrt_v4s_orientation() {
+    // pbrt-v4's map puts light-space +z at the centre, +x at the middle of the right edge and +y
+    // at the middle of the bottom edge (rows counted from the top): blue, red and green there.
+    let d = common::folder("pbrt4", "sky");
+    let n = 64;
+    let colour = |x: usize, y: usize| {
+        let (u, v) = ((x as f32 + 0.5) / n as f32, (y as f32 + 0.5) / n as f32);
+        let mid = |t: f32| (0.25..0.75).contains(&t);
+        if mid(u) && mid(v) {
+            (0.0, 0.0, 1.0)
+        } else if u > 0.75 && mid(v) {
+            (1.0, 0.0, 0.0)
+        } else if mid(u) && v > 0.75 {
+            (0.0, 1.0, 0.0)
+        } else {
+            (0.0, 0.0, 0.0)
+        }
+    };
+    exr::prelude::write_rgb_file(d.join("sky.exr"), n, n, colour).expect("exr");
+    let s = load(&common::write(
+        &d,
+        "sky.pbrt",
+        &scene("LightSource \"infinite\" \"string filename\" \"sky.exr\" \"float scale\" 2\n"),
+    ));
+    let sky = |w: Vec3| {
+        s.lights
+            .iter()
+            .find_map(|l| match l {
+                Light::Dome { sky, .. } => Some(sky.radiance(w.normalize())),
+                _ => None,
+            })
+            .expect("the sky")
+    };
+    for (w, want) in [
+        (Vec3::new(0.0, 0.0, 1.0), Vec3::new(0.0, 0.0, 2.0)),
+        (Vec3::new(1.0, 0.0, 0.3), Vec3::new(2.0, 0.0, 0.0)),
+        (Vec3::new(0.0, 1.0, 0.3), Vec3::new(0.0, 2.0, 0.0)),
+        (Vec3::new(0.0, 0.0, -1.0), Vec3::ZERO),
+    ] {
+        let got = sky(w);
+        assert!(
+            (got - want).abs().max_element() < 0.05,
+            "toward {w}: {got} (want {want})"
+        );
+    }
+    // A non-square image is not one of pbrt-v4's maps.
+    exr::prelude::write_rgb_file(d.join("wide.exr"), 8, 4, |_, _| (1.0, 1.0, 1.0)).expect("exr");
+    let e = load_err(&common::write(
+        &d,
+        "wide.pbrt",
+        &scene("LightSource \"infinite\" \"string filename\" \"wide.exr\"\n"),
+    ));
+    assert_has(&e, &["wide.pbrt", "line 6", "square"]);
 }

@@ -1,6 +1,7 @@
 //! pbrt-v4's lights: `AreaLightSource "diffuse"` and `LightSource` `point`, `spot`, `distant`
-//! and `infinite` (a constant one), with pbrt-v4's photometric `scale`, `power` and
-//! `illuminance`, and the spectra lights are given in.
+//! and `infinite` (constant, or an equal-area octahedral image resampled into our sky's
+//! equirectangular map), with pbrt-v4's photometric `scale`, `power` and `illuminance`, and the
+//! spectra lights are given in.
 
 use super::super::lexer::Loc;
 use super::super::params::{ParamSet, Values};
@@ -10,7 +11,76 @@ use crate::geometry::{Rgb, Vec3};
 use crate::light::{Environment, Sun};
 use std::f32::consts::PI;
 
+/// pbrt-v4's `EqualAreaSphereToSquare`: the point of [0, 1]^2 of a unit direction in an
+/// equal-area octahedral map (Clarberg, "Fast Equal-Area Mapping of the (Hemi)Sphere using
+/// SIMD", JGT 2008, section 3: r = sqrt(1 - |z|), phi = 2/pi atan(min/max of |x|, |y|); the
+/// southern hemisphere folded over the diagonals), with atan exact.
+pub(super) fn equal_area_square(d: Vec3) -> (f32, f32) {
+    let (x, y, z) = (d.x.abs(), d.y.abs(), d.z.abs());
+    let r = (1.0 - z).max(0.0).sqrt();
+    let (a, b) = (x.max(y), x.min(y));
+    let b = if a == 0.0 { 0.0 } else { b / a };
+    let mut phi = b.atan() * 2.0 / PI;
+    if x < y {
+        phi = 1.0 - phi;
+    }
+    let mut v = phi * r;
+    let mut u = r - v;
+    if d.z < 0.0 {
+        (u, v) = (1.0 - v, 1.0 - u);
+    }
+    (0.5 * (u.copysign(d.x) + 1.0), 0.5 * (v.copysign(d.y) + 1.0))
+}
+
 impl Parser {
+    /// An `infinite` light's image: pbrt-v4's equal-area octahedral map (square; its first row
+    /// is v = 0), in light space placed by the current transform, resampled once into our
+    /// equirectangular sky of twice its side by its side (bilinear lookups). pbrt-v4 takes the
+    /// texels as radiance (its scale divides by the colour space's illuminant, luminance 1).
+    fn octahedral_environment(&mut self, rel: &str, scale: f32, loc: Loc) -> R<Environment> {
+        let file = self
+            .b
+            .resolver()
+            .resolve(rel, "LightSource \"infinite\"")
+            .map_err(|e| self.at(loc, e))?;
+        let lower = rel.to_ascii_lowercase();
+        let linear = [".exr", ".hdr", ".pfm"].iter().any(|e| lower.ends_with(e));
+        let image = self
+            .bitmaps
+            .load(&file, !linear)
+            .map_err(|e| self.err(loc, format!("infinite light \"{rel}\": {e}")))?;
+        if image.width != image.height {
+            return Err(self.err(
+                loc,
+                format!(
+                    "infinite light \"{rel}\": pbrt-v4's environment maps are square (equal-area octahedral), this one is {}x{}",
+                    image.width, image.height
+                ),
+            ));
+        }
+        let side = image.width;
+        let (width, height) = (2 * side, side);
+        let to_light = glam::Mat3::from_mat4(self.g.ctm).inverse();
+        let mut texels = Vec::with_capacity(width * height);
+        for row in 0..height {
+            // Our sky's map: v = acos(y) / pi from the top row, u = atan2(x, -z) / 2 pi.
+            let theta = (row as f32 + 0.5) / height as f32 * PI;
+            for col in 0..width {
+                let phi = (col as f32 + 0.5) / width as f32 * 2.0 * PI;
+                let world = Vec3::new(
+                    theta.sin() * phi.sin(),
+                    theta.cos(),
+                    -theta.sin() * phi.cos(),
+                );
+                let (u, v) = equal_area_square((to_light * world).normalize_or_zero());
+                // Our bitmaps' v runs up from the bottom row.
+                texels.push(image.lookup(glam::Vec2::new(u, 1.0 - v)).max(Rgb::ZERO));
+            }
+        }
+        Environment::image(width, height, texels, scale, &glam::Mat4::IDENTITY)
+            .map_err(|e| self.err(loc, format!("infinite light \"{rel}\": {e}")))
+    }
+
     /// A spectrum parameter of pbrt-v4 (`rgb`, `blackbody` of one temperature, a named
     /// spectrum, a constant `spectrum`) in linear sRGB, `usage` choosing how a named spectrum
     /// is read; `None` when absent. What we cannot convert is refused (and `Some(0)` returned).
@@ -149,7 +219,7 @@ impl Parser {
         })
     }
 
-    /// `LightSource`: point, spot, distant and constant infinite lights.
+    /// `LightSource`: point, spot, distant and infinite lights.
     pub(super) fn v4_light_source(&mut self, loc: Loc) -> R<()> {
         let ty = self.arg_str("LightSource")?;
         let ps = self.params()?;
@@ -239,14 +309,6 @@ impl Parser {
                 self.b.add_sun(sun, &place).map_err(|e| self.at(loc, e))?;
             }
             "infinite" => {
-                if ps.has("filename") {
-                    ps.consume_all();
-                    self.refuse(
-                        loc,
-                        "LightSource \"infinite\" with an image (\"filename\"): pbrt-v4's equal-area octahedral environment maps are not supported",
-                    );
-                    return Ok(());
-                }
                 if ps.has("portal") {
                     ps.find("portal", &["point3"]);
                     self.warn(
@@ -254,17 +316,36 @@ impl Parser {
                         "LightSource \"infinite\": portals only guide sampling; ignored",
                     );
                 }
-                let mut l = self.v4_emission(&ps, "L", loc)?;
-                if let Some(ev) = self.v4_positive(&ps, "illuminance")? {
-                    // The illuminance of uniform radiance on an upward-facing patch is pi L.
-                    l *= ev / PI;
-                }
-                self.report_unused(&ps, &what);
                 if std::mem::replace(&mut self.environment_seen, true) {
+                    ps.consume_all();
                     self.refuse(loc, "more than one infinite light: our sky has one dome");
                     return Ok(());
                 }
-                self.b.set_environment(Environment::constant(l));
+                let env = match self.string(&ps, "filename")? {
+                    Some(file) => {
+                        if ps.has("L") || ps.has("illuminance") {
+                            ps.consume_all();
+                            self.refuse(
+                                loc,
+                                "LightSource \"infinite\": an image with \"L\" or \"illuminance\" is not supported",
+                            );
+                            return Ok(());
+                        }
+                        let scale = self.float(&ps, "scale", 1.0)?;
+                        self.octahedral_environment(&file, scale, loc)?
+                    }
+                    None => {
+                        let mut l = self.v4_emission(&ps, "L", loc)?;
+                        if let Some(ev) = self.v4_positive(&ps, "illuminance")? {
+                            // The illuminance of uniform radiance on an upward-facing patch is
+                            // pi L.
+                            l *= ev / PI;
+                        }
+                        Environment::constant(l)
+                    }
+                };
+                self.report_unused(&ps, &what);
+                self.b.set_environment(env);
             }
             other => {
                 ps.consume_all();
