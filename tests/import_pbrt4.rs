@@ -357,6 +357,10 @@ fn plymesh_reads_ascii_binary_and_gzipped_files() {
     packed.truncate(n);
     std::fs::write(d.join("packed.ply.gz"), &packed).expect("gz");
     std::fs::write(d.join("broken.ply.gz"), &packed[..n / 2]).expect("gz");
+    // A gzip trailer claiming more than 1 GiB is refused before anything is allocated.
+    let mut bomb = packed.clone();
+    bomb[n - 4..].copy_from_slice(&u32::MAX.to_le_bytes());
+    std::fs::write(d.join("bomb.ply.gz"), &bomb).expect("gz");
     let body = |file: &str| {
         scene(&format!(
             "Translate 0 0 -3\nShape \"plymesh\" \"string filename\" \"{file}\"\n"
@@ -387,6 +391,16 @@ fn plymesh_reads_ascii_binary_and_gzipped_files() {
     assert_eq!(names, ["geometry.pbrt", "packed.ply.gz"]);
     let e = load_err(&common::write(&d, "broken.pbrt", &body("broken.ply.gz")));
     assert_has(&e, &["broken.pbrt", "line 7", "broken.ply.gz", "gzip"]);
+    let e = load_err(&common::write(&d, "bomb.pbrt", &body("bomb.ply.gz")));
+    assert_has(
+        &e,
+        &[
+            "bomb.pbrt",
+            "line 7",
+            "bomb.ply.gz",
+            "more than the 1073741824 allowed",
+        ],
+    );
 }
 
 #[test]
