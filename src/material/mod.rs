@@ -138,8 +138,8 @@ impl Material {
         }
     }
 
-    /// Whether the lobe depends on the surface coordinates (any texture but a constant): hits on other
-    /// materials need no uv.
+    /// Whether the lobe depends on the surface coordinates (any texture but a constant: a
+    /// bitmap, a checkerboard, a mapped texture): hits on other materials need no uv.
     pub fn uses_uv(&self) -> bool {
         match &self.kind {
             MaterialKind::Lambert { albedo: t } | MaterialKind::Plastic { diffuse: t, .. } => {

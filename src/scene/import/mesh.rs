@@ -36,6 +36,37 @@ pub fn read_ply(file: &SceneFile) -> Result<MeshData, String> {
     ply_from(&mut file.open().map_err(|e| format!("cannot open: {e}"))?)
 }
 
+/// Largest decompressed size of a gzipped PLY file (a hostile file cannot make us allocate
+/// more).
+const MAX_GUNZIPPED_PLY: usize = 1 << 30;
+
+/// Loads a scene's gzipped PLY file (`.ply.gz`, as pbrt-v4 writes them).
+pub fn read_ply_gz(file: &SceneFile) -> Result<MeshData, String> {
+    use std::io::Read;
+    let mut packed = Vec::new();
+    file.open()
+        .map_err(|e| format!("cannot open: {e}"))?
+        .take(MAX_GUNZIPPED_PLY as u64 + 1)
+        .read_to_end(&mut packed)
+        .map_err(|e| format!("cannot read: {e}"))?;
+    // The gzip trailer ends with the uncompressed size modulo 2^32 (RFC 1952, section 2.3.1).
+    let Some(tail) = packed.len().checked_sub(4).map(|at| &packed[at..]) else {
+        return Err("not a gzip file (too short)".into());
+    };
+    let size = u32::from_le_bytes([tail[0], tail[1], tail[2], tail[3]]) as usize;
+    if size > MAX_GUNZIPPED_PLY {
+        return Err(format!(
+            "the PLY file unpacks to {size} bytes, more than the {MAX_GUNZIPPED_PLY} allowed"
+        ));
+    }
+    let mut plain = vec![0u8; size];
+    let n = libdeflater::Decompressor::new()
+        .gzip_decompress(&packed, &mut plain)
+        .map_err(|e| format!("malformed gzip data: {e:?}"))?;
+    plain.truncate(n);
+    ply_from(&mut std::io::Cursor::new(plain))
+}
+
 /// Loads an OBJ file that is not part of a scene (a scene's files go through its resolver).
 pub fn load_obj(path: &Path) -> Result<MeshData, String> {
     let file = std::fs::File::open(path).map_err(|e| format!("cannot open: {e}"))?;

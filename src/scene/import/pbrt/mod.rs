@@ -2,7 +2,9 @@
 //! lists (`params`), and a parser for the subset of the format that maps onto our scene model
 //! (see `scenes/README.md`, "Importers"): camera and options, materials, textures, shapes,
 //! lights, one module each. pbrt-v4 files, which share the extension, are told from their
-//! contents (`dialect`) and refused with the construct that gave them away.
+//! contents (`dialect`): from the first file (the scene or an included one) with a construct
+//! only pbrt-v4 has, the directives are read as pbrt-v4 reads them (`v4/`); a file without
+//! any goes through the pbrt-v3 path unchanged.
 //!
 //! Conventions of pbrt-v3 that matter here (Pharr, Jakob, Humphreys, *Physically Based
 //! Rendering*, 3rd ed., and the pbrt-v3 sources):
@@ -32,6 +34,7 @@ mod materials;
 mod params;
 mod shapes;
 mod textures;
+mod v4;
 
 pub use materials::roughness_to_alpha;
 
@@ -43,7 +46,7 @@ use camera::{CameraDef, look_at};
 use lexer::{Loc, Tok, Token, describe, tokenize};
 use shapes::ShapeCall;
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::rc::Rc;
 use textures::{FloatTex, SpecTex};
 
@@ -65,6 +68,11 @@ struct GState {
     named: Rc<HashMap<String, u32>>,
     float_tex: Rc<HashMap<String, FloatTex>>,
     spec_tex: Rc<HashMap<String, SpecTex>>,
+    /// pbrt-v4 only: the `power` of the current `AreaLightSource` and its `twosided` (the
+    /// radiance is scaled to that power once the shape's area is known).
+    area_power: Option<(f32, bool)>,
+    /// pbrt-v4 only: `Attribute` defaults by target (`shape`, `light`, `material`, ...).
+    attributes: Rc<HashMap<String, params::ParamSet>>,
 }
 
 enum Frame {
@@ -96,15 +104,23 @@ struct Parser {
     /// `ActiveTransform`: whether transform directives update the start / end transform.
     active: (bool, bool),
     last_loc: Loc,
+    /// Read as pbrt-v4: set by the first file with a pbrt-v4 construct (`dialect`).
+    v4: bool,
+    /// pbrt-v4: what the scene needs and we cannot render, (place, reason), reported together.
+    refused: Vec<(Loc, String)>,
+    /// pbrt-v4: an `infinite` light was read (our sky has one dome).
+    environment_seen: bool,
+    /// pbrt-v4: a `PixelFilter` was read (its default is a Gaussian, not our box).
+    filter_seen: bool,
 }
 
 type R<T> = Result<T, SceneError>;
 
-/// Parses pbrt-v3 text, reading the files it names through `resolver`; pbrt-v4 text is refused.
+/// Parses pbrt-v3 or pbrt-v4 text, reading the files it names through `resolver`.
 pub(crate) fn parse_with(text: &str, resolver: Resolver) -> Result<SceneBuilder, SceneError> {
     let file = resolver.scene_file().to_path_buf();
     let tokens = tokenize(text, 0, &file)?;
-    refuse_v4(&tokens, &file)?;
+    let v4 = is_v4(&tokens);
     let mut p = Parser {
         files: vec![file],
         sources: vec![Source { tokens, pos: 0 }],
@@ -118,6 +134,8 @@ pub(crate) fn parse_with(text: &str, resolver: Resolver) -> Result<SceneBuilder,
             named: Rc::default(),
             float_tex: Rc::default(),
             spec_tex: Rc::default(),
+            area_power: None,
+            attributes: Rc::default(),
         },
         stack: Vec::new(),
         in_world: false,
@@ -131,43 +149,29 @@ pub(crate) fn parse_with(text: &str, resolver: Resolver) -> Result<SceneBuilder,
         defining: None,
         active: (true, true),
         last_loc: Loc { file: 0, line: 1 },
+        v4,
+        refused: Vec::new(),
+        environment_seen: false,
+        filter_seen: false,
     };
-    // pbrt-v3's defaults when the file names no Integrator / Sampler: path, maxdepth 5; 16 spp.
+    // pbrt-v4's film is 1280 x 720 unless the file says otherwise.
+    if v4 {
+        p.resolution = (1280, 720);
+    }
+    // pbrt-v3's (and pbrt-v4's) defaults when the file names no Integrator / Sampler: path,
+    // maxdepth 5; 16 spp.
     p.b.defaults.max_depth = Some(5);
     p.b.defaults.spp = Some(16);
     p.run()?;
+    p.refuse_collected()?;
     let Parser { mut b, warn, .. } = p;
     warn.flush(&mut b);
     Ok(b)
 }
 
-/// pbrt-v4 constructs a refusal names at most.
-const V4_NAMED: usize = 6;
-
-/// Refuses the tokens of a pbrt-v4 file with the constructs that show it (the first
-/// `V4_NAMED`, and how many more there are).
-fn refuse_v4(tokens: &[Token], file: &Path) -> R<()> {
-    let (found, count) = dialect::v4_constructs(tokens, V4_NAMED);
-    let Some((first, _)) = found.first() else {
-        return Ok(());
-    };
-    let mut list = found
-        .iter()
-        .map(|(loc, what)| format!("line {}: {what}", loc.line))
-        .collect::<Vec<_>>()
-        .join("; ");
-    if count > found.len() {
-        list.push_str(&format!("; and {} more", count - found.len()));
-    }
-    Err(SceneError::new(
-        file,
-        format!("line {}", first.line),
-        format!(
-            "pbrt-v4 file ({list}): only pbrt-v3 is imported, and pbrt-v4 renames materials and \
-             changes the meaning of shared parameters; the file is refused rather than read as \
-             pbrt-v3"
-        ),
-    ))
+/// Whether `tokens` have a construct only pbrt-v4 has (see `dialect`).
+fn is_v4(tokens: &[Token]) -> bool {
+    !dialect::v4_constructs(tokens, 1).0.is_empty()
 }
 
 impl Parser {
@@ -305,7 +309,7 @@ impl Parser {
                     ));
                 }
             };
-            if self.world_ended {
+            if self.world_ended && !self.v4 {
                 self.warn(loc, "content after WorldEnd is ignored");
                 // Skip the rest: pbrt-v3 would render and start over.
                 while self.next().is_some() {}
@@ -320,7 +324,8 @@ impl Parser {
         if !self.in_world && !self.world_ended {
             return Err(self.err(self.last_loc, "the file has no WorldBegin"));
         }
-        if !self.world_ended {
+        // pbrt-v4 has no WorldEnd: its scenes end with the file.
+        if !self.world_ended && !self.v4 {
             self.warn(self.last_loc, "the file ended without WorldEnd");
         }
         Ok(())
@@ -344,6 +349,9 @@ impl Parser {
     }
 
     fn directive(&mut self, name: &str, loc: Loc) -> R<()> {
+        if self.v4 && self.v4_directive(name, loc)? {
+            return Ok(());
+        }
         if name == "Shape" {
             return self.shape(loc);
         }
@@ -533,7 +541,8 @@ impl Parser {
                 let path = file.path().to_path_buf();
                 self.files.push(path.clone());
                 let tokens = tokenize(&text, idx as u16, &path)?;
-                refuse_v4(&tokens, &path)?;
+                // From the first pbrt-v4 file on, the scene is read as pbrt-v4.
+                self.v4 |= is_v4(&tokens);
                 self.sources.push(Source { tokens, pos: 0 });
             }
             _ => return Ok(false),

@@ -96,7 +96,6 @@ impl Parser {
         outer: Mat4,
         emission: Option<Rgb>,
     ) -> R<()> {
-        let ps = &call.params;
         let loc = call.loc;
         let what = format!("Shape \"{}\"", call.ty);
         let m = outer * call.ctm;
@@ -106,7 +105,17 @@ impl Parser {
                 format!("{what}: the transform is singular or not finite"),
             )
         })?;
-        let mut place = if loc.file == 0 {
+        let place = self.shape_place(loc);
+        if call.ty == "sphere" {
+            return self.emit_sphere(call, &m, &t, emission, &place);
+        }
+        let (mesh, place) = self.mesh_of(call, place)?;
+        self.add_shape_mesh(call, mesh, &t, emission, &place)
+    }
+
+    /// The place a shape's errors name: its line, and its file when included.
+    pub(super) fn shape_place(&self, loc: Loc) -> String {
+        if loc.file == 0 {
             format!("line {}", loc.line)
         } else {
             format!(
@@ -114,7 +123,60 @@ impl Parser {
                 self.files[loc.file as usize].display(),
                 loc.line
             )
-        };
+        }
+    }
+
+    /// A `sphere` placed by `m` (`t`).
+    fn emit_sphere(
+        &mut self,
+        call: &ShapeCall,
+        m: &Mat4,
+        t: &Transform,
+        emission: Option<Rgb>,
+        place: &str,
+    ) -> R<()> {
+        let ps = &call.params;
+        let loc = call.loc;
+        let what = format!("Shape \"{}\"", call.ty);
+        let radius = self.float(ps, "radius", 1.0)?;
+        let zmin = self.float(ps, "zmin", -radius)?;
+        let zmax = self.float(ps, "zmax", radius)?;
+        let phimax = self.float(ps, "phimax", 360.0)?;
+        if zmin > -radius || zmax < radius || phimax < 360.0 {
+            return Err(self.err(
+                loc,
+                "partial spheres (zmin, zmax, phimax) are not supported",
+            ));
+        }
+        if !(radius > 0.0 && radius.is_finite()) {
+            return Err(self.err(loc, format!("sphere radius must be > 0, got {radius}")));
+        }
+        let center = t.point(Vec3::ZERO);
+        let scale = uniform_scale(m).ok_or_else(|| {
+            self.err(
+                loc,
+                "a sphere under non-uniform scale or shear is not supported",
+            )
+        })?;
+        // pbrt-v3 flips the normal when reverseOrientation ^ transformSwapsHandedness.
+        let inward = call.reverse ^ t.swaps_handedness();
+        self.report_unused(ps, &what);
+        self.b.add_sphere(
+            center,
+            radius * scale,
+            inward,
+            call.material,
+            emission,
+            place,
+        )
+    }
+
+    /// The triangles of a `trianglemesh` or `plymesh` (any other type is an error), and the
+    /// place its errors name (`place`, with the mesh file's name for a `plymesh`).
+    pub(super) fn mesh_of(&mut self, call: &ShapeCall, place: String) -> R<(MeshData, String)> {
+        let ps = &call.params;
+        let loc = call.loc;
+        let mut place = place;
         let mesh = match call.ty.as_str() {
             "trianglemesh" => {
                 let p = self
@@ -198,39 +260,6 @@ impl Parser {
                 place = format!("{place} ({})", f.path().display());
                 read_ply(&f).map_err(|e| self.err(loc, format!("{}: {e}", f.path().display())))?
             }
-            "sphere" => {
-                let radius = self.float(ps, "radius", 1.0)?;
-                let zmin = self.float(ps, "zmin", -radius)?;
-                let zmax = self.float(ps, "zmax", radius)?;
-                let phimax = self.float(ps, "phimax", 360.0)?;
-                if zmin > -radius || zmax < radius || phimax < 360.0 {
-                    return Err(self.err(
-                        loc,
-                        "partial spheres (zmin, zmax, phimax) are not supported",
-                    ));
-                }
-                if !(radius > 0.0 && radius.is_finite()) {
-                    return Err(self.err(loc, format!("sphere radius must be > 0, got {radius}")));
-                }
-                let center = t.point(Vec3::ZERO);
-                let scale = uniform_scale(&m).ok_or_else(|| {
-                    self.err(
-                        loc,
-                        "a sphere under non-uniform scale or shear is not supported",
-                    )
-                })?;
-                // pbrt-v3 flips the normal when reverseOrientation ^ transformSwapsHandedness.
-                let inward = call.reverse ^ t.swaps_handedness();
-                self.report_unused(ps, &what);
-                return self.b.add_sphere(
-                    center,
-                    radius * scale,
-                    inward,
-                    call.material,
-                    emission,
-                    &place,
-                );
-            }
             other => {
                 return Err(self.err(
                     loc,
@@ -238,6 +267,22 @@ impl Parser {
                 ));
             }
         };
+        Ok((mesh, place))
+    }
+
+    /// Adds the triangles of a shape: reports its unused parameters and orients it as pbrt
+    /// does.
+    pub(super) fn add_shape_mesh(
+        &mut self,
+        call: &ShapeCall,
+        mesh: MeshData,
+        t: &Transform,
+        emission: Option<Rgb>,
+        place: &str,
+    ) -> R<()> {
+        let ps = &call.params;
+        let loc = call.loc;
+        let what = format!("Shape \"{}\"", call.ty);
         if ps.has("alpha") || ps.has("shadowalpha") {
             ps.find("alpha", &["float", "texture"]);
             ps.find("shadowalpha", &["float", "texture"]);
@@ -262,6 +307,6 @@ impl Parser {
         {
             self.warn(loc, format!("{what}: emitting mesh has no triangles"));
         }
-        self.b.add_mesh(&mesh, &t, call.material, emission, &place)
+        self.b.add_mesh(&mesh, t, call.material, emission, place)
     }
 }
