@@ -280,22 +280,30 @@ impl Parser {
                         transmittance: Rgb::ONE,
                     }
                 } else {
-                    let r = self.float_or_tex(ps, "roughness", 0.0, &what)?;
-                    let u = self.float_or_tex(ps, "uroughness", r, &what)?;
-                    let v = self.float_or_tex(ps, "vroughness", r, &what)?;
-                    let _ = self.boolean(ps, "remaproughness", true)?;
-                    if u > 0.0 || v > 0.0 {
-                        self.warn(
-                            loc,
-                            format!(
-                                "{what}: rough dielectrics are not supported; traced as smooth"
-                            ),
-                        );
-                    }
-                    MaterialKind::Dielectric {
-                        ior,
-                        reflectance: Rgb::ONE,
-                        transmittance: Rgb::ONE,
+                    let rough = ["roughness", "uroughness", "vroughness"]
+                        .iter()
+                        .any(|k| ps.has(k));
+                    let (alpha_u, alpha_v) = if rough {
+                        self.v4_alphas(ps, &what, loc)?
+                    } else {
+                        (0.0, 0.0)
+                    };
+                    // pbrt-v4 traces a dielectric whose alphas are below 1e-3 as smooth.
+                    if alpha_u.max(alpha_v) > MIN_ALPHA {
+                        MaterialKind::RoughDielectric {
+                            ior,
+                            alpha_u,
+                            alpha_v,
+                            reflectance: Rgb::ONE,
+                            transmittance: Rgb::ONE,
+                        }
+                    } else {
+                        let _ = self.boolean(ps, "remaproughness", true)?;
+                        MaterialKind::Dielectric {
+                            ior,
+                            reflectance: Rgb::ONE,
+                            transmittance: Rgb::ONE,
+                        }
                     }
                 }
             }
