@@ -1,6 +1,6 @@
 //! Every integrator handles every light and every scattering model: spot lights, directional
-//! light (a small sun), constant and image environments (the sky's dome), and smooth, rough and
-//! thin dielectrics. On the Mitsuba 3 scenes of `scenes/mitsuba3/` that use them, every
+//! light (a small sun), constant and image environments (the sky's dome), smooth, rough and
+//! thin dielectrics, and Beckmann microfacets (conductor, plastic, glass). On the Mitsuba 3 scenes of `scenes/mitsuba3/` that use them, every
 //! estimator agrees with every other region by region within 4 standard errors (from the spread
 //! of independent seeds): the path tracer with MIS, with next-event estimation alone and with
 //! BSDF sampling alone; BDPT with balance, power and optimal weights, and its light-tracing-only
@@ -21,7 +21,10 @@ use omis::scene::{Scene, SceneParams};
 /// sharper reflections at its silhouette are too heavy-tailed for a dozen seeds to measure.
 fn load(name: &str, w: u32, h: u32) -> Scene {
     let path = common::repo().join("scenes/mitsuba3").join(name);
-    let params = if matches!(name, "spot.xml" | "dielectric.xml" | "frosted.xml") {
+    let params = if matches!(
+        name,
+        "spot.xml" | "dielectric.xml" | "frosted.xml" | "beckmann.xml"
+    ) {
         SceneParams::default()
     } else {
         SceneParams::new([("sphere_alpha".to_string(), "0.7".to_string())].into())
@@ -65,8 +68,8 @@ fn every_integrator_agrees_under_spot_directional_and_environment_lights() {
 }
 
 #[test]
-fn every_integrator_agrees_through_smooth_rough_and_thin_dielectrics() {
-    every_integrator_agrees(&["dielectric.xml", "frosted.xml"]);
+fn every_integrator_agrees_through_dielectrics_and_beckmann_microfacets() {
+    every_integrator_agrees(&["dielectric.xml", "frosted.xml", "beckmann.xml"]);
 }
 
 fn every_integrator_agrees(names: &[&str]) {

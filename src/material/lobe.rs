@@ -7,7 +7,7 @@
 
 use super::Mode;
 use super::fresnel;
-use super::microfacet::Ggx;
+use super::microfacet::Microfacet;
 use crate::geometry::warp::{
     cosine_hemisphere, cosine_hemisphere_pdf, power_cosine, power_cosine_pdf,
 };
@@ -53,7 +53,7 @@ pub enum Lobe {
     /// "Microfacet Models for Refraction through Rough Surfaces", EGSR, eqs. 20 and 21).
     RoughDielectric {
         /// The microfacet distribution (the same seen from either side).
-        ggx: Ggx,
+        mf: Microfacet,
         /// Interior / exterior index of refraction.
         eta: f32,
         /// Scale of the reflected part.
@@ -74,7 +74,7 @@ pub enum Lobe {
     /// GGX rough conductor with complex Fresnel, reflectance scaled by `scale`.
     Conductor {
         /// The microfacet distribution.
-        ggx: Ggx,
+        mf: Microfacet,
         /// Real part of the index of refraction, per channel.
         eta: Rgb,
         /// Absorption coefficient, per channel.
@@ -86,7 +86,7 @@ pub enum Lobe {
     /// (already divided by the internal-reflection term when the layered model is used).
     Plastic {
         /// The coat's microfacet distribution.
-        ggx: Ggx,
+        mf: Microfacet,
         /// Effective diffuse albedo factor.
         kd: Rgb,
         /// Scale of the coat's specular reflection.
@@ -199,7 +199,7 @@ impl Lobe {
     /// it does exactly: (1 - F) D G |a.h| |b.h| / (|a.z| |b.z| (a.h + eta b.h)^2), times eta^2
     /// for radiance arriving from inside or importance from outside (Veach 1997 §5.2).
     fn rough_dielectric_eval(
-        ggx: &Ggx,
+        mf: &Microfacet,
         eta: f32,
         r: Rgb,
         t: Rgb,
@@ -210,9 +210,13 @@ impl Lobe {
         let Some((h, refracts)) = Self::rough_dielectric_normal(wo, wi, eta) else {
             return Rgb::ZERO;
         };
-        let dg = ggx.d(h) * ggx.g2(wo, wi);
+        let dg = mf.d(h) * mf.g2(wo, wi);
         if !refracts {
-            let f = Self::rough_dielectric_fresnel(wo, h, eta);
+            // wo.h = wi.h but for rounding, to which F is sensitive near the critical angle:
+            // their mean keeps f(wo, wi) = f(wi, wo) exact.
+            let cos = 0.5 * (wo.dot(h).abs() + wi.dot(h).abs());
+            let eta_rel = if wo.z > 0.0 { eta } else { 1.0 / eta };
+            let f = fresnel::dielectric(cos, eta_rel);
             return r * (f * dg / (4.0 * wo.z * wi.z).abs());
         }
         let (a, b) = if wo.z > 0.0 { (wo, wi) } else { (wi, wo) };
@@ -229,16 +233,16 @@ impl Lobe {
     /// The density of wi from `sample` of a rough dielectric: the density of wo's visible
     /// normal (seen from wo's side) times the Jacobian of reflection (Walter et al. 2007 eq. 14)
     /// or refraction (eq. 17), times the probability F or 1 - F of the choice.
-    fn rough_dielectric_pdf(ggx: &Ggx, eta: f32, wo: Vec3, wi: Vec3) -> f32 {
+    fn rough_dielectric_pdf(mf: &Microfacet, eta: f32, wo: Vec3, wi: Vec3) -> f32 {
         let Some((h, refracts)) = Self::rough_dielectric_normal(wo, wi, eta) else {
             return 0.0;
         };
         let f = Self::rough_dielectric_fresnel(wo, h, eta);
         // From inside, `sample` mirrors the surface: wo's z and the normal's tangent part flip.
         let p_h = if wo.z > 0.0 {
-            ggx.visible_normal_pdf(wo, h)
+            mf.normal_pdf(wo, h)
         } else {
-            ggx.visible_normal_pdf(Vec3::new(wo.x, wo.y, -wo.z), Vec3::new(-h.x, -h.y, h.z))
+            mf.normal_pdf(Vec3::new(wo.x, wo.y, -wo.z), Vec3::new(-h.x, -h.y, h.z))
         };
         let wo_h = wo.dot(h).abs();
         if !refracts {
@@ -280,8 +284,8 @@ impl Lobe {
                     Rgb::ZERO
                 }
             }
-            Lobe::RoughDielectric { ggx, eta, r, t } => {
-                Self::rough_dielectric_eval(&ggx, eta, r, t, wo, wi, mode)
+            Lobe::RoughDielectric { mf, eta, r, t } => {
+                Self::rough_dielectric_eval(&mf, eta, r, t, wo, wi, mode)
             }
             Lobe::Phong { kd, ks, n, .. } => {
                 if wo.z <= 0.0 || wi.z <= 0.0 {
@@ -290,16 +294,16 @@ impl Lobe {
                 let c = reflect_z(wo).dot(wi).max(0.0);
                 kd * INV_PI + ks * ((n + 2.0) * INV_2PI * c.powf(n))
             }
-            Lobe::Conductor { ggx, eta, k, scale } => {
+            Lobe::Conductor { mf, eta, k, scale } => {
                 if wo.z <= 0.0 || wi.z <= 0.0 {
                     return Rgb::ZERO;
                 }
                 let h = (wo + wi).normalize();
                 let f = fresnel::conductor(wo.dot(h), eta, k);
-                scale * f * (ggx.d(h) * ggx.g2(wo, wi) / (4.0 * wo.z * wi.z))
+                scale * f * (mf.d(h) * mf.g2(wo, wi) / (4.0 * wo.z * wi.z))
             }
             Lobe::Plastic {
-                ggx,
+                mf,
                 kd,
                 ks,
                 eta,
@@ -311,7 +315,7 @@ impl Lobe {
                 }
                 let h = (wo + wi).normalize();
                 let spec = ks
-                    * (fresnel::dielectric(wo.dot(h), eta) * ggx.d(h) * ggx.g2(wo, wi)
+                    * (fresnel::dielectric(wo.dot(h), eta) * mf.d(h) * mf.g2(wo, wi)
                         / (4.0 * wo.z * wi.z));
                 let coupling = if layered {
                     (1.0 - fresnel::dielectric(wo.z, eta)) * (1.0 - fresnel::dielectric(wi.z, eta))
@@ -393,16 +397,16 @@ impl Lobe {
                 let c = reflect_z(wo).dot(wi);
                 (1.0 - q) * cosine_hemisphere_pdf(wi.z) + q * power_cosine_pdf(c, n)
             }
-            Lobe::Conductor { ggx, .. } => ggx.reflection_pdf(wo, wi),
-            Lobe::RoughDielectric { ggx, eta, .. } => Self::rough_dielectric_pdf(&ggx, eta, wo, wi),
+            Lobe::Conductor { mf, .. } => mf.reflection_pdf(wo, wi),
+            Lobe::RoughDielectric { mf, eta, .. } => Self::rough_dielectric_pdf(&mf, eta, wo, wi),
             Lobe::Plastic {
-                ggx, kd, ks, eta, ..
+                mf, kd, ks, eta, ..
             } => {
                 if wo.z <= 0.0 || wi.z <= 0.0 {
                     return 0.0;
                 }
                 let q = Self::plastic_spec_prob(ks, kd, fresnel::dielectric(wo.z, eta));
-                q * ggx.reflection_pdf(wo, wi) + (1.0 - q) * cosine_hemisphere_pdf(wi.z)
+                q * mf.reflection_pdf(wo, wi) + (1.0 - q) * cosine_hemisphere_pdf(wi.z)
             }
         }
     }
@@ -510,7 +514,7 @@ impl Lobe {
                     delta: true,
                 })
             }
-            Lobe::RoughDielectric { ggx, eta, .. } => {
+            Lobe::RoughDielectric { mf, eta, .. } => {
                 if wo.z == 0.0 {
                     return None;
                 }
@@ -520,8 +524,12 @@ impl Lobe {
                 } else {
                     (Vec3::new(wo.x, wo.y, -wo.z), 1.0 / eta)
                 };
-                let h = ggx.sample_visible_normal(up, u);
+                let h = mf.sample_normal(up, u);
                 let cos_o = up.dot(h);
+                // A normal rounded to face away from wo: no event the density counts.
+                if cos_o <= 0.0 {
+                    return None;
+                }
                 let f = fresnel::dielectric(cos_o, eta_up);
                 let reflect = u_lobe < f;
                 let wi_up = if reflect {
@@ -542,11 +550,11 @@ impl Lobe {
                 };
                 continuous(wi)
             }
-            Lobe::Conductor { ggx, .. } => {
+            Lobe::Conductor { mf, .. } => {
                 if wo.z <= 0.0 {
                     return None;
                 }
-                let h = ggx.sample_visible_normal(wo, u);
+                let h = mf.sample_normal(wo, u);
                 let wi = 2.0 * wo.dot(h) * h - wo;
                 if wi.z <= 0.0 {
                     return None;
@@ -554,14 +562,14 @@ impl Lobe {
                 continuous(wi)
             }
             Lobe::Plastic {
-                ggx, kd, ks, eta, ..
+                mf, kd, ks, eta, ..
             } => {
                 if wo.z <= 0.0 {
                     return None;
                 }
                 let q = Self::plastic_spec_prob(ks, kd, fresnel::dielectric(wo.z, eta));
                 let wi = if u_lobe < q {
-                    let h = ggx.sample_visible_normal(wo, u);
+                    let h = mf.sample_normal(wo, u);
                     2.0 * wo.dot(h) * h - wo
                 } else {
                     cosine_hemisphere(u)

@@ -10,7 +10,8 @@ pub mod texture;
 
 use crate::geometry::{Frame, Rgb, Vec2, Vec3, luminance};
 pub use lobe::{Lobe, LocalSample};
-use microfacet::Ggx;
+pub use microfacet::Distribution;
+use microfacet::Microfacet;
 pub use texture::{Bitmap, Texture};
 
 /// Which quantity a path carries: radiance (camera subpaths) or importance (light subpaths).
@@ -59,6 +60,8 @@ pub enum MaterialKind {
     RoughDielectric {
         /// Interior / exterior index of refraction.
         ior: f32,
+        /// The microfacet distribution's shape.
+        distribution: Distribution,
         /// GGX roughness along the tangent.
         alpha_u: f32,
         /// GGX roughness along the bitangent.
@@ -85,14 +88,16 @@ pub enum MaterialKind {
         eta: Rgb,
         /// Absorption coefficient (imaginary part of the index), per channel.
         k: Rgb,
-        /// GGX roughness along the tangent.
+        /// Roughness along the tangent.
         alpha_u: f32,
-        /// GGX roughness along the bitangent.
+        /// Roughness along the bitangent.
         alpha_v: f32,
+        /// The microfacet distribution's shape.
+        distribution: Distribution,
         /// Scale of the reflectance.
         scale: Rgb,
     },
-    /// A diffuse base under a smooth-to-rough dielectric coat (GGX).
+    /// A diffuse base under a smooth-to-rough dielectric coat (GGX or Beckmann).
     Plastic {
         /// Albedo of the diffuse base.
         diffuse: Texture,
@@ -100,8 +105,10 @@ pub enum MaterialKind {
         specular: Rgb,
         /// Index of refraction of the coat.
         ior: f32,
-        /// GGX roughness of the coat.
+        /// Roughness of the coat.
         alpha: f32,
+        /// The coat's microfacet distribution's shape.
+        distribution: Distribution,
         /// Layered (energy-coupled) diffuse term; `false` gives the additive pbrt-v3 model.
         layered: bool,
         /// Mitsuba's "nonlinear" internal-scattering term (only with `layered`).
@@ -198,10 +205,11 @@ impl Material {
                 ior,
                 alpha_u,
                 alpha_v,
+                distribution,
                 reflectance,
                 transmittance,
             } => Lobe::RoughDielectric {
-                ggx: Ggx::new(*alpha_u, *alpha_v),
+                mf: Microfacet::new(*distribution, *alpha_u, *alpha_v),
                 eta: *ior,
                 r: *reflectance,
                 t: *transmittance,
@@ -220,9 +228,10 @@ impl Material {
                 k,
                 alpha_u,
                 alpha_v,
+                distribution,
                 scale,
             } => Lobe::Conductor {
-                ggx: Ggx::new(*alpha_u, *alpha_v),
+                mf: Microfacet::new(*distribution, *alpha_u, *alpha_v),
                 eta: *eta,
                 k: *k,
                 scale: *scale,
@@ -232,6 +241,7 @@ impl Material {
                 specular,
                 ior,
                 alpha,
+                distribution,
                 layered,
                 nonlinear,
             } => {
@@ -249,7 +259,7 @@ impl Material {
                     crate::geometry::INV_PI
                 };
                 Lobe::Plastic {
-                    ggx: Ggx::new(*alpha, *alpha),
+                    mf: Microfacet::new(*distribution, *alpha, *alpha),
                     kd,
                     ks: *specular,
                     eta: *ior,

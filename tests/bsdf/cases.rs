@@ -5,7 +5,7 @@ use super::grid::*;
 use super::stats::*;
 
 use omis::geometry::{Frame, Rgb, Vec2, Vec3};
-use omis::material::{Bsdf, Material, MaterialKind, Mode, Texture};
+use omis::material::{Bsdf, Distribution, Material, MaterialKind, Mode, Texture};
 use omis::sampler::Pcg32;
 
 // ================================================================================================
@@ -125,7 +125,12 @@ pub fn phong_kinds() -> Kinds {
 
 /// Gold at roughly 650 / 550 / 450 nm.
 pub fn gold(ax: f32, ay: f32) -> MaterialKind {
+    gold_with(Distribution::Ggx, ax, ay)
+}
+
+pub fn gold_with(distribution: Distribution, ax: f32, ay: f32) -> MaterialKind {
     MaterialKind::RoughConductor {
+        distribution,
         eta: Rgb::new(0.143, 0.374, 1.442),
         k: Rgb::new(3.983, 2.386, 1.603),
         alpha_u: ax,
@@ -140,13 +145,35 @@ pub fn conductor_kinds() -> Kinds {
         ("gold ggx 0.3".into(), gold(0.3, 0.3)),
         ("gold ggx 0.8".into(), gold(0.8, 0.8)),
         ("gold ggx 0.1x0.5".into(), gold(0.1, 0.5)),
+        (
+            "gold beckmann 0.05".into(),
+            gold_with(Distribution::Beckmann, 0.05, 0.05),
+        ),
+        (
+            "gold beckmann 0.5".into(),
+            gold_with(Distribution::Beckmann, 0.5, 0.5),
+        ),
+        (
+            "gold beckmann 0.1x0.5".into(),
+            gold_with(Distribution::Beckmann, 0.1, 0.5),
+        ),
     ]
 }
 
 pub fn plastic(alpha: f32, layered: bool, nonlinear: bool) -> (String, MaterialKind) {
+    plastic_with(Distribution::Ggx, alpha, layered, nonlinear)
+}
+
+pub fn plastic_with(
+    distribution: Distribution,
+    alpha: f32,
+    layered: bool,
+    nonlinear: bool,
+) -> (String, MaterialKind) {
     (
-        format!("plastic alpha={alpha} layered={layered} nonlinear={nonlinear}"),
+        format!("plastic {distribution:?} alpha={alpha} layered={layered} nonlinear={nonlinear}"),
         MaterialKind::Plastic {
+            distribution,
             diffuse: Texture::Constant(Rgb::new(0.6, 0.3, 0.1)),
             specular: Rgb::ONE,
             ior: 1.5,
@@ -163,13 +190,24 @@ pub fn plastic_kinds() -> Kinds {
         plastic(0.3, true, true),
         plastic(0.05, false, false),
         plastic(0.3, false, false),
+        plastic_with(Distribution::Beckmann, 0.2, true, true),
     ]
 }
 
 pub fn rough_dielectric(ior: f32, ax: f32, ay: f32) -> (String, MaterialKind) {
+    rough_dielectric_with(Distribution::Ggx, ior, ax, ay)
+}
+
+pub fn rough_dielectric_with(
+    distribution: Distribution,
+    ior: f32,
+    ax: f32,
+    ay: f32,
+) -> (String, MaterialKind) {
     (
-        format!("rough dielectric {ior} ggx {ax}x{ay}"),
+        format!("rough dielectric {ior} {distribution:?} {ax}x{ay}"),
         MaterialKind::RoughDielectric {
+            distribution,
             ior,
             alpha_u: ax,
             alpha_v: ay,
@@ -185,6 +223,8 @@ pub fn rough_dielectric_kinds() -> Kinds {
         rough_dielectric(1.33, 0.5, 0.5),
         rough_dielectric(1.0 / 1.5, 0.3, 0.3),
         rough_dielectric(1.5, 0.05, 0.4),
+        rough_dielectric_with(Distribution::Beckmann, 1.5, 0.2, 0.2),
+        rough_dielectric_with(Distribution::Beckmann, 1.0 / 1.33, 0.1, 0.4),
     ]
 }
 

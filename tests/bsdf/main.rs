@@ -25,8 +25,8 @@ use std::f64::consts::PI as PI64;
 
 use omis::geometry::{Frame, Rgb, Vec2, Vec3};
 use omis::material::fresnel;
-use omis::material::microfacet::Ggx;
-use omis::material::{Bsdf, BsdfSample, MaterialKind, Mode};
+use omis::material::microfacet::Microfacet;
+use omis::material::{Bsdf, BsdfSample, Distribution, MaterialKind, Mode};
 use omis::sampler::Pcg32;
 
 // ================================================================================================
@@ -785,11 +785,22 @@ fn robustness_microfacet() {
     let mut kinds = [conductor_kinds(), plastic_kinds(), rough_dielectric_kinds()].concat();
     kinds.push(rough_dielectric(1.5, 1e-5, 1e-5));
     kinds.push(rough_dielectric(1.0, 0.3, 0.3));
+    kinds.push(rough_dielectric_with(
+        Distribution::Beckmann,
+        1.5,
+        1e-5,
+        1e-5,
+    ));
+    kinds.push((
+        "gold beckmann 1e-5".into(),
+        gold_with(Distribution::Beckmann, 1e-5, 1e-5),
+    ));
     // Roughness below the clamp and a conductor whose Fresnel term is numerically 1.
     kinds.push(("gold ggx 1e-5".into(), gold(1e-5, 1e-5)));
     kinds.push((
         "conductor k=1e3".into(),
         MaterialKind::RoughConductor {
+            distribution: Distribution::Beckmann,
             eta: Rgb::ONE,
             k: Rgb::splat(1e3),
             alpha_u: 0.2,
@@ -818,11 +829,11 @@ fn robustness_grazing_visible_normals() {
     let kinds = [conductor_kinds(), plastic_kinds()].concat();
     let bsdfs: Vec<Bsdf> = kinds.iter().map(|(_, k)| bsdf_for(k, &geo)).collect();
     let ggxs = [
-        Ggx::new(0.05, 0.05),
-        Ggx::new(0.3, 0.3),
-        Ggx::new(0.8, 0.8),
-        Ggx::new(0.1, 0.5),
-        Ggx::new(0.0, 0.0),
+        Microfacet::ggx(0.05, 0.05),
+        Microfacet::ggx(0.3, 0.3),
+        Microfacet::ggx(0.8, 0.8),
+        Microfacet::ggx(0.1, 0.5),
+        Microfacet::ggx(0.0, 0.0),
     ];
     for i in 0..400_000 {
         let z = match i % 4 {
@@ -915,7 +926,8 @@ fn white_furnace() {
     let geo = geo_flat();
     let mut failures = Vec::new();
     // A conductor whose Fresnel term is ~1 at every angle.
-    let perfect = |ax: f32, ay: f32| MaterialKind::RoughConductor {
+    let perfect = |distribution, ax: f32, ay: f32| MaterialKind::RoughConductor {
+        distribution,
         eta: Rgb::ONE,
         k: Rgb::splat(1e3),
         alpha_u: ax,
@@ -943,18 +955,20 @@ fn white_furnace() {
             1.0,
         ),
     ];
-    for (a, b, lo) in [
-        (0.05, 0.05, 0.9),
-        (0.3, 0.3, 0.7),
-        (0.8, 0.8, 0.4),
-        (0.1, 0.5, 0.5),
-    ] {
-        subjects.push((
-            format!("perfect conductor ggx {a}x{b}"),
-            perfect(a, b),
-            false,
-            lo,
-        ));
+    for distribution in [Distribution::Ggx, Distribution::Beckmann] {
+        for (a, b, lo) in [
+            (0.05, 0.05, 0.9),
+            (0.3, 0.3, 0.7),
+            (0.8, 0.8, 0.4),
+            (0.1, 0.5, 0.5),
+        ] {
+            subjects.push((
+                format!("perfect conductor {distribution:?} {a}x{b}"),
+                perfect(distribution, a, b),
+                false,
+                lo,
+            ));
+        }
     }
     // Energy-normalised modified Phong with kd + ks = 1.
     for n in [1.0, 20.0, 200.0] {
@@ -1004,6 +1018,7 @@ fn rough_dielectric_energy() {
     let mut failures = Vec::new();
     let white = |ior: f32, a: f32| MaterialKind::RoughDielectric {
         ior,
+        distribution: Distribution::Ggx,
         alpha_u: a,
         alpha_v: a,
         reflectance: Rgb::ONE,

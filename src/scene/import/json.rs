@@ -5,6 +5,7 @@ use super::resolve::Resolver;
 pub(crate) use super::resolve::scene_folder;
 use crate::camera::Camera;
 use crate::geometry::{Mat4, Rgb, Transform, Vec2, Vec3};
+use crate::material::Distribution;
 use crate::material::{Material, MaterialKind, Texture};
 use crate::scene::{MeshData, SceneBuilder, SceneError};
 use serde::Deserialize;
@@ -173,6 +174,8 @@ struct RoughDielectricMaterial {
     reflectance: Color,
     #[serde(default = "one")]
     transmittance: Color,
+    #[serde(default)]
+    distribution: Distribution,
 }
 
 #[derive(Deserialize)]
@@ -192,6 +195,8 @@ struct RoughConductorMaterial {
     scale: Color,
     #[serde(default = "yes")]
     two_sided: bool,
+    #[serde(default)]
+    distribution: Distribution,
 }
 
 #[derive(Deserialize)]
@@ -212,6 +217,8 @@ struct PlasticMaterial {
     nonlinear: bool,
     #[serde(default = "yes")]
     two_sided: bool,
+    #[serde(default)]
+    distribution: Distribution,
 }
 
 #[derive(Deserialize)]
@@ -485,6 +492,7 @@ fn material(
             alpha_v,
             reflectance,
             transmittance,
+            distribution,
             ..
         }) => {
             let au = alpha_u.or(*alpha).unwrap_or(0.1);
@@ -497,6 +505,7 @@ fn material(
             check_color(file, &at("transmittance"), transmittance.rgb())?;
             (
                 MaterialKind::RoughDielectric {
+                    distribution: *distribution,
                     ior: ior / ext_ior,
                     alpha_u: au,
                     alpha_v: av,
@@ -514,6 +523,7 @@ fn material(
             alpha_v,
             scale,
             two_sided,
+            distribution,
             ..
         }) => {
             let au = alpha_u.or(*alpha).unwrap_or(0.1);
@@ -525,6 +535,7 @@ fn material(
             check_color(file, &at("scale"), scale.rgb())?;
             (
                 MaterialKind::RoughConductor {
+                    distribution: *distribution,
                     eta: eta.rgb(),
                     k: k.rgb(),
                     alpha_u: au,
@@ -542,6 +553,7 @@ fn material(
             layered,
             nonlinear,
             two_sided,
+            distribution,
             ..
         }) => {
             check_positive(file, &at("ior"), *ior)?;
@@ -549,6 +561,7 @@ fn material(
             check_color(file, &at("specular"), specular.rgb())?;
             (
                 MaterialKind::Plastic {
+                    distribution: *distribution,
                     diffuse: loader.texture(resolver, diffuse, &at("diffuse"))?,
                     specular: specular.rgb(),
                     ior: *ior,

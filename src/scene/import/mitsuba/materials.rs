@@ -3,6 +3,7 @@
 
 use super::{Ctx, Obj, R};
 use crate::geometry::{Rgb, Vec3};
+use crate::material::Distribution;
 use crate::material::microfacet::MIN_ALPHA;
 use crate::material::{Material, MaterialKind, Texture};
 use crate::scene::import::common::{COPPER_ETA, COPPER_K};
@@ -254,6 +255,7 @@ impl Ctx {
                 // Mitsuba's specularReflectance multiplies the Fresnel reflectance: our `scale`.
                 let scale = self.spectrum_const(&p, "specularReflectance", Rgb::ONE, &what)?;
                 one_sided(MaterialKind::RoughConductor {
+                    distribution: Distribution::Ggx,
                     eta,
                     k,
                     alpha_u,
@@ -280,6 +282,7 @@ impl Ctx {
                 let diffuse = self.spectrum_tex(&p, "diffuseReflectance", Rgb::splat(0.5))?;
                 let nonlinear = self.boolean(&p, "nonlinear", false)?;
                 one_sided(MaterialKind::Plastic {
+                    distribution: Distribution::Ggx,
                     diffuse,
                     specular,
                     ior: int / ext,

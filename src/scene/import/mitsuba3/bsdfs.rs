@@ -6,6 +6,7 @@
 use super::values::ColorUse;
 use super::{Ctx, R};
 use crate::geometry::{Rgb, Vec3};
+use crate::material::Distribution;
 use crate::material::microfacet::MIN_ALPHA;
 use crate::material::{Material, MaterialKind, Texture};
 use crate::scene::import::xml::{Node, Props};
@@ -214,21 +215,16 @@ impl Ctx {
     /// The microfacet roughness of a rough bsdf: `alpha` or `alpha_u` and `alpha_v` (default
     /// 0.1), and its distribution (`beckmann`, Mitsuba's default, is traced as GGX of the same
     /// alpha, with a warning).
-    fn roughness(&mut self, n: &Node, p: &Props, what: &str) -> R<(f32, f32)> {
+    fn roughness(&mut self, n: &Node, p: &Props, what: &str) -> R<(Distribution, f32, f32)> {
         let dist = self
             .string(p, "distribution")?
             .unwrap_or_else(|| "beckmann".into())
             .to_ascii_lowercase();
-        match dist.as_str() {
-            "ggx" => {}
-            "beckmann" => self.warn(
-                n,
-                format!(
-                    "{what}: the Beckmann distribution (Mitsuba's default) is traced as GGX with the same alpha"
-                ),
-            ),
+        let distribution = match dist.as_str() {
+            "ggx" => Distribution::Ggx,
+            "beckmann" => Distribution::Beckmann,
             other => return Err(self.err(n, format!("{what}: unknown distribution \"{other}\""))),
-        }
+        };
         p.consume("sample_visible");
         let scalar = |cx: &mut Ctx, k: &str| -> R<Option<f32>> {
             match p.get(k) {
@@ -259,7 +255,7 @@ impl Ctx {
         if !(au >= 0.0 && av >= 0.0) {
             return Err(self.err(n, format!("{what}: alpha must be >= 0")));
         }
-        Ok((au.max(MIN_ALPHA), av.max(MIN_ALPHA)))
+        Ok((distribution, au.max(MIN_ALPHA), av.max(MIN_ALPHA)))
     }
 
     /// A conductor's complex index of refraction: a named `material`, or `eta` and `k`
@@ -491,19 +487,20 @@ impl Ctx {
             }),
             "conductor" | "roughconductor" => {
                 let (eta, k) = self.conductor_ior(n, &p, &what)?;
-                let (alpha_u, alpha_v) = if ty == "conductor" {
+                let (distribution, alpha_u, alpha_v) = if ty == "conductor" {
                     self.warn(
                         n,
                         format!(
                             "smooth conductor traced as GGX of alpha {MIN_ALPHA} (near-specular)"
                         ),
                     );
-                    (MIN_ALPHA, MIN_ALPHA)
+                    (Distribution::Ggx, MIN_ALPHA, MIN_ALPHA)
                 } else {
                     self.roughness(n, &p, &what)?
                 };
                 let scale = self.color_prop(&p, "specular_reflectance", Rgb::ONE, &what)?;
                 one_sided(MaterialKind::RoughConductor {
+                    distribution,
                     eta,
                     k,
                     alpha_u,
@@ -522,8 +519,9 @@ impl Ctx {
                 let reflectance = self.color_prop(&p, "specular_reflectance", Rgb::ONE, &what)?;
                 let transmittance =
                     self.color_prop(&p, "specular_transmittance", Rgb::ONE, &what)?;
-                let kind = if let Some((alpha_u, alpha_v)) = rough {
+                let kind = if let Some((distribution, alpha_u, alpha_v)) = rough {
                     MaterialKind::RoughDielectric {
+                        distribution,
                         ior: int / ext,
                         alpha_u,
                         alpha_v,
@@ -546,18 +544,18 @@ impl Ctx {
                 Material::new(name.clone(), kind, true)
             }
             "plastic" | "roughplastic" => {
-                let alpha = if ty == "plastic" {
+                let (distribution, alpha) = if ty == "plastic" {
                     self.warn(n, format!("smooth plastic traced with a GGX coat of alpha {MIN_ALPHA} (near-specular)"));
-                    MIN_ALPHA
+                    (Distribution::Ggx, MIN_ALPHA)
                 } else {
-                    let (au, av) = self.roughness(n, &p, &what)?;
+                    let (distribution, au, av) = self.roughness(n, &p, &what)?;
                     if au != av {
                         return Err(self.err(
                             n,
                             "roughplastic is isotropic (Mitsuba 3 refuses alpha_u != alpha_v too)",
                         ));
                     }
-                    au
+                    (distribution, au)
                 };
                 let int = self.ior(&p, "int_ior", 1.49)?;
                 let ext = self.ior(&p, "ext_ior", 1.000277)?;
@@ -570,6 +568,7 @@ impl Ctx {
                 )?;
                 let nonlinear = self.boolean(&p, "nonlinear", false)?;
                 one_sided(MaterialKind::Plastic {
+                    distribution,
                     diffuse,
                     specular,
                     ior: int / ext,
@@ -735,6 +734,7 @@ impl Ctx {
             let k = k2.max(Vec3::ZERO).map(f32::sqrt);
             (
                 MaterialKind::RoughConductor {
+                    distribution: Distribution::Ggx,
                     eta: eta_c,
                     k,
                     alpha_u: alpha,
@@ -747,6 +747,7 @@ impl Ctx {
         } else {
             (
                 MaterialKind::Plastic {
+                    distribution: Distribution::Ggx,
                     diffuse: base,
                     specular: Rgb::ONE,
                     ior: eta.max(1.001),

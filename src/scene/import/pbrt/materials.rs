@@ -5,6 +5,7 @@ use super::lexer::Loc;
 use super::params::ParamSet;
 use super::{Parser, R};
 use crate::geometry::{Rgb, Vec3};
+use crate::material::Distribution;
 use crate::material::microfacet::MIN_ALPHA;
 use crate::material::{Material, MaterialKind, Texture};
 use crate::scene::import::common::{COPPER_ETA, COPPER_K, default_lambert};
@@ -158,6 +159,7 @@ impl Parser {
                 let a = self.alphas(ps, 0.1, &what, loc)?;
                 let alpha = self.isotropic(a, &what, loc);
                 MaterialKind::Plastic {
+                    distribution: Distribution::Ggx,
                     diffuse,
                     specular,
                     ior: 1.5,
@@ -179,6 +181,7 @@ impl Parser {
                     "substrate (Ashikhmin-Shirley FresnelBlend) approximated by our layered plastic (ior 1.5, same alpha)",
                 );
                 MaterialKind::Plastic {
+                    distribution: Distribution::Ggx,
                     diffuse,
                     specular,
                     ior: 1.5,
@@ -192,6 +195,7 @@ impl Parser {
                 let k = self.spec_const(ps, "k", Vec3::from_array(COPPER_K), &what)?;
                 let (alpha_u, alpha_v) = self.alphas(ps, 0.01, &what, loc)?;
                 MaterialKind::RoughConductor {
+                    distribution: Distribution::Ggx,
                     eta,
                     k,
                     alpha_u,
@@ -254,6 +258,7 @@ impl Parser {
                     }
                     let alpha = self.isotropic(a, &what, loc);
                     MaterialKind::Plastic {
+                        distribution: Distribution::Ggx,
                         diffuse: kd,
                         specular: ks,
                         ior,

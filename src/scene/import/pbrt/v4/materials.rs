@@ -8,6 +8,7 @@ use super::super::params::ParamSet;
 use super::super::{Parser, R};
 use super::spectra::{SpectrumUse, is_glass};
 use crate::geometry::Rgb;
+use crate::material::Distribution;
 use crate::material::microfacet::MIN_ALPHA;
 use crate::material::{Material, MaterialKind, Texture};
 use std::rc::Rc;
@@ -228,6 +229,7 @@ impl Parser {
                 // as pbrt-v4's random walk between the layers simulates: Mitsuba's "nonlinear"
                 // kd / (1 - kd Fdr) rather than kd / (1 - Fdr).
                 MaterialKind::Plastic {
+                    distribution: Distribution::Ggx,
                     diffuse,
                     specular: Rgb::ONE,
                     ior,
@@ -264,6 +266,7 @@ impl Parser {
                     self.v4_alphas(&inner, &what, loc)?
                 };
                 MaterialKind::RoughConductor {
+                    distribution: Distribution::Ggx,
                     eta,
                     k,
                     alpha_u,
@@ -291,6 +294,7 @@ impl Parser {
                     // pbrt-v4 traces a dielectric whose alphas are below 1e-3 as smooth.
                     if alpha_u.max(alpha_v) > MIN_ALPHA {
                         MaterialKind::RoughDielectric {
+                            distribution: Distribution::Ggx,
                             ior,
                             alpha_u,
                             alpha_v,
