@@ -3,7 +3,7 @@
 
 use super::resolve::SceneFile;
 use crate::camera::Camera;
-use crate::geometry::{Mat4, Rgb, Transform, Vec3};
+use crate::geometry::{Frame, Mat4, Rgb, Transform, Vec3};
 use crate::material::{Bitmap, Material, MaterialKind, Texture};
 use crate::scene::SceneBuilder;
 use std::collections::HashMap;
@@ -128,4 +128,29 @@ mod tests {
         assert!(uniform_scale(&Mat4::from_scale(Vec3::splat(2.0))).is_some());
         assert!(uniform_scale(&Mat4::from_scale(Vec3::new(1.0, 2.0, 1.0))).is_none());
     }
+}
+
+/// Mitsuba's `<lookat>` (0.5 and 3 alike): +z toward the target, +x = up x z, at `origin`; with
+/// no `up`, some perpendicular one (as Mitsuba picks). The error says what is degenerate.
+pub(crate) fn mitsuba_look_at(
+    origin: Vec3,
+    target: Vec3,
+    up: Option<Vec3>,
+) -> Result<Mat4, &'static str> {
+    let dir = (target - origin).normalize_or_zero();
+    if dir == Vec3::ZERO {
+        return Err("<lookat>: origin equals target");
+    }
+    let up = up.unwrap_or_else(|| Frame::from_normal(dir).s);
+    let left = up.cross(dir).normalize_or_zero();
+    if left == Vec3::ZERO {
+        return Err("<lookat>: up is parallel to the view direction");
+    }
+    let new_up = dir.cross(left);
+    Ok(Mat4::from_cols(
+        left.extend(0.0),
+        new_up.extend(0.0),
+        dir.extend(0.0),
+        origin.extend(1.0),
+    ))
 }

@@ -2,7 +2,7 @@
 //! typed values: numbers, colours, points and transforms.
 
 use super::{Ctx, R};
-use crate::geometry::{Frame, Mat4, Rgb, Vec3};
+use crate::geometry::{Mat4, Rgb, Vec3};
 use crate::material::texture::srgb_to_linear;
 use crate::scene::import::xml::{Node, Props, split_numbers};
 
@@ -289,25 +289,9 @@ impl Ctx {
                     let target = self
                         .vec_attr(s, "target")?
                         .ok_or_else(|| self.err(s, "<lookat> has no target"))?;
-                    let dir = (target - origin).normalize_or_zero();
-                    if dir == Vec3::ZERO {
-                        return Err(self.err(s, "<lookat>: origin equals target"));
-                    }
-                    // Mitsuba picks some perpendicular up when none is given.
-                    let up = self
-                        .vec_attr(s, "up")?
-                        .unwrap_or_else(|| Frame::from_normal(dir).s);
-                    let left = up.cross(dir).normalize_or_zero();
-                    if left == Vec3::ZERO {
-                        return Err(self.err(s, "<lookat>: up is parallel to the view direction"));
-                    }
-                    let new_up = dir.cross(left);
-                    Mat4::from_cols(
-                        left.extend(0.0),
-                        new_up.extend(0.0),
-                        dir.extend(0.0),
-                        origin.extend(1.0),
-                    )
+                    let up = self.vec_attr(s, "up")?;
+                    super::super::common::mitsuba_look_at(origin, target, up)
+                        .map_err(|e| self.err(s, e))?
                 }
                 other => return Err(self.err(s, format!("unknown transform step <{other}>"))),
             };

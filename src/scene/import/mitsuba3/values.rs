@@ -4,7 +4,7 @@
 //! flat spectrum, rotation axes are not normalised, matrices are row-major.
 
 use super::{Ctx, R};
-use crate::geometry::{Frame, Mat4, Rgb, Vec3};
+use crate::geometry::{Mat4, Rgb, Vec3};
 use crate::scene::import::xml::{Node, Props, split_numbers};
 
 /// How a colour property is used: Mitsuba 3 turns the same XML into different colours for a
@@ -281,25 +281,9 @@ impl Ctx {
                     let target = self
                         .vec_attr(s, "target")?
                         .ok_or_else(|| self.err(s, "<lookat> has no target"))?;
-                    let dir = (target - origin).normalize_or_zero();
-                    if dir == Vec3::ZERO {
-                        return Err(self.err(s, "<lookat>: origin equals target"));
-                    }
-                    let up = match self.vec_attr(s, "up")? {
-                        Some(u) if u != Vec3::ZERO => u,
-                        _ => Frame::from_normal(dir).s,
-                    };
-                    let left = up.cross(dir).normalize_or_zero();
-                    if left == Vec3::ZERO {
-                        return Err(self.err(s, "<lookat>: up is parallel to the view direction"));
-                    }
-                    let new_up = dir.cross(left);
-                    Mat4::from_cols(
-                        left.extend(0.0),
-                        new_up.extend(0.0),
-                        dir.extend(0.0),
-                        origin.extend(1.0),
-                    )
+                    let up = self.vec_attr(s, "up")?.filter(|u| *u != Vec3::ZERO);
+                    super::super::common::mitsuba_look_at(origin, target, up)
+                        .map_err(|e| self.err(s, e))?
                 }
                 other => return Err(self.err(s, format!("unknown transform operation <{other}>"))),
             };
