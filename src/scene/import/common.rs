@@ -119,17 +119,6 @@ pub(crate) fn camera_from(
     Ok(cam.with_flip_x(flip))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn uniform_scale_needs_equal_axes_without_shear() {
-        assert!(uniform_scale(&Mat4::from_scale(Vec3::splat(2.0))).is_some());
-        assert!(uniform_scale(&Mat4::from_scale(Vec3::new(1.0, 2.0, 1.0))).is_none());
-    }
-}
-
 /// Mitsuba's `<lookat>` (0.5 and 3 alike): +z toward the target, +x = up x z, at `origin`; with
 /// no `up`, some perpendicular one (as Mitsuba picks). The error says what is degenerate.
 pub(crate) fn mitsuba_look_at(
@@ -153,4 +142,15 @@ pub(crate) fn mitsuba_look_at(
         dir.extend(0.0),
         origin.extend(1.0),
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn uniform_scale_needs_equal_axes_without_shear() {
+        assert!(uniform_scale(&Mat4::from_scale(Vec3::splat(2.0))).is_some());
+        assert!(uniform_scale(&Mat4::from_scale(Vec3::new(1.0, 2.0, 1.0))).is_none());
+    }
 }
