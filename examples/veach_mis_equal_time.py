@@ -31,14 +31,14 @@ def main() -> None:
     ap.add_argument("--reference-spp", type=int, default=1024)
     ap.add_argument("--resolution", default="320x180", help="WxH")
     ap.add_argument("--quick", action="store_true",
-                    help="tiny settings for CI: 64x36, 1 s per strategy, 64 spp reference")
+                    help="tiny settings for CI: 64x36, 1 s per strategy, 512 spp reference")
     ap.add_argument("--binary", help="the omis binary (default: OMIS_BIN, else PATH)")
     ap.add_argument("--server", help="a running coordinator's URL instead of an embedded one")
     ap.add_argument("--token", default=os.environ.get("OMIS_TOKEN"))
     ap.add_argument("--show", action="store_true", help="open the plots in a window")
     a = ap.parse_args()
     if a.quick:
-        a.seconds, a.reference_spp, a.resolution = 1.0, 64, "64x36"
+        a.seconds, a.reference_spp, a.resolution = 1.0, 512, "64x36"
     w, h = (int(v) for v in a.resolution.lower().split("x"))
     a.out.mkdir(parents=True, exist_ok=True)
 

@@ -328,11 +328,11 @@ class Job:
         `timeout` seconds."""
         st = self.last_status or self.status()
         bar = None
+        passes = st.get("passes_total")
         if progress:
             from tqdm.auto import tqdm
 
             tiles = int(st.get("tiles_per_pass") or 0)
-            passes = st.get("passes_total")
             total = passes * tiles if passes else None
             bar = tqdm(total=total, desc=f"job {self.id[:8]}", unit="tile", leave=True)
         try:
@@ -342,7 +342,8 @@ class Job:
                 if e.kind == "tile_done":
                     bar.update(1)
                 elif e.kind == "pass_done":
-                    post = {"spp": e.data.get("spp"), "pass": e.data.get("pass")}
+                    done = int(e.data.get("pass", 0)) + 1
+                    post = {"spp": e.data.get("spp"), "pass": f"{done}/{passes or '?'}"}
                     if e.data.get("relmse") is not None:
                         post["relMSE"] = f"{e.data['relmse']:.3e}"
                     bar.set_postfix(post)

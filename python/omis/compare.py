@@ -45,6 +45,17 @@ class CompareResult:
         ``relmse_vs_time`` (equal time: every job's relMSE after each pass against its
         seconds, log-log). Needs matplotlib."""
         import matplotlib.pyplot as plt
+        from matplotlib.ticker import NullFormatter
+
+        def finish(fig: Any, ax: Any, xlabel: str, title: str) -> None:
+            # Labels on the decades only: minor labels of a short log axis overlap.
+            ax.xaxis.set_minor_formatter(NullFormatter())
+            ax.yaxis.set_minor_formatter(NullFormatter())
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel("relMSE")
+            ax.set_title(title)
+            ax.legend()
+            fig.tight_layout()
 
         figs: dict[str, Any] = {}
         spp = self.mean_relmse("equal_spp")
@@ -52,11 +63,7 @@ class CompareResult:
             fig, ax = plt.subplots(figsize=(5, 3.5))
             for m, pts in spp.items():
                 ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=m)
-            ax.set_xlabel("samples per pixel")
-            ax.set_ylabel("relMSE")
-            ax.set_title("equal spp")
-            ax.legend()
-            fig.tight_layout()
+            finish(fig, ax, "samples per pixel", "equal spp")
             figs["relmse_vs_spp"] = fig
         timed = [
             (r, s)
@@ -76,11 +83,7 @@ class CompareResult:
                     color=colors.get(r["mis"]),
                 )
                 colors.setdefault(r["mis"], line.get_color())
-            ax.set_xlabel("seconds")
-            ax.set_ylabel("relMSE")
-            ax.set_title("equal time")
-            ax.legend()
-            fig.tight_layout()
+            finish(fig, ax, "seconds", "equal time")
             figs["relmse_vs_time"] = fig
         return figs
 

@@ -11,7 +11,7 @@ import subprocess
 import tempfile
 import threading
 import weakref
-from typing import Optional, Union
+from typing import IO, Optional, Union
 
 from .errors import CoordinatorError
 
@@ -59,6 +59,16 @@ def _stop(proc: subprocess.Popen[bytes], data: Optional[str]) -> None:
                 stream.close()
         if data is not None:
             shutil.rmtree(data, ignore_errors=True)
+
+
+def _drain(stream: Optional[IO[bytes]]) -> None:
+    if stream is None:
+        return
+    try:
+        while stream.read(1 << 16):
+            pass
+    except (OSError, ValueError):
+        pass
 
 
 def _signal_group(pgid: int, sig: int) -> None:
@@ -144,6 +154,8 @@ class EmbeddedCoordinator:
             )
         #: The coordinator's base URL (``http://127.0.0.1:PORT``).
         self.url = line[len("listening on ") :].strip()
+        # Whatever it (or a worker) prints later is read, so that a full pipe never blocks it.
+        threading.Thread(target=_drain, args=(self.process.stdout,), daemon=True).start()
 
     def _first_line(self, timeout: float) -> str:
         result: list[bytes] = []

@@ -4,7 +4,7 @@ computes it, and FLIP through the `flip-evaluator` package when it is installed.
 from __future__ import annotations
 
 import os
-from typing import Optional, Union
+from typing import Any, Optional, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -95,10 +95,13 @@ def relmse(
     return float(per.sum() / (3 * per.size))
 
 
-def flip(image: npt.ArrayLike, reference: npt.ArrayLike) -> tuple[float, npt.NDArray[np.float32]]:
+def flip(
+    image: npt.ArrayLike, reference: npt.ArrayLike, **parameters: Any
+) -> tuple[float, npt.NDArray[np.float32]]:
     """HDR-FLIP of `image` against `reference` (Andersson et al., "FLIP: A Difference Evaluator
     for Alternating Images", HPG 2020; the HDR variant of 2021): the mean FLIP value and the
-    per-pixel error map. Needs the `flip-evaluator` package (``pip install omis[flip]``)."""
+    per-pixel error map (H x W). `parameters` go to `flip_evaluator.evaluate` (``ppd``,
+    ``tonemapper``, ...). Needs the `flip-evaluator` package (``pip install omis[flip]``)."""
     try:
         import flip_evaluator
     except ImportError:
@@ -107,8 +110,12 @@ def flip(image: npt.ArrayLike, reference: npt.ArrayLike) -> tuple[float, npt.NDA
         ) from None
     a = np.ascontiguousarray(_rgb(image, "image"))
     r = np.ascontiguousarray(_rgb(reference, "reference"))
-    error_map, mean, _ = flip_evaluator.evaluate(r, a, "HDR")
-    return float(mean), np.asarray(error_map, dtype=np.float32)
+    # Linear inputs, and the error itself rather than its magma colouring.
+    error_map, mean, _ = flip_evaluator.evaluate(
+        r, a, "HDR", inputsRGB=False, applyMagma=False, parameters=parameters
+    )
+    err = np.asarray(error_map, dtype=np.float32)
+    return float(mean), err.reshape(err.shape[0], err.shape[1])
 
 
 def tonemap(image: npt.ArrayLike, exposure: float = 0.0) -> npt.NDArray[np.float32]:

@@ -52,7 +52,9 @@ def test_flip_when_installed() -> None:
     rng = np.random.default_rng(2)
     ref = rng.random((16, 16, 3), dtype=np.float32)
     mean, err = omis.flip(ref, ref)
-    assert mean == pytest.approx(0.0, abs=1e-6) and err.shape[:2] == (16, 16)
+    assert mean == pytest.approx(0.0, abs=1e-6) and err.shape == (16, 16)
+    mean, err = omis.flip(ref * 2, ref)
+    assert 0 < mean <= 1 and err.shape == (16, 16) and err.mean() == pytest.approx(mean, rel=1e-4)
 
 
 def test_job_settings_python_names() -> None:

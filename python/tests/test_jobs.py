@@ -113,7 +113,8 @@ def test_cancel(client: omis.Client) -> None:
         ({"spp": 0}, "settings.spp", 422),
         ({"mis": "optimal"}, "settings.mis", 422),
         ({"integrator": "whitted"}, "settings.integrator", 422),
-        ({"no_such_setting": 1}, "settings", 422),
+        ({"no_such_setting": 1}, "settings.no_such_setting", 422),
+        ({"time_budget": -1}, "settings.time_budget_s", 422),
         ({"resolution": (0, 10)}, "settings.resolution", 422),
     ],
 )
