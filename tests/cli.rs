@@ -706,3 +706,37 @@ fn an_image_diffed_with_itself_has_no_error_also_on_black_pixels() {
     assert_eq!(v["relmse"], 0.0, "{v}");
     assert_eq!(v["identical"], true, "{v}");
 }
+
+#[test]
+fn bundle_writes_the_scene_and_every_file_its_importer_read() {
+    let dir = folder("bundle");
+    let out = dir.join("textures.tar");
+    let o = omis(&["bundle", "scenes/mitsuba3/textures.xml", "--out", s(&out)]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(last_json(&o)["main"], "textures.xml");
+    let file = std::fs::File::open(&out).expect("bundle written");
+    let mut names: Vec<String> = tar::Archive::new(file)
+        .entries()
+        .expect("a tar")
+        .map(|e| {
+            let e = e.expect("entry");
+            e.path().expect("path").to_string_lossy().into_owned()
+        })
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        ["parts/room.xml", "textures.xml", "textures/grid.png"]
+    );
+    let bad = omis(&[
+        "bundle",
+        "scenes/mitsuba3/textures.xml",
+        "--out",
+        s(&out),
+        "--define",
+        "novalue",
+    ]);
+    assert_one_line_error(&bad, "--define");
+    let missing = omis(&["bundle", "no/such/scene.xml", "--out", s(&out)]);
+    assert_one_line_error(&missing, "no/such/scene.xml");
+}

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,8 +15,8 @@ import numpy.typing as npt
 
 from . import bundle as _bundle
 from ._http import DEFAULT_TIMEOUT, Event, Transport
-from .coordinator import EmbeddedCoordinator
-from .errors import JobCancelled, JobFailed, ServiceError
+from .coordinator import EmbeddedCoordinator, find_binary
+from .errors import CoordinatorError, JobCancelled, JobFailed, OmisError, ServiceError
 from .images import BEAUTY, read_exr_layers, write_exr
 
 #: A scene: a path to a file of any format omis reads, a dict in omis's JSON format (inline),
@@ -28,6 +30,8 @@ Reference = Union[str, "os.PathLike[str]", npt.ArrayLike, "Job", Mapping[str, st
 #: Python spellings of job settings whose JSON names differ (the rest are the JSON names of
 #: proto/openapi.yaml's JobSettings: spp, integrator, mis, max_depth, seed, ...).
 SETTING_ALIASES = {"time_budget": "time_budget_s"}
+#: Seconds `omis bundle` may take to load a scene and pack it.
+BUNDLE_TIMEOUT = 600.0
 #: Most uploads of one bundle while the coordinator names files it still misses.
 MAX_BUNDLE_ROUNDS = 32
 
@@ -94,6 +98,8 @@ class Client:
         timeout: float = DEFAULT_TIMEOUT,
     ) -> None:
         self.coordinator: Optional[EmbeddedCoordinator] = None
+        #: The `omis` binary that packs scene bundles (`omis bundle`), when one is known.
+        self.binary: Optional[str] = None
         if url is None:
             self.coordinator = EmbeddedCoordinator(
                 binary,
@@ -103,6 +109,12 @@ class Client:
                 token=token,
             )
             url = self.coordinator.url
+            self.binary = self.coordinator.binary
+        else:
+            try:
+                self.binary = find_binary(binary)
+            except CoordinatorError:
+                self.binary = None
         if token is None and url is not None and self.coordinator is None:
             token = os.environ.get("OMIS_TOKEN")
         self.url: str = url
@@ -163,17 +175,30 @@ class Client:
         """Uploads a scene file with the files it reads as a bundle; returns the coordinator's
         description of it (``id``, ``main``, ``files``, ``triangles``, ``warnings``, ...).
 
-        The first bundle holds the files the scene's text names (`omis.bundle.named_files`);
-        while the coordinator answers that the scene reads a file the bundle lacks, that file
-        is added and the bundle sent again."""
+        With an `omis` binary at hand (`binary`), ``omis bundle`` packs it: the scene is loaded
+        by omis's own importers and the bundle holds exactly the files they read, as `omis
+        submit` uploads it. Without one, the first bundle holds the files the scene's text names
+        (`omis.bundle.named_files`); while the coordinator answers that the scene reads a file
+        the bundle lacks, that file is added and the bundle sent again."""
         path = Path(scene)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such scene file")
+        if self.binary is not None:
+            tar, main = self._pack_with_binary(path, defines)
+            meta: dict[str, Any] = self._http.json(
+                "POST",
+                "/v1/scenes",
+                "uploading the scene",
+                query={"main": main},
+                body=tar,
+                content_type="application/x-tar",
+            )
+            return meta
         files = set(_bundle.named_files(path, defines))
         for _ in range(MAX_BUNDLE_ROUNDS):
             tar, main = _bundle.pack(path, files)
             try:
-                meta: dict[str, Any] = self._http.json(
+                meta = self._http.json(
                     "POST",
                     "/v1/scenes",
                     "uploading the scene",
@@ -188,6 +213,28 @@ class Client:
                     raise
                 files |= more
         raise ServiceError(400, f"{path}: the coordinator kept naming missing files", "body")
+
+    def _pack_with_binary(
+        self, path: Path, defines: Optional[Mapping[str, str]]
+    ) -> tuple[bytes, str]:
+        """The bundle ``omis bundle`` packs for `path`, and its main file's name."""
+        assert self.binary is not None
+        with tempfile.TemporaryDirectory(prefix="omis-bundle-") as d:
+            out = Path(d) / "bundle.tar"
+            cmd = [self.binary, "bundle", str(path), "--out", str(out)]
+            for k, v in (defines or {}).items():
+                cmd += ["--define", f"{k}={v}"]
+            try:
+                done = subprocess.run(
+                    cmd, capture_output=True, timeout=BUNDLE_TIMEOUT, check=False
+                )
+            except subprocess.TimeoutExpired:
+                raise OmisError(f"{path}: omis bundle took over {BUNDLE_TIMEOUT:.0f} s") from None
+            if done.returncode != 0:
+                line = done.stderr.decode("utf-8", "replace").strip().splitlines()
+                raise OmisError(line[-1] if line else f"{path}: omis bundle failed")
+            main = json.loads(done.stdout.decode("utf-8").strip().splitlines()[-1])["main"]
+            return out.read_bytes(), str(main)
 
     def upload_reference(self, reference: Union[str, "os.PathLike[str]", npt.ArrayLike]) -> str:
         """Uploads a reference image (an EXR path or an H x W x 3 array); returns its id."""

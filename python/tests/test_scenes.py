@@ -117,7 +117,7 @@ def test_shared_veach_mis(client: omis.Client, omis_bin: str) -> None:
     check_image(img, (32, 18))
 
 
-def test_missing_files_are_added_from_the_coordinators_answer(
+def test_files_a_text_scan_misses_are_packed(
     client: omis.Client, tmp_path: Path
 ) -> None:
     # A file named in a way the text scan cannot see (built from a define's default in two
@@ -135,8 +135,15 @@ def test_missing_files_are_added_from_the_coordinators_answer(
     scene = tmp_path / "scene.xml"
     scene.write_text(src)
     assert tmp_path / "parts" / "room.xml" not in bundle.named_files(scene)
-    meta = client.upload_scene(scene)
-    assert set(meta["files"]) == {"scene.xml", "parts/room.xml", "textures/grid.png"}
+    expected = {"scene.xml", "parts/room.xml", "textures/grid.png"}
+    # With the binary at hand, `omis bundle` packs what the importer read.
+    assert client.binary is not None
+    assert set(client.upload_scene(scene)["files"]) == expected
+    # Without one (a remote coordinator, no omis installed), the scan and the coordinator's
+    # answers find the same files.
+    scanner = omis.Client(client.url, client._http.token)
+    scanner.binary = None
+    assert set(scanner.upload_scene(scene)["files"]) == expected
 
 
 def test_missing_scene_file(client: omis.Client) -> None:

@@ -118,16 +118,8 @@ impl JobArgs {
             }
             None => None,
         };
-        let mut defines = std::collections::BTreeMap::new();
-        for d in &self.defines {
-            let (k, v) = d
-                .split_once('=')
-                .filter(|(k, _)| !k.is_empty())
-                .ok_or_else(|| anyhow::anyhow!("--define: expected NAME=VALUE, got '{d}'"))?;
-            defines.insert(k.to_string(), v.to_string());
-        }
         let s = JobSettings {
-            defines: crate::scene::SceneParams::new(defines),
+            defines: parse_defines(&self.defines)?,
             resolution,
             spp: self.spp,
             time_budget_s: self.time_budget,
@@ -168,4 +160,17 @@ pub fn flag_error(e: FieldError) -> anyhow::Error {
         f => f.replace('_', "-"),
     };
     anyhow::anyhow!("--{flag}: {}", e.message)
+}
+
+/// The scene parameters of repeated `--define NAME=VALUE` flags.
+pub fn parse_defines(flags: &[String]) -> anyhow::Result<crate::scene::SceneParams> {
+    let mut defines = std::collections::BTreeMap::new();
+    for d in flags {
+        let (k, v) = d
+            .split_once('=')
+            .filter(|(k, _)| !k.is_empty())
+            .ok_or_else(|| anyhow::anyhow!("--define: expected NAME=VALUE, got '{d}'"))?;
+        defines.insert(k.to_string(), v.to_string());
+    }
+    Ok(crate::scene::SceneParams::new(defines))
 }

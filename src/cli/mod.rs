@@ -3,6 +3,7 @@
 mod bench;
 mod bench_coordinator;
 mod bench_service;
+mod bundle;
 mod child_coordinator;
 mod choices;
 mod client;
@@ -38,6 +39,8 @@ enum Command {
     Worker(service_cmds::WorkerArgs),
     /// Submit a job to a coordinator (optionally wait for it and download the EXR).
     Submit(service_cmds::SubmitArgs),
+    /// Write the bundle `submit` uploads for a scene file: the scene and every file it reads.
+    Bundle(bundle::BundleArgs),
     /// Show a job's status.
     Status(service_cmds::IdArgs),
     /// Download a job's EXR (or preview, error map, convergence plot).
@@ -96,6 +99,7 @@ pub fn main() -> i32 {
         Command::Serve(a) => service_cmds::serve(a),
         Command::Worker(a) => service_cmds::worker(a),
         Command::Submit(a) => service_cmds::submit(a),
+        Command::Bundle(a) => bundle::run(a),
         Command::Status(a) => service_cmds::status(a),
         Command::Download(a) => service_cmds::download(a),
         Command::Cancel(a) => service_cmds::cancel(a),
