@@ -650,8 +650,8 @@ fn images_of(
 ///    the pass is recorded, so a job recorded with its last pass has it);
 /// 4. `record_pass`: the pass and its counters recorded, the result logs the checkpoints now
 ///    hold given up;
-/// 5. `write_pass_outputs` and `report_pass`: the preview (and interim EXR when due), the relMSE
-///    point and the pass's events.
+/// 5. `write_pass_outputs`: the preview (and the interim EXR when due);
+/// 6. `report_pass`: the relMSE point and the pass's events.
 ///
 /// False when the pass is not finished after all (groups or a result to do again).
 pub(crate) fn finish_pass(
