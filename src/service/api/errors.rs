@@ -311,4 +311,43 @@ mod tests {
         let e = ApiError::disk("x", std::io::Error::from_raw_os_error(libc::EIO));
         assert_eq!(e.status, StatusCode::INTERNAL_SERVER_ERROR);
     }
+
+    /// A service error becomes the status its cause calls for, with its message in the body: a
+    /// full store or disk 507, anything else 500.
+    #[test]
+    fn service_errors_map_to_their_status_and_message() {
+        use crate::service::error::ServiceError;
+        use crate::service::store::StoreError;
+        let full = StoreError {
+            message: "database or disk is full".into(),
+            disk_full: true,
+        };
+        let e = ApiError::from(ServiceError::from(full));
+        assert_eq!(e.status, StatusCode::INSUFFICIENT_STORAGE);
+        assert!(e.error.starts_with("database: "), "{}", e.error);
+        let e = ApiError::from(ServiceError::from(StoreError::new("locked")));
+        assert_eq!(
+            (e.status, e.error.as_str()),
+            (StatusCode::INTERNAL_SERVER_ERROR, "database: locked")
+        );
+        let e = ApiError::from(ServiceError::Disk {
+            what: "cannot store the result",
+            source: std::io::Error::from_raw_os_error(libc::ENOSPC),
+        });
+        assert_eq!(e.status, StatusCode::INSUFFICIENT_STORAGE);
+        assert!(
+            e.error.starts_with("cannot store the result: "),
+            "{}",
+            e.error
+        );
+        let e = ApiError::from(ServiceError::job("job j: bad settings: x"));
+        assert_eq!(
+            (e.status, e.error.as_str(), e.field),
+            (
+                StatusCode::INTERNAL_SERVER_ERROR,
+                "job j: bad settings: x",
+                None
+            )
+        );
+    }
 }
