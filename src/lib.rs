@@ -9,6 +9,7 @@
 #![warn(missing_docs)]
 
 pub mod accel;
+pub(crate) mod bundle;
 pub mod camera;
 pub mod cli;
 pub mod film;
@@ -18,6 +19,7 @@ pub mod job;
 pub mod light;
 pub mod material;
 pub mod mis;
+pub mod protocol;
 pub mod sampler;
 pub mod scene;
 pub mod service;

@@ -12,14 +12,14 @@ use super::child_coordinator::ChildCoordinator;
 use super::client::Client;
 use super::job_args::JobArgs;
 use super::service_cmds::{runtime, submit_job};
+use crate::bundle;
 use crate::film::Tile;
 use crate::job::{Limits, Resolved};
-use crate::scene::Scene;
-use crate::service::bundle;
-use crate::service::protocol::{
+use crate::protocol::{
     HeartbeatRequest, HeldTask, JobEvent, JobState, Lease, LeaseRequest, RegisterRequest,
     Registration, ResultQuery, SceneSource, TaskKind,
 };
+use crate::scene::Scene;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use serde_json::json;

@@ -1,12 +1,12 @@
 //! HTTP client of the coordinator's API, for `submit`, `status`, `download`, `cancel` and the
 //! embedded service behind `omis render`.
 
-use crate::scene::SceneParams;
-use crate::service::bundle;
-use crate::service::protocol::{
+use crate::bundle;
+use crate::protocol::{
     ErrorBody, EventKind, JobEvent, JobRequest, JobState, JobStatus, ReferenceInfo, SceneMeta,
     SceneSource,
 };
+use crate::scene::SceneParams;
 use anyhow::{Context, Result, bail};
 use std::path::Path;
 use std::time::Duration;

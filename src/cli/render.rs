@@ -10,10 +10,10 @@ use crate::film::RayStats;
 use crate::film::{Image, exr_io, metrics, png};
 use crate::job::optimal_depth::DepthChoice;
 use crate::job::{JobSettings, Limits, Resolved};
+use crate::protocol::{JobState, SceneSource};
 use crate::scene::Scene;
 use crate::service;
 use crate::service::exr_header;
-use crate::service::protocol::{JobState, SceneSource};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -117,7 +117,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         in_process(&a, &scene, &resolved, &out)?
     } else {
         let (tar, main) =
-            service::bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
+            crate::bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
         drop(scene);
         through_service(&a, (tar, main), &out)?
     };

@@ -3,10 +3,8 @@
 use super::client::{self, Client};
 use super::job_args::JobArgs;
 use crate::job::Limits;
+use crate::protocol::{JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource};
 use crate::service;
-use crate::service::protocol::{
-    JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource,
-};
 use crate::worker;
 use anyhow::{Context, Result, bail};
 use clap::Args;

@@ -1,96 +1,24 @@
 //! Job life cycle in the coordinator: tasks pass by pass, the advance from a finished pass to
-//! its merge (by merge tasks, `merge`) and to the next pass, outputs, recovery after a restart,
-//! and expiry of silent leases.
+//! its merge (by merge tasks, `merge`) and to the next pass, failures and cancellation,
+//! recovery after a restart, and expiry of silent leases. It drives `merge`; `merge` never calls
+//! back: a step that cannot go on returns its error, and `advance` fails the job with it.
 
-use super::protocol::{
+use super::error::{ServiceError, ServiceResult};
+use super::runtime::{Runtime, drop_runtime, resolved_of, runtime};
+use super::store::{self, JobRow, TaskRow};
+use super::{App, merge};
+use crate::film::{Tile, plot};
+use crate::job::Resolved;
+use crate::protocol::{
     CancelledEvent, DoneEvent, FailedEvent, JobEvent, JobState, SeriesPoint, TaskFailedEvent,
     TaskKind, TaskState,
 };
-use super::store::{self, JobRow, TaskRow, write_atomic};
-use super::{App, merge};
-use crate::film::Tile;
-use crate::film::merge as film_merge;
-use crate::film::{Image, exr_io, metrics, plot, png};
-use crate::job::Resolved;
 use std::ops::Range;
+use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex};
 
 /// A task that failed on this many attempts fails its job.
 pub(crate) const MAX_FAILURES: u32 = 3;
-
-/// What merging needs of a running job, kept between passes.
-pub(crate) struct Runtime {
-    pub resolved: Resolved,
-    pub reference: Option<Image>,
-    /// The final EXR (every layer) was written by the merge of the last pass.
-    pub final_written: bool,
-    /// The pass being merged: its results, read once (`merge::PassInputs`).
-    pub inputs: Option<Arc<merge::PassInputs>>,
-    /// The images of its band groups merged so far.
-    pub images: Option<merge::PassImages>,
-    /// The last finished pass's beauty, kept for the next pass's frame to reuse.
-    pub frame: Option<Image>,
-    /// When a pass last wrote image.exr, or (before one did) when this coordinator took the
-    /// job up.
-    pub exr_written: std::time::Instant,
-}
-
-impl Runtime {
-    /// Whether a pass before the last rewrites image.exr: when the last rewrite (or the job's
-    /// start here) is `interval_s` old. The last pass always writes it (`merge::finish_pass`).
-    pub fn exr_due(&self, interval_s: f64) -> bool {
-        self.exr_written.elapsed().as_secs_f64() >= interval_s
-    }
-}
-
-/// The resolved settings a job was created with.
-pub(crate) fn resolved_of(job: &JobRow) -> Result<Resolved, String> {
-    serde_json::from_str(&job.resolved).map_err(|e| format!("job {}: bad settings: {e}", job.id))
-}
-
-/// The resolved settings of job `job`, from its runtime (parsed once per job, not per request).
-pub(crate) fn resolved(app: &App, job: &JobRow) -> Result<Resolved, String> {
-    let rt = runtime(app, job)?;
-    let r = rt
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .resolved
-        .clone();
-    Ok(r)
-}
-
-/// The runtime of an active job, created on first use.
-pub(crate) fn runtime(app: &App, job: &JobRow) -> Result<Arc<Mutex<Runtime>>, String> {
-    let mut map = app.runtimes.lock().unwrap_or_else(|e| e.into_inner());
-    if let Some(r) = map.get(&job.id) {
-        return Ok(r.clone());
-    }
-    let resolved = resolved_of(job)?;
-    let reference = match &job.reference {
-        // Its beauty alone, block by block: the job's frame, not every layer of the file.
-        Some(r) => Some(exr_io::read_exr_beauty(std::path::Path::new(r))?),
-        None => None,
-    };
-    let rt = Arc::new(Mutex::new(Runtime {
-        resolved,
-        reference,
-        final_written: false,
-        inputs: None,
-        images: None,
-        frame: None,
-        exr_written: std::time::Instant::now(),
-    }));
-    map.insert(job.id.clone(), rt.clone());
-    Ok(rt)
-}
-
-fn drop_runtime(app: &App, id: &str) {
-    app.runtimes
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .remove(id);
-}
 
 /// Tasks created per SQLite transaction: the store's lock is never held long, whatever the size
 /// of the frame.
@@ -234,7 +162,7 @@ pub(crate) fn advance(app: &App, id: &str) {
     }
     loop {
         if let Err(e) = advance_inner(app, id) {
-            fail_job(app, id, &e);
+            fail_job(app, id, &e.to_string());
         }
         let mut running = app.advancing.lock().unwrap_or_else(|e| e.into_inner());
         match running.get_mut(id) {
@@ -257,8 +185,8 @@ fn trim_memory() {
     }
 }
 
-fn advance_inner(app: &App, id: &str) -> Result<(), String> {
-    let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
+fn advance_inner(app: &App, id: &str) -> ServiceResult<()> {
+    let Some(job) = app.db().job(id)? else {
         return Ok(());
     };
     if !job.state.is_active() {
@@ -267,20 +195,20 @@ fn advance_inner(app: &App, id: &str) -> Result<(), String> {
     let rt = runtime(app, &job)?;
     let mut rt = rt.lock().unwrap_or_else(|e| e.into_inner());
     loop {
-        let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
+        let Some(job) = app.db().job(id)? else {
             return Ok(());
         };
         if !job.state.is_active() {
             drop_runtime(app, id);
             return Ok(());
         }
-        ensure_passes(app, &job, &mut rt.resolved).map_err(|e| e.to_string())?;
+        ensure_passes(app, &job, &mut rt.resolved)?;
         app.work.notify_waiters();
         let pass = job.passes_done;
         let (last, open) = {
             let db = app.db();
-            let last = db.last_tile(id, pass).map_err(|e| e.to_string())?;
-            (last, db.pass_open(id, pass).map_err(|e| e.to_string())?)
+            let last = db.last_tile(id, pass)?;
+            (last, db.pass_open(id, pass)?)
         };
         let complete = last.is_some_and(|l| l + 1 >= tile_count(&rt.resolved));
         if !complete || open {
@@ -292,7 +220,7 @@ fn advance_inner(app: &App, id: &str) -> Result<(), String> {
         }
         // Every render task of the pass is done: its merge tasks are queued, or in hand, or
         // done.
-        let merges = app.db().merge_tasks(id, pass).map_err(|e| e.to_string())?;
+        let merges = app.db().merge_tasks(id, pass)?;
         if merges.is_empty() {
             return merge::begin(app, &job, &mut rt, pass);
         }
@@ -307,84 +235,23 @@ fn advance_inner(app: &App, id: &str) -> Result<(), String> {
 }
 
 /// True when no task of the job is left after its merged passes.
-fn finished_all(app: &App, job: &JobRow) -> Result<bool, String> {
-    let last = app.db().last_pass(&job.id).map_err(|e| e.to_string())?;
+fn finished_all(app: &App, job: &JobRow) -> ServiceResult<bool> {
+    let last = app.db().last_pass(&job.id)?;
     Ok(last.is_none_or(|l| l < job.passes_done))
 }
 
-fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> Result<(), String> {
+fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> ServiceResult<()> {
     if !rt.final_written && !merge::final_in_exr(&rt.resolved, job.passes_done) {
         merge::write_final(app, job, rt)?;
         trim_memory();
     }
-    let ended = app
-        .db()
-        .set_job_state(&job.id, JobState::Done, None)
-        .map_err(|e| e.to_string())?;
+    let ended = app.db().set_job_state(&job.id, JobState::Done, None)?;
     if ended {
         let _ = std::fs::remove_dir_all(app.paths.tiles_dir(&job.id));
         app.result_logs.remove(&app.paths, &job.id);
         app.event(&job.id, JobEvent::Done(DoneEvent { spp: job.spp_done }));
     }
     Ok(())
-}
-
-/// What a job's outputs write of its image.exr.
-pub(crate) enum Exr<'a> {
-    /// Nothing (not due).
-    No,
-    /// The beauty alone, stored uncompressed: between passes, until the final one replaces it
-    /// (`exr_io::ExrLayout::uncompressed` says why).
-    Interim,
-    /// The beauty and these layers, compressed here.
-    Images(&'a [(String, Image)]),
-    /// Every block of the file, compressed by the last pass's merge tasks (`film::merge`).
-    Blocks(Vec<Vec<u8>>),
-}
-
-/// Writes preview.png, (with a reference) error.png and image.exr as `exr` says: made durable
-/// before it replaces the last one.
-pub(crate) fn write_outputs(
-    app: &App,
-    job: &JobRow,
-    rt: &Runtime,
-    image: &Image,
-    exr: Exr,
-) -> Result<(), String> {
-    let preview = png::encode_rgb8(image.width, image.height, &png::to_srgb8(image, 0.0))?;
-    write_atomic(&app.paths.output(&job.id, "preview.png"), &preview).map_err(|e| e.to_string())?;
-    if let Some(r) = &rt.reference {
-        let map = metrics::error_map(image, r, rt.resolved.eps, 1.0)?;
-        let bytes = png::encode_rgb8(image.width, image.height, &map)?;
-        write_atomic(&app.paths.output(&job.id, "error.png"), &bytes).map_err(|e| e.to_string())?;
-    }
-    let r = &rt.resolved;
-    let mut attrs = r.exr_attributes(&job.scene_main, job.spp_done);
-    attrs.push(("omis.job", job.id.clone()));
-    let tmp = app.paths.output(&job.id, "image.exr.tmp");
-    match exr {
-        Exr::No => return Ok(()),
-        Exr::Interim => exr_io::write_exr_uncompressed(&tmp, image, &[], &attrs)?,
-        Exr::Images(layers) => {
-            let named: Vec<exr_io::NamedLayer> = layers
-                .iter()
-                .map(|(name, image)| exr_io::NamedLayer {
-                    name: name.clone(),
-                    image,
-                })
-                .collect();
-            let lines = exr_io::block_lines(r.tile_size);
-            exr_io::write_exr_in_blocks(&tmp, image, &named, &attrs, lines)?;
-        }
-        Exr::Blocks(blocks) => film_merge::exr_layout(&r.grid(), &r.film_layout())
-            .map_err(|e| e.to_string())?
-            .write(&tmp, &attrs, blocks)?,
-    }
-    // Durable before it replaces the last one: the final EXR stands for a job's last pass.
-    std::fs::File::open(&tmp)
-        .and_then(|f| f.sync_all())
-        .map_err(|e| format!("cannot sync {}: {e}", tmp.display()))?;
-    std::fs::rename(&tmp, app.paths.output(&job.id, "image.exr")).map_err(|e| e.to_string())
 }
 
 /// Records a failed attempt; after `MAX_FAILURES` failed or lost attempts the job fails with
@@ -394,11 +261,8 @@ pub(crate) fn task_failed(
     task: &TaskRow,
     worker: &str,
     error: &str,
-) -> Result<bool, String> {
-    let failure = app
-        .db()
-        .fail(task.id, task.attempt, worker, error)
-        .map_err(|e| e.to_string())?;
+) -> ServiceResult<bool> {
+    let failure = app.db().fail(task.id, task.attempt, worker, error)?;
     match failure {
         Some(f) => {
             after_failure(app, &f);
@@ -452,8 +316,8 @@ fn task_name(task: &TaskRow) -> String {
 }
 
 /// Cancels a job that has not ended; false when it had.
-pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
-    let Some(job) = app.db().job(id).map_err(|e| e.to_string())? else {
+pub(crate) fn cancel(app: &App, id: &str) -> ServiceResult<bool> {
+    let Some(job) = app.db().job(id)? else {
         return Ok(false);
     };
     if !job.state.is_active() {
@@ -463,10 +327,7 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
     // one would not have the last pass's beauty (`Runtime::frame`) that the EXR below may need.
     // One that cannot be made (its reference unreadable) does not keep the job from ending.
     let early = runtime(app, &job);
-    let ended = app
-        .db()
-        .set_job_state(id, JobState::Cancelled, None)
-        .map_err(|e| e.to_string())?;
+    let ended = app.db().set_job_state(id, JobState::Cancelled, None)?;
     if ended {
         app.event(id, JobEvent::Cancelled(CancelledEvent {}));
         app.work.notify_waiters();
@@ -476,7 +337,7 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
         // runtime's lock, which a pass holds while it is recorded: its count then matches the
         // checkpoints.
         let rt = rt.lock().unwrap_or_else(|e| e.into_inner());
-        let now = app.db().job(id).map_err(|e| e.to_string())?;
+        let now = app.db().job(id)?;
         if let Some(job) = now.filter(|j| {
             j.passes_done > 0
                 && !rt.final_written
@@ -492,6 +353,22 @@ pub(crate) fn cancel(app: &App, id: &str) -> Result<bool, String> {
     }
     drop_runtime(app, id);
     Ok(ended)
+}
+
+/// Streams the input of leased merge task `task` of `job` through `send` (`merge::serve_input`);
+/// a job whose files cannot serve it fails. The error ends the stream.
+pub(crate) fn serve_merge_input(
+    app: &App,
+    job: &JobRow,
+    task: &TaskRow,
+    send: &mut dyn FnMut(Vec<u8>) -> bool,
+) -> ServiceResult<()> {
+    let rt = runtime(app, job)?;
+    let served = merge::serve_input(app, job, &rt, task, send);
+    if let Err(ServiceError::Job(e)) = &served {
+        fail_job(app, &job.id, e);
+    }
+    served
 }
 
 /// After a restart: reconcile each unfinished job with its checkpoint, fail the ones this
@@ -530,7 +407,7 @@ fn reconcile(app: &App, id: &str) -> anyhow::Result<()> {
     let Some(job) = app.db().job(id)? else {
         return Ok(());
     };
-    let r = resolved_of(&job).map_err(anyhow::Error::msg)?;
+    let r = resolved_of(&job)?;
     let tiles = tile_count(&r) as u64;
     if tiles > app.cfg.limits.max_tasks_per_pass as u64 {
         let msg = format!(

@@ -25,16 +25,17 @@
 //! the next merge reads them again, after a restart too.
 
 use super::App;
-use super::jobs::{self, Runtime};
-use super::log_file::LogFile;
-use super::protocol::{JobEvent, PassDoneEvent, PreviewEvent, SeriesPoint};
+use super::error::{ServiceError, ServiceResult};
+use super::outputs::{Exr, write_outputs};
+use super::runtime::{PassImages, PassInputs, PassResult, Runtime};
+use super::store::log_file::LogFile;
 use super::store::{self, JobRow, TaskRow};
-use crate::film::merge::{self as film_merge, LayerImages, MergeHead, MergeOut, MergeOutput};
+use crate::film::merge::{self as film_merge, LayerImages, MergeHead, MergeOut};
 use crate::film::wire::{BandedIndex, TileCheckpoint};
-use crate::film::{FilmTile, Image, RayStats, Tile, band_bytes, band_groups, metrics};
+use crate::film::{FilmTile, Image, RayStats, band_bytes, band_groups, metrics};
 use crate::job::Resolved;
-use std::collections::HashSet;
-use std::sync::Arc;
+use crate::protocol::{JobEvent, PassDoneEvent, PreviewEvent, SeriesPoint};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 /// Why a merge cannot go on: a stored result that cannot be read (its render task is rendered
@@ -49,108 +50,6 @@ pub(crate) enum MergeError {
 impl From<std::io::Error> for MergeError {
     fn from(e: std::io::Error) -> Self {
         MergeError::Job(e.to_string())
-    }
-}
-
-/// One accepted result of a pass being merged.
-struct PassResult {
-    /// Its pass (its result log).
-    pass: u32,
-    /// Its tile (its place in the merge order within its pass).
-    tile: usize,
-    /// Its render task.
-    task: i64,
-    /// Its index, with byte ranges in the pass's result log.
-    index: BandedIndex,
-}
-
-/// What the merge tasks of a pass read: the accepted results of every pass since the tiles'
-/// checkpoints (`held`), pass by pass in task order.
-pub(crate) struct PassInputs {
-    /// The pass.
-    pub pass: u32,
-    results: Vec<PassResult>,
-    /// The work counters of the pass's own results.
-    pub stats: RayStats,
-}
-
-/// The images of the band groups of a pass that this process accepted (beauty first), and on
-/// the job's last pass the final EXR's blocks they returned.
-pub(crate) struct PassImages {
-    /// The pass.
-    pub pass: u32,
-    layers: Vec<Image>,
-    /// Last pass's beauty, whose memory the next frame reuses (its pixels are all overwritten:
-    /// every group is put here before a pass is finished).
-    spare: Option<Image>,
-    /// The final EXR's blocks (compressed, as the merge tasks returned them), by block index.
-    blocks: Vec<Option<Vec<u8>>>,
-    /// Merge tasks (their group index) whose checkpoints were written and images put here.
-    merged: HashSet<u32>,
-}
-
-impl PassImages {
-    fn new(pass: u32) -> PassImages {
-        PassImages::reusing(pass, None)
-    }
-
-    /// Images of pass `pass` whose beauty reuses `spare` (a frame's image) when it has the
-    /// frame's size: no fresh frame-sized allocation, faulted in page by page, per pass.
-    fn reusing(pass: u32, spare: Option<Image>) -> PassImages {
-        PassImages {
-            pass,
-            layers: Vec::new(),
-            spare,
-            blocks: Vec::new(),
-            merged: HashSet::new(),
-        }
-    }
-
-    /// Keeps the EXR blocks `blocks`, the first being block `first`.
-    fn keep_blocks(&mut self, first: usize, blocks: &[&[u8]]) {
-        if self.blocks.len() < first + blocks.len() {
-            self.blocks.resize_with(first + blocks.len(), || None);
-        }
-        for (slot, b) in self.blocks[first..].iter_mut().zip(blocks) {
-            *slot = Some(b.to_vec());
-        }
-    }
-
-    /// The blocks kept, or None while one before the last kept is missing (the file's writer
-    /// refuses fewer blocks than the frame has).
-    fn take_blocks(&mut self) -> Option<Vec<Vec<u8>>> {
-        std::mem::take(&mut self.blocks).into_iter().collect()
-    }
-
-    fn blit(&mut self, r: &Resolved, layers: &[Vec<(Tile, Image)>]) {
-        let (w, h) = (r.width as usize, r.height as usize);
-        while self.layers.len() < layers.len() {
-            let frame = match self.spare.take() {
-                Some(f) if f.width == w && f.height == h => f,
-                _ => Image::new(w, h),
-            };
-            self.layers.push(frame);
-        }
-        for (frame, tiles) in self.layers.iter_mut().zip(layers) {
-            for (t, img) in tiles {
-                frame.blit(img, t.x0 as usize, t.y0 as usize);
-            }
-        }
-    }
-
-    /// The beauty and the other layers the images hold (none before the last pass), named.
-    fn into_named(self, r: &Resolved) -> (Image, Vec<(String, Image)>) {
-        let mut frames = self.layers.into_iter();
-        let image = frames
-            .next()
-            .unwrap_or_else(|| Image::new(r.width as usize, r.height as usize));
-        let layers = r
-            .film_layout()
-            .extra_layer_names()
-            .into_iter()
-            .zip(frames)
-            .collect();
-        (image, layers)
     }
 }
 
@@ -308,10 +207,10 @@ fn is_last(r: &Resolved, pass: u32) -> bool {
 /// checkpoint's bytes, so merging pass p + 1 from the checkpoints before pass p and the results
 /// of both moves fewer bytes through the coordinator than writing the checkpoints of pass p,
 /// storing them and serving them back (1080p: a quarter less coordinator CPU; BENCHMARKS.md
-/// #12, stop 38). BDPT's results carry splats routed across the frame, more bytes per pass than
+/// #12). BDPT's results carry splats routed across the frame, more bytes per pass than
 /// a checkpoint: reading them twice cost more than it saved. The in-process bits stay: the
 /// tiles get the same additions in the same order.
-fn output_of(r: &Resolved, pass: u32) -> MergeOut {
+pub(crate) fn output_of(r: &Resolved, pass: u32) -> MergeOut {
     let layout = r.film_layout();
     if is_last(r, pass) {
         MergeOut::Exr
@@ -344,19 +243,17 @@ pub(crate) fn final_in_exr(r: &Resolved, passes_done: u32) -> bool {
 
 /// Queues the merge tasks of pass `pass`, whose render tasks are all done (called by
 /// `jobs::advance`). A result that cannot be read is rendered again first.
-pub(crate) fn begin(app: &App, job: &JobRow, rt: &mut Runtime, pass: u32) -> Result<(), String> {
+pub(crate) fn begin(app: &App, job: &JobRow, rt: &mut Runtime, pass: u32) -> ServiceResult<()> {
     let inputs = match load_inputs(app, &job.id, &rt.resolved, pass) {
         Ok(i) => i,
         Err(MergeError::Result(t, e)) => {
             reject_result(app, &job.id, rt, pass, t, &e);
             return Ok(());
         }
-        Err(MergeError::Job(e)) => return Err(e),
+        Err(MergeError::Job(e)) => return Err(ServiceError::Job(e)),
     };
     let groups = merge_groups(app, &rt.resolved);
-    app.db()
-        .create_merge_tasks(&job.id, pass, &groups)
-        .map_err(|e| e.to_string())?;
+    app.db().create_merge_tasks(&job.id, pass, &groups)?;
     rt.inputs = Some(Arc::new(inputs));
     rt.images = Some(PassImages::reusing(pass, rt.frame.take()));
     app.work.notify_waiters();
@@ -438,7 +335,7 @@ fn read_slot_into(
 /// Tells the kernel that `f` is read at random: a slot is read whole, and the pages after it
 /// are the next tile's other slot, which this pass does not read (and which, in a job's first
 /// passes, is a hole the read-ahead zeroed page by page: 5 % of an optimal-MIS job's
-/// coordinator CPU, BENCHMARKS.md #12 stop 34).
+/// coordinator CPU, BENCHMARKS.md #12).
 fn no_readahead(f: &std::fs::File) {
     #[cfg(target_os = "linux")]
     {
@@ -452,7 +349,7 @@ fn no_readahead(f: &std::fs::File) {
 }
 
 /// Writes the encoded checkpoint of tile `t` holding `n` passes into its slot.
-fn write_slot(
+pub(crate) fn write_slot(
     app: &App,
     job: &str,
     r: &Resolved,
@@ -606,17 +503,18 @@ pub(crate) fn stream_input(
     Ok(())
 }
 
-/// Streams the input of a leased merge task through `send` (see `stream_input`), reading the
-/// pass's inputs first if this process has not yet. A damaged stored result is rendered again
-/// (the merge tasks of its pass are dropped); a job whose checkpoints cannot be read fails.
-/// Returns the error to end the stream with, if any.
+/// Streams the input of a leased merge task of job `job` (whose runtime is `rt`) through `send`
+/// (see `stream_input`), reading the pass's inputs first if this process has not yet. A damaged
+/// stored result is rendered again (the merge tasks of its pass are dropped:
+/// `ServiceError::RenderedAgain`); a job whose checkpoints cannot be read is
+/// `ServiceError::Job`, for the caller to fail. The error ends the stream.
 pub(crate) fn serve_input(
     app: &App,
     job: &JobRow,
+    rt: &Mutex<Runtime>,
     task: &TaskRow,
     send: &mut dyn FnMut(Vec<u8>) -> bool,
-) -> Result<(), String> {
-    let rt = jobs::runtime(app, job)?;
+) -> ServiceResult<()> {
     let (r, inputs) = {
         let mut rt = rt.lock().unwrap_or_else(|e| e.into_inner());
         let r = rt.resolved.clone();
@@ -625,96 +523,25 @@ pub(crate) fn serve_input(
             Err(e) => return Err(merge_failed(app, &job.id, &mut rt, task.pass, e)),
         }
     };
-    match stream_input(app, &job.id, &r, task, &inputs, send) {
-        Ok(()) => Ok(()),
-        Err(e) => {
-            let mut rt = rt.lock().unwrap_or_else(|e| e.into_inner());
-            Err(merge_failed(app, &job.id, &mut rt, task.pass, e))
-        }
-    }
+    stream_input(app, &job.id, &r, task, &inputs, send).map_err(|e| {
+        let mut rt = rt.lock().unwrap_or_else(|e| e.into_inner());
+        merge_failed(app, &job.id, &mut rt, task.pass, e)
+    })
 }
 
-/// Acts on a merge that cannot go on and returns its message: a damaged result is rendered
-/// again, a problem with the job's files fails the job.
-fn merge_failed(app: &App, job: &str, rt: &mut Runtime, pass: u32, e: MergeError) -> String {
+/// Acts on a merge that cannot go on: a damaged result is rendered again
+/// (`ServiceError::RenderedAgain`); a problem with the job's files is returned as
+/// `ServiceError::Job`, for the caller to fail the job.
+fn merge_failed(app: &App, job: &str, rt: &mut Runtime, pass: u32, e: MergeError) -> ServiceError {
     match e {
         MergeError::Result(t, e) => {
             reject_result(app, job, rt, pass, t, &e);
-            format!("a result of pass {pass} is damaged ({e}); it is rendered again")
+            ServiceError::RenderedAgain(format!(
+                "a result of pass {pass} is damaged ({e}); it is rendered again"
+            ))
         }
-        MergeError::Job(e) => {
-            jobs::fail_job(app, job, &e);
-            e
-        }
+        MergeError::Job(e) => ServiceError::Job(e),
     }
-}
-
-/// What became of an uploaded merge output.
-pub(crate) enum Accepted {
-    /// Checked, recorded and written.
-    Yes,
-    /// The attempt is no longer current (nothing written).
-    Stale,
-    /// The output does not match its task (why).
-    Invalid(String),
-}
-
-/// Checks merge task `task`'s output `body` from `worker`, records the task done, writes the
-/// group's checkpoints into their slots (none on the job's last pass) and puts its images with
-/// the pass's.
-pub(crate) fn accept(
-    app: &App,
-    job: &JobRow,
-    task: &TaskRow,
-    worker: &str,
-    body: &[u8],
-) -> Result<Accepted, String> {
-    let rt = jobs::runtime(app, job)?;
-    let r = rt
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .resolved
-        .clone();
-    let grid = r.grid();
-    let layout = r.film_layout();
-    let passes = task.pass + 1;
-    let out = match MergeOutput::decode(
-        body,
-        &grid,
-        &layout,
-        task.bands(),
-        passes,
-        output_of(&r, task.pass),
-    ) {
-        Ok(o) => o,
-        Err(e) => return Ok(Accepted::Invalid(e.to_string())),
-    };
-    // The runtime is held from the record to the images, so that the end of the pass (which
-    // holds it too) sees the group either not done or done with its checkpoints written.
-    let mut rt = rt.lock().unwrap_or_else(|e| e.into_inner());
-    if !app
-        .db()
-        .complete_merge(task.id, task.attempt, worker)
-        .map_err(|e| e.to_string())?
-    {
-        return Ok(Accepted::Stale);
-    }
-    let tiles = grid.tiles_of_bands(task.bands().start as usize..task.bands().end as usize);
-    for (t, ck) in tiles.zip(&out.checkpoints) {
-        if let Err(e) = write_slot(app, &job.id, &r, t, ck, passes) {
-            // Recorded done without its checkpoints: the end of the pass finds the group's slots
-            // without the pass and merges it again.
-            tracing::error!("job {} tile {t}: {e}", job.id);
-            return Ok(Accepted::Yes);
-        }
-    }
-    let images = rt.images.get_or_insert_with(|| PassImages::new(task.pass));
-    if images.pass == task.pass {
-        images.blit(&r, std::slice::from_ref(&out.beauty));
-        images.keep_blocks(out.first_block, &out.blocks);
-        images.merged.insert(task.tile);
-    }
-    Ok(Accepted::Yes)
 }
 
 /// Makes the tile checkpoints written without fsync durable (Linux: one syncfs of the data
@@ -814,157 +641,241 @@ fn images_of(
     )))
 }
 
-/// Records pass `pass` once every merge task (`merges`) is done: the images of groups merged
-/// before a restart are read back from their checkpoints (a group whose slots do not hold the
-/// pass is queued again, and false returned; on a pass whose merges write no checkpoints, every
-/// such group is), the checkpoints are made durable (on the last pass: the final EXR, written
-/// before the pass is recorded), the pass and its work counters recorded, the result logs the
-/// checkpoints now cover given up, and its outputs written.
+/// Records pass `pass` once every merge task (`merges`) is done, in these steps:
+/// 1. `read_back_groups`: the images of groups merged before a restart are read back from their
+///    checkpoints (a group whose slots do not hold the pass is queued again, and false returned;
+///    on a pass whose merges write no checkpoints, every such group is);
+/// 2. `pass_stats`: the pass's work counters, from its results' indexes;
+/// 3. `make_durable`: the checkpoints synced, or on the last pass the final EXR written (before
+///    the pass is recorded, so a job recorded with its last pass has it);
+/// 4. `record_pass`: the pass and its counters recorded, the result logs the checkpoints now
+///    hold given up;
+/// 5. `write_pass_outputs`: the preview (and the interim EXR when due);
+/// 6. `report_pass`: the relMSE point and the pass's events.
+///
+/// False when the pass is not finished after all (groups or a result to do again).
 pub(crate) fn finish_pass(
     app: &App,
     job: &JobRow,
     rt: &mut Runtime,
     pass: u32,
     merges: &[TaskRow],
-) -> Result<bool, String> {
+) -> ServiceResult<bool> {
     let t0 = Instant::now();
     let r = rt.resolved.clone();
-    let last = is_last(&r, pass);
-    let checkpoints = output_of(&r, pass) == MergeOut::Checkpoints;
     let mut images = rt
         .images
         .take()
         .filter(|i| i.pass == pass)
         .unwrap_or_else(|| PassImages::reusing(pass, rt.frame.take()));
+    if !read_back_groups(app, job, &r, pass, merges, &mut images)? {
+        // The groups queued again are merged with the images of the others kept.
+        rt.images = Some(images);
+        app.work.notify_waiters();
+        return Ok(false);
+    }
+    let Some(stats) = pass_stats(app, job, rt, pass)? else {
+        return Ok(false);
+    };
+    let spp = spp_after(&r, pass);
+    let blocks = images.take_blocks();
+    let (image, _) = images.into_named(&r);
+    make_durable(app, job, rt, pass, spp, &image, blocks)?;
+    record_pass(app, job, &r, pass, spp, &stats)?;
+    rt.inputs = None;
+    super::Metrics::add(&app.metrics.passes_merged, 1);
+    super::Metrics::add(&app.metrics.merge_micros, t0.elapsed().as_micros() as u64);
+    let job = app
+        .db()
+        .job(&job.id)?
+        .ok_or_else(|| ServiceError::job("job vanished"))?;
+    write_pass_outputs(app, &job, rt, pass, &image)?;
+    report_pass(app, &job, rt, pass, spp, &image)?;
+    if !is_last(&r, pass) {
+        rt.frame = Some(image);
+    }
+    Ok(true)
+}
+
+/// Step 1 of `finish_pass`: puts into `images` the groups of `merges` this process did not
+/// accept (merged before a restart), read back from their checkpoints. False when some must be
+/// merged again (they are queued): on a pass whose merges write no checkpoints, every such
+/// group (its images were in the memory of a coordinator that stopped; its inputs are kept
+/// until the pass is recorded); else a group whose slots do not hold the pass.
+fn read_back_groups(
+    app: &App,
+    job: &JobRow,
+    r: &Resolved,
+    pass: u32,
+    merges: &[TaskRow],
+    images: &mut PassImages,
+) -> ServiceResult<bool> {
+    let last = is_last(r, pass);
+    let checkpoints = output_of(r, pass) == MergeOut::Checkpoints;
     let unseen: Vec<&TaskRow> = merges
         .iter()
         .filter(|m| !images.merged.contains(&m.tile))
         .collect();
     if !checkpoints && !unseen.is_empty() {
-        // Their images were in the memory of a coordinator that stopped; their inputs (the
-        // results since the checkpoints, the checkpoints) are kept until the pass is recorded.
         tracing::warn!(
             "job {} pass {pass} (no checkpoints): {} merge tasks done before a restart; merged again",
             job.id,
             unseen.len()
         );
         for m in unseen {
-            app.db().requeue(m.id).map_err(|e| e.to_string())?;
+            app.db().requeue(m.id)?;
         }
-        rt.images = Some(images);
-        app.work.notify_waiters();
         return Ok(false);
     }
     for m in unseen {
         let bands = m.bands().start as usize..m.bands().end as usize;
         let missing = std::sync::atomic::AtomicBool::new(false);
-        for_groups(app, &r, &[bands], &mut images, |bands| {
-            match images_of(app, &job.id, &r, bands, pass + 1, last)? {
+        for_groups(app, r, &[bands], images, |bands| {
+            match images_of(app, &job.id, r, bands, pass + 1, last)? {
                 Some(layers) => Ok(layers),
                 None => {
                     missing.store(true, std::sync::atomic::Ordering::Relaxed);
                     Ok(Vec::new())
                 }
             }
-        })?;
+        })
+        .map_err(ServiceError::Job)?;
         if missing.into_inner() {
             tracing::warn!(
                 "job {} pass {pass}: merge of bands {:?} is not in its checkpoints; merged again",
                 job.id,
                 m.bands()
             );
-            app.db().requeue(m.id).map_err(|e| e.to_string())?;
-            rt.images = Some(images);
-            app.work.notify_waiters();
+            app.db().requeue(m.id)?;
             return Ok(false);
         }
         images.merged.insert(m.tile);
     }
-    let stats = match pass_inputs(app, &job.id, rt, pass) {
-        Ok(i) => i.stats,
-        Err(e) => {
-            merge_failed(app, &job.id, rt, pass, e);
-            return Ok(false);
-        }
-    };
-    let spp = spp_after(&r, pass);
-    // The passes this merge read (since the checkpoints), and the first whose results a later
-    // merge reads again: none once new checkpoints (or the final EXR) hold them all.
-    let read_from = held(&r, pass);
-    let kept_from = if checkpoints || last {
-        pass + 1
-    } else {
-        read_from
-    };
-    let blocks = images.take_blocks();
-    let (image, _) = images.into_named(&r);
-    if last {
-        // The final EXR stands in for the checkpoints this pass does not write: it is written
-        // (fsync'd) before the pass is recorded, so a job recorded with its last pass always has
-        // it (`final_in_exr`).
+    Ok(true)
+}
+
+/// Step 2 of `finish_pass`: the work counters of the pass's own results; None when a result
+/// turned out unreadable (it is rendered again, and the pass waits for it).
+fn pass_stats(
+    app: &App,
+    job: &JobRow,
+    rt: &mut Runtime,
+    pass: u32,
+) -> ServiceResult<Option<RayStats>> {
+    match pass_inputs(app, &job.id, rt, pass) {
+        Ok(i) => Ok(Some(i.stats)),
+        Err(e) => match merge_failed(app, &job.id, rt, pass, e) {
+            ServiceError::RenderedAgain(_) => Ok(None),
+            e => Err(e),
+        },
+    }
+}
+
+/// Step 3 of `finish_pass`: on the job's last pass, the final EXR from the blocks its merges
+/// returned (it stands in for the checkpoints this pass does not write: written and fsync'd
+/// before the pass is recorded, `final_in_exr`); on a pass with checkpoints, one sync of them.
+fn make_durable(
+    app: &App,
+    job: &JobRow,
+    rt: &mut Runtime,
+    pass: u32,
+    spp: u32,
+    image: &Image,
+    blocks: Option<Vec<Vec<u8>>>,
+) -> ServiceResult<()> {
+    if is_last(&rt.resolved, pass) {
         let at_end = JobRow {
             spp_done: spp,
             ..job.clone()
         };
-        let blocks = blocks.ok_or("the last pass's merges left an EXR block missing")?;
-        jobs::write_outputs(app, &at_end, rt, &image, jobs::Exr::Blocks(blocks))?;
-        rt.exr_written = std::time::Instant::now();
-    } else if checkpoints {
-        sync_tiles(app, &job.id).map_err(|e| format!("cannot sync the tile checkpoints: {e}"))?;
+        let blocks = blocks
+            .ok_or_else(|| ServiceError::job("the last pass's merges left an EXR block missing"))?;
+        write_outputs(app, &at_end, rt, image, Exr::Blocks(blocks))?;
+        rt.exr_written = Instant::now();
+    } else if output_of(&rt.resolved, pass) == MergeOut::Checkpoints {
+        sync_tiles(app, &job.id)
+            .map_err(|e| ServiceError::job(format!("cannot sync the tile checkpoints: {e}")))?;
     }
+    Ok(())
+}
+
+/// Step 4 of `finish_pass`: records the pass with its work counters `stats`, and gives up the
+/// result logs of the passes the checkpoints (or the final EXR) now hold; a later pass of the
+/// job rewrites a log in place (`store::ResultLogs`), and a time-budget job's passes have no
+/// end. The results of a pass merged without checkpoints are kept for the next merge to read.
+fn record_pass(
+    app: &App,
+    job: &JobRow,
+    r: &Resolved,
+    pass: u32,
+    spp: u32,
+    stats: &RayStats,
+) -> ServiceResult<()> {
+    let read_from = held(r, pass);
+    let kept_from = if output_of(r, pass) == MergeOut::Checkpoints || is_last(r, pass) {
+        pass + 1
+    } else {
+        read_from
+    };
     app.db()
-        .pass_merged(&job.id, pass + 1, spp, kept_from, &stats)
-        .map_err(|e| e.to_string())?;
-    // The logs of the passes the checkpoints (or the final EXR) now hold are given up; a later
-    // pass of the job rewrites a log in place (`store::ResultLogs`); a time-budget job's passes
-    // have no end.
+        .pass_merged(&job.id, pass + 1, spp, kept_from, stats)?;
     for p in read_from..kept_from {
         let reused = r.pass_range(p + 2).is_some();
         app.result_logs.release(&app.paths, &job.id, p, reused);
     }
-    rt.inputs = None;
-    super::Metrics::add(&app.metrics.passes_merged, 1);
-    super::Metrics::add(&app.metrics.merge_micros, t0.elapsed().as_micros() as u64);
+    Ok(())
+}
 
-    // Outputs of the pass: preview, beauty EXR, error map, relMSE (the last pass's are written).
-    let job = app
-        .db()
-        .job(&job.id)
-        .map_err(|e| e.to_string())?
-        .ok_or("job vanished")?;
+/// Step 5 of `finish_pass`: a pass before the last writes the preview, and the beauty-only EXR
+/// when one is due (`Runtime::exr_due`); the last pass's outputs were written with its EXR.
+fn write_pass_outputs(
+    app: &App,
+    job: &JobRow,
+    rt: &mut Runtime,
+    pass: u32,
+    image: &Image,
+) -> ServiceResult<()> {
+    let last = is_last(&rt.resolved, pass);
     if !last {
         let exr = rt.exr_due(app.cfg.exr_interval_s);
-        let what = if exr {
-            jobs::Exr::Interim
-        } else {
-            jobs::Exr::No
-        };
-        jobs::write_outputs(app, &job, rt, &image, what)?;
+        let what = if exr { Exr::Interim } else { Exr::No };
+        write_outputs(app, job, rt, image, what)?;
         if exr {
-            rt.exr_written = std::time::Instant::now();
+            rt.exr_written = Instant::now();
         }
     }
     rt.final_written = last;
+    Ok(())
+}
+
+/// Step 6 of `finish_pass`: the pass's relMSE against the job's reference (if any) recorded in
+/// its series, and its `pass_done` and `preview` events.
+fn report_pass(
+    app: &App,
+    job: &JobRow,
+    rt: &Runtime,
+    pass: u32,
+    spp: u32,
+    image: &Image,
+) -> ServiceResult<()> {
     let relmse = match &rt.reference {
         Some(reference) => Some(
-            metrics::compare(&image, reference, r.eps)
-                .map_err(|e| e.to_string())?
+            metrics::compare(image, reference, rt.resolved.eps)
+                .map_err(ServiceError::job)?
                 .relmse,
         ),
         None => None,
     };
     let seconds = job.started_at.map_or(0.0, |s| store::now() - s);
-    app.db()
-        .add_series(
-            &job.id,
-            &SeriesPoint {
-                pass,
-                spp,
-                seconds,
-                relmse,
-            },
-        )
-        .map_err(|e| e.to_string())?;
+    app.db().add_series(
+        &job.id,
+        &SeriesPoint {
+            pass,
+            spp,
+            seconds,
+            relmse,
+        },
+    )?;
     app.event(
         &job.id,
         JobEvent::PassDone(PassDoneEvent {
@@ -982,20 +893,17 @@ pub(crate) fn finish_pass(
             url: format!("/v1/jobs/{}/preview.png", job.id),
         }),
     );
-    if !last {
-        rt.frame = Some(image);
-    }
-    Ok(true)
+    Ok(())
 }
 
 /// A cancelled job's EXR: every layer of the passes merged, from the checkpoints; when the last
 /// pass merged wrote none (a path-traced job's even pass) and its beauty is still in memory, that
 /// beauty (every pass merged, as the interim EXR is); else every layer of the passes the
 /// checkpoints hold.
-pub(crate) fn write_cancelled(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
+pub(crate) fn write_cancelled(app: &App, job: &JobRow, rt: &Runtime) -> ServiceResult<()> {
     match &rt.frame {
         Some(frame) if held(&rt.resolved, job.passes_done) < job.passes_done => {
-            jobs::write_outputs(app, job, rt, frame, jobs::Exr::Interim)
+            write_outputs(app, job, rt, frame, Exr::Interim)
         }
         _ => write_final(app, job, rt),
     }
@@ -1003,16 +911,16 @@ pub(crate) fn write_cancelled(app: &App, job: &JobRow, rt: &Runtime) -> Result<(
 
 /// The final EXR with every layer the job keeps, assembled band group by band group from the
 /// tile checkpoints (a job whose last pass did not write it: a time-budget job).
-pub(crate) fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), String> {
+pub(crate) fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> ServiceResult<()> {
     let r = &rt.resolved;
     // The passes the checkpoints hold: those merged, unless the last merged wrote none (a
     // cancelled job: its EXR then holds the passes checkpointed, none if none is).
     let passes = held(r, job.passes_done);
     if passes == 0 && job.passes_done > 0 {
-        return Err(format!(
+        return Err(ServiceError::Job(format!(
             "no tile checkpoint holds any of its {} passes merged",
             job.passes_done
-        ));
+        )));
     }
     let fewer;
     let job = if passes < job.passes_done {
@@ -1034,7 +942,8 @@ pub(crate) fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> Result<(), S
     for_groups(app, r, &groups, &mut images, |bands| {
         images_of(app, &job.id, r, bands, passes, true)?
             .ok_or_else(|| format!("a tile checkpoint holding {passes} passes is missing"))
-    })?;
+    })
+    .map_err(ServiceError::Job)?;
     let (image, layers) = images.into_named(r);
-    jobs::write_outputs(app, job, rt, &image, jobs::Exr::Images(&layers))
+    write_outputs(app, job, rt, &image, Exr::Images(&layers))
 }

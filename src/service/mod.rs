@@ -2,22 +2,26 @@
 //! merge of their results pass by pass, and the REST API over it. It knows scenes only as
 //! bundles and results only as accumulators: it never touches a BSDF.
 
+pub(crate) mod accept;
 pub mod api;
 pub(crate) mod buffers;
-pub(crate) mod bundle;
+pub(crate) mod error;
 pub(crate) mod exr_header;
 pub(crate) mod jobs;
-pub(crate) mod log_file;
 pub(crate) mod merge;
+pub(crate) mod outputs;
 pub(crate) mod pool;
-pub mod protocol;
+pub(crate) mod runtime;
 pub(crate) mod server;
 pub(crate) mod store;
 pub(crate) mod upload;
 pub(crate) mod web;
 
+/// The wire types, at their home `crate::protocol`, under the path they had here.
+pub use crate::protocol;
+
 use crate::job::Limits;
-use protocol::JobEvent;
+use crate::protocol::JobEvent;
 use std::collections::{HashMap, HashSet};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -143,7 +147,7 @@ pub(crate) struct App {
     /// Woken when tasks may have become available.
     pub work: Notify,
     /// Per running job: the merged accumulators and what a merge needs (one merge at a time).
-    pub runtimes: Mutex<HashMap<String, Arc<Mutex<jobs::Runtime>>>>,
+    pub runtimes: Mutex<HashMap<String, Arc<Mutex<runtime::Runtime>>>>,
     pub metrics: Metrics,
     /// Set when the coordinator stops: background work ends at its next chunk.
     pub stopping: AtomicBool,
@@ -256,7 +260,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
     // with them and leave the coordinator's peak memory to arena fragmentation. Setting it fixes
     // the trim threshold at 128 KB, so every free at the top of a heap gave its pages back and
     // the next request faulted them in again; a 64 MB one keeps them (a 1080p PT job: a third
-    // fewer page faults, 9 % less coordinator CPU; BENCHMARKS.md #12 stop 37).
+    // fewer page faults, 9 % less coordinator CPU; BENCHMARKS.md #12).
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets an allocator parameter.
     unsafe {

@@ -4,19 +4,19 @@
 //! SIGTERM drains: no new task is taken, the ones in hand are finished and uploaded.
 //!
 //! In the flow film -> worker -> service: the worker takes its tasks and sends its results
-//! in the types of [`crate::service::protocol`], renders with [`crate::integrator`] into a
+//! in the types of [`crate::protocol`], renders with [`crate::integrator`] into a
 //! [`TileFilm`](crate::film::TileFilm), and ships it laid out by band
 //! ([`crate::film::wire::encode_banded`]); merge tasks run [`crate::film::merge`].
 
+use crate::bundle;
 use crate::film;
 use crate::integrator;
 use crate::integrator::vcm::PhotonCache;
-use crate::scene::Scene;
-use crate::service::bundle;
-use crate::service::protocol::{
+use crate::protocol::{
     DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, HeldTask, Lease,
     LeaseRequest, LeasedJob, LeasedTask, RegisterRequest, Registration, ResultQuery, TaskKind,
 };
+use crate::scene::Scene;
 use anyhow::{Context, Result};
 use reqwest::StatusCode;
 use std::collections::{HashMap, HashSet};

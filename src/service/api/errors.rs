@@ -1,12 +1,14 @@
-//! Errors of the API: `ApiError` and its JSON body `{"error": "...", "field": "..."}`, the
-//! parsing of JSON bodies that names the field of the first problem, and the middleware that
-//! turns the framework's own plain-text rejections into the same JSON shape.
+//! Errors of the API: `ApiError` and its JSON body `{"error": "...", "field": "..."}`; the one
+//! place where the coordinator's errors (`ServiceError`, `StoreError`, upload and body errors)
+//! become a status and a body; the parsing of JSON bodies that names the field of the first
+//! problem; and the middleware that turns the framework's own plain-text rejections into the
+//! same JSON shape.
 
 use super::AppState;
 use crate::job::FieldError;
+use crate::protocol::ErrorBody;
 use crate::service::Metrics;
 use crate::service::buffers::{BodyError, read_body};
-use crate::service::protocol::ErrorBody;
 use axum::Json;
 use axum::extract::{Request, State};
 use axum::http::{StatusCode, header};
@@ -70,12 +72,6 @@ impl IntoResponse for ApiError {
     }
 }
 
-impl From<rusqlite::Error> for ApiError {
-    fn from(e: rusqlite::Error) -> Self {
-        ApiError::internal(format!("database: {e}"))
-    }
-}
-
 impl From<crate::service::store::StoreError> for ApiError {
     fn from(e: crate::service::store::StoreError) -> Self {
         if e.disk_full {
@@ -86,6 +82,21 @@ impl From<crate::service::store::StoreError> for ApiError {
             }
         } else {
             ApiError::internal(format!("database: {e}"))
+        }
+    }
+}
+
+impl From<crate::service::error::ServiceError> for ApiError {
+    /// The store's errors as the store's (507 when its storage is full), the disk's as the
+    /// disk's (507 or 500); everything else is the server's fault: 500 with its message.
+    fn from(e: crate::service::error::ServiceError) -> Self {
+        use crate::service::error::ServiceError as S;
+        match e {
+            S::Store(e) => e.into(),
+            S::Disk { what, source } => ApiError::disk(what, source),
+            e @ (S::Io(_) | S::Job(_) | S::RenderedAgain(_) | S::Internal(_)) => {
+                ApiError::internal(e)
+            }
         }
     }
 }
@@ -299,5 +310,44 @@ mod tests {
         }
         let e = ApiError::disk("x", std::io::Error::from_raw_os_error(libc::EIO));
         assert_eq!(e.status, StatusCode::INTERNAL_SERVER_ERROR);
+    }
+
+    /// A service error becomes the status its cause calls for, with its message in the body: a
+    /// full store or disk 507, anything else 500.
+    #[test]
+    fn service_errors_map_to_their_status_and_message() {
+        use crate::service::error::ServiceError;
+        use crate::service::store::StoreError;
+        let full = StoreError {
+            message: "database or disk is full".into(),
+            disk_full: true,
+        };
+        let e = ApiError::from(ServiceError::from(full));
+        assert_eq!(e.status, StatusCode::INSUFFICIENT_STORAGE);
+        assert!(e.error.starts_with("database: "), "{}", e.error);
+        let e = ApiError::from(ServiceError::from(StoreError::new("locked")));
+        assert_eq!(
+            (e.status, e.error.as_str()),
+            (StatusCode::INTERNAL_SERVER_ERROR, "database: locked")
+        );
+        let e = ApiError::from(ServiceError::Disk {
+            what: "cannot store the result",
+            source: std::io::Error::from_raw_os_error(libc::ENOSPC),
+        });
+        assert_eq!(e.status, StatusCode::INSUFFICIENT_STORAGE);
+        assert!(
+            e.error.starts_with("cannot store the result: "),
+            "{}",
+            e.error
+        );
+        let e = ApiError::from(ServiceError::job("job j: bad settings: x"));
+        assert_eq!(
+            (e.status, e.error.as_str(), e.field),
+            (
+                StatusCode::INTERNAL_SERVER_ERROR,
+                "job j: bad settings: x",
+                None
+            )
+        );
     }
 }

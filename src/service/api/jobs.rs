@@ -3,12 +3,12 @@
 
 use super::errors::{ApiError, ApiResult, JsonBody, bad, settings_error};
 use super::{AppState, references, scenes};
-use crate::service::protocol::{
+use crate::protocol::{
     JobEvent, JobLinks, JobList, JobRequest, JobStatus, QueuedEvent, SceneMeta, SceneRef,
     SceneSource, SseData,
 };
 use crate::service::store::{self, EventRow, JobRow};
-use crate::service::{App, jobs};
+use crate::service::{App, jobs, runtime};
 use axum::Json;
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -125,7 +125,7 @@ fn create_job_with(
 
 /// The status document of a job (GET /v1/jobs/{id}).
 fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
-    let r = jobs::resolved_of(job).map_err(ApiError::internal)?;
+    let r = runtime::resolved_of(job)?;
     let mut settings: crate::job::JobSettings = serde_json::from_str(&job.settings)
         .map_err(|e| ApiError::internal(format!("job {}: bad settings: {e}", job.id)))?;
     // Filled in from what the job resolved to, like the rest of the settings.
@@ -231,8 +231,7 @@ pub(crate) async fn cancel_job(
     let i = id.clone();
     let cancelled = tokio::task::spawn_blocking(move || jobs::cancel(&a, &i))
         .await
-        .map_err(ApiError::internal)?
-        .map_err(ApiError::internal)?;
+        .map_err(ApiError::internal)??;
     if !cancelled {
         return Err(ApiError::field(
             StatusCode::CONFLICT,

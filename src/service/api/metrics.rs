@@ -2,7 +2,7 @@
 
 use super::AppState;
 use super::errors::ApiResult;
-use crate::service::protocol::Health;
+use crate::protocol::Health;
 use axum::Json;
 use axum::extract::State;
 use axum::http::{HeaderValue, header};

@@ -4,7 +4,7 @@
 use super::errors::{ApiError, ApiResult, bad};
 use super::{AppState, is_safe_id};
 use crate::film::exr_io;
-use crate::service::protocol::{JobState, ReferenceInfo, ReferenceSource};
+use crate::protocol::{JobState, ReferenceInfo, ReferenceSource};
 use crate::service::{App, exr_header, upload};
 use axum::Json;
 use axum::body::Body;

@@ -3,10 +3,11 @@
 
 use super::errors::{ApiError, ApiResult, bad};
 use super::{AppState, is_safe_id};
+use crate::bundle;
+use crate::protocol::{SceneLibrary, SceneMeta, SceneUploadQuery};
 use crate::scene::Scene;
-use crate::service::protocol::{SceneLibrary, SceneMeta, SceneUploadQuery};
 use crate::service::upload;
-use crate::service::{App, bundle, store};
+use crate::service::{App, store};
 use axum::Json;
 use axum::body::Body;
 use axum::extract::{Query, State};

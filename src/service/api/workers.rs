@@ -3,15 +3,16 @@
 
 use super::errors::{ApiError, ApiResult, JsonBody, bad};
 use super::{AppState, is_safe_id, scenes};
-use crate::film::{Tile, wire};
-use crate::service::buffers::{self, Pooled};
-use crate::service::protocol::{
-    DeregisterAnswer, DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, JobEvent,
-    JobState, Lease, LeaseRequest, LeasedJob, LeasedTask, OkAnswer, RegisterRequest, Registration,
-    ResultAnswer, ResultQuery, TaskKind, TaskState, TileDoneEvent, WorkerList, WorkerState,
+use crate::film::Tile;
+use crate::protocol::{
+    DeregisterAnswer, DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, JobState,
+    Lease, LeaseRequest, LeasedJob, LeasedTask, OkAnswer, RegisterRequest, Registration,
+    ResultAnswer, ResultQuery, TaskKind, TaskState, WorkerList, WorkerState,
 };
+use crate::service::accept::{self, Accepted};
+use crate::service::buffers::{self, Pooled};
 use crate::service::store::{JobRow, TaskRow};
-use crate::service::{Metrics, jobs, merge, upload};
+use crate::service::{Metrics, jobs, runtime, upload};
 use axum::Json;
 use axum::body::{Body, Bytes};
 use axum::extract::{Path, Query, State};
@@ -87,7 +88,7 @@ pub(crate) async fn lease(
             }
         };
         if let Some((task, Some(job))) = leased {
-            let res = jobs::resolved(&app, &job).map_err(ApiError::internal)?;
+            let res = runtime::resolved(&app, &job)?;
             let (rect, samples, bands) = match task.kind {
                 TaskKind::Render => (
                     jobs::tile_rect(&res, task.tile)
@@ -288,7 +289,7 @@ pub(crate) async fn merge_input(
             let chunk = Pooled::new(chunk, pool.clone()).into_bytes();
             tx.blocking_send(Ok(chunk)).is_ok()
         };
-        if let Err(e) = merge::serve_input(&a, &job, &task, &mut send) {
+        if let Err(e) = jobs::serve_merge_input(&a, &job, &task, &mut send) {
             tracing::warn!("merge task {}: input ended: {e}", task.id);
             let _ = tx.blocking_send(Err(std::io::Error::other(e)));
         }
@@ -303,50 +304,9 @@ pub(crate) async fn merge_input(
         .into_response())
 }
 
-/// A merge task's output: checked, recorded, its checkpoints written (`merge::accept`).
-async fn upload_merge(
-    app: AppState,
-    task: TaskRow,
-    job: JobRow,
-    worker: String,
-    body: Pooled,
-) -> ApiResult<Json<ResultAnswer>> {
-    let _slot = app
-        .result_slots
-        .acquire()
-        .await
-        .map_err(ApiError::internal)?;
-    let a = app.clone();
-    let (t, w) = (task.clone(), worker.clone());
-    let outcome = tokio::task::spawn_blocking(move || merge::accept(&a, &job, &t, &w, &body))
-        .await
-        .map_err(ApiError::internal)?
-        .map_err(ApiError::internal)?;
-    match outcome {
-        merge::Accepted::Yes => {
-            Metrics::add(&app.metrics.merges_accepted, 1);
-            let a = app.clone();
-            let id = task.job_id.clone();
-            tokio::task::spawn_blocking(move || jobs::advance(&a, &id));
-            Ok(Json(ResultAnswer { accepted: true }))
-        }
-        merge::Accepted::Stale => Err(ApiError::field(
-            StatusCode::CONFLICT,
-            "attempt",
-            format!(
-                "task {} attempt {} is no longer current",
-                task.id, task.attempt
-            ),
-        )),
-        merge::Accepted::Invalid(problem) => {
-            let _ = jobs::task_failed(&app, &task, &worker, &format!("invalid merge: {problem}"));
-            Err(ApiError::field(StatusCode::BAD_REQUEST, "body", problem))
-        }
-    }
-}
-
 /// PUT /v1/worker/tasks/{id}/result: a render task's encoded accumulators, or a merge task's
-/// output.
+/// output, judged by `accept::upload`. Refused (`Metrics::results_refused`): a body too large or
+/// unreadable, an attempt not current, an upload that does not match its task.
 pub(crate) async fn upload_result(
     State(app): State<AppState>,
     Path(task_id): Path<i64>,
@@ -374,99 +334,20 @@ pub(crate) async fn upload_result(
     // still sending would see its connection cut rather than the answer.
     let body = read_upload(&app, body).await.map_err(refused)?;
     let (task, job) = current_task(&app, task_id, &q).map_err(refused)?;
-    if task.kind == TaskKind::Merge {
-        return upload_merge(app.clone(), task, job, q.worker_id, body)
-            .await
-            .map_err(refused);
-    }
-    let a = app.clone();
-    let t = task.clone();
-    let worker = q.worker_id.clone();
-    let n = body.len();
-    let _slot = app
-        .result_slots
-        .acquire()
-        .await
-        .map_err(ApiError::internal)?;
-    let checked = tokio::task::spawn_blocking(move || -> ApiResult<Result<_, String>> {
-        let r = jobs::resolved(&a, &job).map_err(ApiError::internal)?;
-        let layout = r.film_layout();
-        let tile = jobs::tile_rect(&r, t.tile);
-        // Uploaded laid out by band (`wire::encode_banded`), as the result log keeps it, so
-        // that a merge task reads each band's part alone: checked, then stored as it came.
-        let index = match wire::check_banded(&body[..], &r.grid(), &layout, a.cfg.max_upload_bytes)
-        {
-            Err(e) => return Ok(Err(e.to_string())),
-            Ok(x) => x,
-        };
-        if Some(index.tile) != tile || index.samples != (t.s0..t.s1) {
-            return Ok(Err(format!(
-                "result is for tile {:?} samples {:?}, the task is tile {tile:?} samples {}..{}",
-                index.tile, index.samples, t.s0, t.s1
-            )));
-        }
-        let stored = a
-            .result_logs
-            .write(
-                &a.paths,
-                &t.job_id,
-                t.pass,
-                merge::held(&r, job.passes_done),
-                &body[..],
-            )
-            .map_err(|e| ApiError::disk("cannot store the result", e))?;
-        Ok(Ok(stored))
-    })
-    .await
-    .map_err(ApiError::internal)??;
-    let stored = match checked {
-        Ok(stored) => stored,
-        Err(problem) => {
-            let _ = jobs::task_failed(&app, &task, &worker, &format!("invalid result: {problem}"));
-            return Err(refused(ApiError::field(
-                StatusCode::BAD_REQUEST,
-                "body",
-                problem,
-            )));
-        }
-    };
-    // The task, its tile_done event and whether it closed its pass: one transaction.
-    let event = JobEvent::TileDone(TileDoneEvent {
-        pass: task.pass,
-        tile: task.tile,
-        worker: worker.clone(),
-        bytes: n as u64,
-    });
-    let completed = {
-        let db = app.db();
-        let c = db.complete(&task, &worker, n, stored, (event.kind(), &event.data()))?;
-        if let Some(c) = &c {
-            app.publish(&db, c.event.clone());
-        }
-        c
-    };
-    let Some(completed) = completed else {
-        // Its record stays in the log, which nothing points to; the log goes with its pass.
-        return Err(refused(ApiError::field(
+    let (id, attempt) = (task.id, task.attempt);
+    match accept::upload(&app, task, job, q.worker_id, body).await? {
+        Accepted::Yes => Ok(Json(ResultAnswer { accepted: true })),
+        Accepted::Stale => Err(refused(ApiError::field(
             StatusCode::CONFLICT,
             "attempt",
-            format!(
-                "task {} attempt {} is no longer current",
-                task.id, task.attempt
-            ),
-        )));
-    };
-    Metrics::add(&app.metrics.results_accepted, 1);
-    Metrics::add(&app.metrics.result_bytes, n as u64);
-    // Only the result that closes its pass can start a merge: whoever completes a pass's last
-    // task sees it closed (its own completion is committed before it looks), so the others
-    // need not advance the job.
-    if !completed.pass_open {
-        let a = app.clone();
-        let id = task.job_id.clone();
-        tokio::task::spawn_blocking(move || jobs::advance(&a, &id));
+            format!("task {id} attempt {attempt} is no longer current"),
+        ))),
+        Accepted::Invalid(problem) => Err(refused(ApiError::field(
+            StatusCode::BAD_REQUEST,
+            "body",
+            problem,
+        ))),
     }
-    Ok(Json(ResultAnswer { accepted: true }))
 }
 
 /// POST /v1/worker/tasks/{id}/fail.
@@ -485,7 +366,6 @@ pub(crate) async fn fail_task(
     let w = r.worker_id.clone();
     tokio::task::spawn_blocking(move || jobs::task_failed(&a, &task, &w, &error))
         .await
-        .map_err(ApiError::internal)?
-        .map_err(ApiError::internal)?;
+        .map_err(ApiError::internal)??;
     Ok(Json(OkAnswer { ok: true }))
 }

@@ -1,7 +1,8 @@
 //! The wire protocol of the render service, in one place: every JSON message between the
 //! coordinator and its workers (register, lease, heartbeat, result, failure, deregister), the
 //! client-facing documents (job status, lists, uploads, Server-Sent Events), and the states and
-//! event kinds stored in the coordinator's database. The coordinator (src/service/api), the
+//! event kinds the coordinator also stores (as their names: `as_str`; the store's engine
+//! converts them, the types here know no SQL). The coordinator (src/service/api), the
 //! worker (src/worker) and the HTTP client (src/cli/client.rs) all use these types; the
 //! contract they implement is proto/openapi.yaml, and a test checks the enums against it.
 //!
@@ -13,8 +14,8 @@ use crate::film::Tile;
 use crate::job::{JobSettings, Resolved};
 use serde::{Deserialize, Serialize};
 
-/// A closed set of lowercase names: serde (lowercase / snake_case), `as_str()` for SQL and
-/// logs, parsing back, and the SQLite conversions of the store.
+/// A closed set of lowercase names: serde (lowercase / snake_case), `as_str()` for the
+/// database and logs, and parsing back (`FromStr`).
 macro_rules! string_enum {
     ($(#[$meta:meta])* $name:ident { $($(#[$vmeta:meta])* $variant:ident = $text:literal,)+ }) => {
         $(#[$meta])*
@@ -49,23 +50,6 @@ macro_rules! string_enum {
                     $($text => Ok($name::$variant),)+
                     _ => Err(format!("'{s}' is not a {}", stringify!($name))),
                 }
-            }
-        }
-
-        impl rusqlite::types::ToSql for $name {
-            fn to_sql(&self) -> rusqlite::Result<rusqlite::types::ToSqlOutput<'_>> {
-                Ok(rusqlite::types::ToSqlOutput::from(self.as_str()))
-            }
-        }
-
-        impl rusqlite::types::FromSql for $name {
-            fn column_result(
-                value: rusqlite::types::ValueRef<'_>,
-            ) -> rusqlite::types::FromSqlResult<Self> {
-                value
-                    .as_str()?
-                    .parse()
-                    .map_err(|e: String| rusqlite::types::FromSqlError::Other(e.into()))
             }
         }
     };

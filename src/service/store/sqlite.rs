@@ -1,0 +1,955 @@
+//! The SQLite engine of the store: `SqliteStore`, one embedded database (WAL) under the data
+//! folder, every query a statement prepared once per connection; the conversions of the
+//! protocol's states and kinds to and from SQLite's text values; and SQLite's errors as
+//! `StoreError`s. The schema and its migrations are in `migrations.rs`.
+
+use super::migrations;
+use super::{
+    BLOCKLIST_AFTER, Completed, EventRow, Failure, JobRow, JobStore, NewJob, Outcome, StoreError,
+    StoreResult, TaskRow, UNHEALTHY_AFTER_JOBS, now,
+};
+use crate::protocol::{
+    EventKind, JobState, SeriesPoint, TaskKind, TaskState, WorkerInfo, WorkerState, WorkerTask,
+};
+use rusqlite::types::{FromSql, FromSqlError, FromSqlResult, ToSql, ToSqlOutput, ValueRef};
+use rusqlite::{Connection, OptionalExtension, params};
+use std::collections::HashMap;
+use std::path::Path;
+
+impl From<rusqlite::Error> for StoreError {
+    fn from(e: rusqlite::Error) -> Self {
+        StoreError {
+            disk_full: e.sqlite_error_code() == Some(rusqlite::ErrorCode::DiskFull),
+            message: e.to_string(),
+        }
+    }
+}
+
+/// Stores each of the protocol's closed sets of names as its name (`as_str`), read back with
+/// `FromStr`: a name this omis does not know is an error of the row, not a panic.
+macro_rules! stored_as_name {
+    ($($name:ty),+ $(,)?) => {$(
+        impl ToSql for $name {
+            fn to_sql(&self) -> rusqlite::Result<ToSqlOutput<'_>> {
+                Ok(ToSqlOutput::from(self.as_str()))
+            }
+        }
+
+        impl FromSql for $name {
+            fn column_result(value: ValueRef<'_>) -> FromSqlResult<Self> {
+                value
+                    .as_str()?
+                    .parse()
+                    .map_err(|e: String| FromSqlError::Other(e.into()))
+            }
+        }
+    )+};
+}
+
+stored_as_name!(JobState, TaskState, TaskKind, WorkerState, EventKind);
+
+/// The database of a coordinator.
+pub(crate) struct SqliteStore {
+    conn: Connection,
+}
+
+const JOB_COLS: &str = "id, name, state, error, settings, resolved, scene_id, scene_main, \
+    reference, created_at, started_at, finished_at, passes_done, spp_done, samples, rays, \
+    non_finite, accum_bytes, result_bytes";
+
+const TASK_COLS: &str =
+    "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, result_at, result_len, kind";
+
+fn job_row(r: &rusqlite::Row) -> rusqlite::Result<JobRow> {
+    Ok(JobRow {
+        id: r.get(0)?,
+        name: r.get(1)?,
+        state: r.get(2)?,
+        error: r.get(3)?,
+        settings: r.get(4)?,
+        resolved: r.get(5)?,
+        scene_id: r.get(6)?,
+        scene_main: r.get(7)?,
+        reference: r.get(8)?,
+        created_at: r.get(9)?,
+        started_at: r.get(10)?,
+        finished_at: r.get(11)?,
+        passes_done: r.get(12)?,
+        spp_done: r.get(13)?,
+        samples: r.get(14)?,
+        rays: r.get(15)?,
+        non_finite: r.get(16)?,
+        accum_bytes: r.get(17)?,
+        result_bytes: r.get(18)?,
+    })
+}
+
+fn task_row(r: &rusqlite::Row) -> rusqlite::Result<TaskRow> {
+    Ok(TaskRow {
+        id: r.get(0)?,
+        job_id: r.get(1)?,
+        pass: r.get(2)?,
+        tile: r.get(3)?,
+        s0: r.get(4)?,
+        s1: r.get(5)?,
+        state: r.get(6)?,
+        attempt: r.get(7)?,
+        worker_id: r.get(8)?,
+        result: match (r.get::<_, Option<i64>>(9)?, r.get::<_, Option<i64>>(10)?) {
+            (Some(at), Some(len)) if at >= 0 && len >= 0 => Some(at as u64..(at + len) as u64),
+            _ => None,
+        },
+        kind: r.get(11)?,
+    })
+}
+
+/// One row of `sql` (a statement prepared once per connection and cached).
+fn cached_row<T>(
+    conn: &Connection,
+    sql: &str,
+    p: impl rusqlite::Params,
+    f: impl FnOnce(&rusqlite::Row<'_>) -> rusqlite::Result<T>,
+) -> rusqlite::Result<T> {
+    conn.prepare_cached(sql)?.query_row(p, f)
+}
+
+/// Runs `sql` (a statement prepared once per connection and cached); rows changed.
+fn cached_exec(conn: &Connection, sql: &str, p: impl rusqlite::Params) -> rusqlite::Result<usize> {
+    conn.prepare_cached(sql)?.execute(p)
+}
+
+/// Inserts an event of `job` (inside the caller's transaction, if any).
+fn insert_event(
+    conn: &Connection,
+    job: &str,
+    kind: EventKind,
+    data: &serde_json::Value,
+) -> rusqlite::Result<EventRow> {
+    let at = now();
+    cached_exec(
+        conn,
+        "INSERT INTO events (job_id, kind, data, at) VALUES (?1, ?2, ?3, ?4)",
+        params![job, kind, data.to_string(), at],
+    )?;
+    Ok(EventRow {
+        id: conn.last_insert_rowid(),
+        job_id: job.to_string(),
+        kind,
+        data: data.clone(),
+        at,
+    })
+}
+
+// The states bound as parameters wherever a statement names one.
+const J_QUEUED: JobState = JobState::Queued;
+const J_RUNNING: JobState = JobState::Running;
+const T_QUEUED: TaskState = TaskState::Queued;
+const T_LEASED: TaskState = TaskState::Leased;
+const T_DONE: TaskState = TaskState::Done;
+const K_RENDER: TaskKind = TaskKind::Render;
+const K_MERGE: TaskKind = TaskKind::Merge;
+
+/// The first queued task of a job (`lease`) that worker ?3 has not failed: merges first, then
+/// passes and tiles in order.
+const NEXT_QUEUED: &str = "SELECT id FROM tasks WHERE state = ?1 AND job_id = ?2 \
+     AND NOT EXISTS (SELECT 1 FROM failures f WHERE f.task_id = tasks.id AND f.worker_id = ?3) \
+     ORDER BY kind, pass, tile LIMIT 1";
+
+/// Records attempt `task.attempt` of `task` as `outcome` on `worker` and requeues the task; then
+/// blocklists the worker for the job after `BLOCKLIST_AFTER` failed tasks of it, and marks it
+/// unhealthy after failures in `UNHEALTHY_AFTER_JOBS` jobs since its last result. Runs inside
+/// the caller's transaction.
+fn record_failure(
+    conn: &Connection,
+    task: &TaskRow,
+    worker: &str,
+    outcome: Outcome,
+    error: &str,
+) -> StoreResult<Failure> {
+    let t = now();
+    cached_exec(
+        conn,
+        "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL, \
+         failures = failures + 1, last_error = ?3 WHERE id = ?1",
+        params![task.id, T_QUEUED, error],
+    )?;
+    cached_exec(
+        conn,
+        "INSERT OR REPLACE INTO failures (task_id, attempt, job_id, worker_id, outcome, error, at) \
+         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+        params![
+            task.id,
+            task.attempt,
+            task.job_id,
+            worker,
+            outcome.as_str(),
+            error,
+            t
+        ],
+    )?;
+    let (failures, lost): (u32, u32) = cached_row(
+        conn,
+        "SELECT (SELECT failures FROM tasks WHERE id = ?1), \
+         (SELECT COUNT(*) FROM failures WHERE task_id = ?1 AND outcome = 'lost')",
+        [task.id],
+        |r| Ok((r.get(0)?, r.get(1)?)),
+    )?;
+    let failed_tasks: i64 = cached_row(
+        conn,
+        "SELECT COUNT(DISTINCT task_id) FROM failures WHERE job_id = ?1 AND worker_id = ?2",
+        params![task.job_id, worker],
+        |r| r.get(0),
+    )?;
+    if failed_tasks >= BLOCKLIST_AFTER {
+        cached_exec(
+            conn,
+            "INSERT OR IGNORE INTO blocklist (job_id, worker_id, since, reason) \
+             VALUES (?1, ?2, ?3, ?4)",
+            params![
+                task.job_id,
+                worker,
+                t,
+                format!("failed {failed_tasks} tasks of the job; last: {error}")
+            ],
+        )?;
+    }
+    let failed_jobs: i64 = cached_row(
+        conn,
+        "SELECT COUNT(DISTINCT job_id) FROM failures WHERE worker_id = ?1 \
+         AND at > COALESCE((SELECT last_done_at FROM workers WHERE id = ?1), 0)",
+        [worker],
+        |r| r.get(0),
+    )?;
+    if failed_jobs >= UNHEALTHY_AFTER_JOBS {
+        cached_exec(
+            conn,
+            "UPDATE workers SET unhealthy = ?2 WHERE id = ?1 AND unhealthy IS NULL",
+            params![
+                worker,
+                format!("failed tasks of {failed_jobs} jobs since its last result; last: {error}")
+            ],
+        )?;
+    }
+    Ok(Failure {
+        task: task.clone(),
+        worker: worker.to_string(),
+        failures,
+        lost,
+        error: error.to_string(),
+        outcome,
+    })
+}
+
+impl SqliteStore {
+    /// Opens (creating if needed) the database at `path`.
+    pub fn open(path: &Path) -> StoreResult<SqliteStore> {
+        let conn = Connection::open(path)?;
+        conn.busy_timeout(std::time::Duration::from_secs(10))?;
+        // A damaged file is refused before anything is written to it: a coordinator that
+        // started on it would accept jobs it cannot record.
+        let problems: Vec<String> = {
+            let mut st = conn.prepare("PRAGMA quick_check")?;
+            st.query_map([], |r| r.get(0))?
+                .collect::<rusqlite::Result<_>>()?
+        };
+        if problems != ["ok"] {
+            return Err(StoreError::new(format!(
+                "the database is damaged (SQLite's quick_check: {})",
+                problems
+                    .iter()
+                    .take(5)
+                    .cloned()
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            )));
+        }
+        // Every query of the store is a cached statement (parsed once, not per result).
+        conn.set_prepared_statement_cache_capacity(64);
+        // And kept: without the query planner stability guarantee, SQLite (built with STAT4)
+        // re-prepares a statement whenever a value bound to it could change its plan, which
+        // the lease query's did on every lease (BENCHMARKS.md #12). Every query here
+        // is written for its index.
+        conn.set_db_config(
+            rusqlite::config::DbConfig::SQLITE_DBCONFIG_ENABLE_QPSG,
+            true,
+        )?;
+        // Per connection (the journal mode is kept by the file too).
+        conn.execute_batch(
+            "PRAGMA journal_mode = WAL; PRAGMA synchronous = NORMAL; PRAGMA foreign_keys = ON;",
+        )?;
+        migrations::migrate(&conn)?;
+        Ok(SqliteStore { conn })
+    }
+}
+
+impl JobStore for SqliteStore {
+    fn insert_job(&self, j: &NewJob) -> StoreResult<()> {
+        let seq: i64 =
+            self.conn
+                .query_row("SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs", [], |r| {
+                    r.get(0)
+                })?;
+        cached_exec(
+            &self.conn,
+            "INSERT INTO jobs (id, seq, name, state, settings, resolved, scene_id, scene_main, \
+             reference, created_at, accum_bytes) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
+            params![
+                j.id,
+                seq,
+                j.name,
+                J_QUEUED,
+                j.settings,
+                j.resolved,
+                j.scene_id,
+                j.scene_main,
+                j.reference,
+                now(),
+                j.accum_bytes
+            ],
+        )?;
+        Ok(())
+    }
+    fn job(&self, id: &str) -> StoreResult<Option<JobRow>> {
+        cached_row(
+            &self.conn,
+            &format!("SELECT {JOB_COLS} FROM jobs WHERE id = ?1"),
+            [id],
+            job_row,
+        )
+        .optional()
+        .map_err(StoreError::from)
+    }
+    fn jobs(&self) -> StoreResult<Vec<JobRow>> {
+        let mut st = self
+            .conn
+            .prepare(&format!("SELECT {JOB_COLS} FROM jobs ORDER BY seq"))?;
+        st.query_map([], job_row)?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
+    }
+    fn active_jobs(&self) -> StoreResult<Vec<JobRow>> {
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {JOB_COLS} FROM jobs WHERE state IN (?1, ?2) ORDER BY seq"
+        ))?;
+        st.query_map(params![J_QUEUED, J_RUNNING], job_row)?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
+    }
+    fn set_job_state(&self, id: &str, state: JobState, error: Option<&str>) -> StoreResult<bool> {
+        let finished = (!state.is_active()).then(now);
+        let n = cached_exec(
+            &self.conn,
+            "UPDATE jobs SET state = ?2, error = COALESCE(?3, error), \
+             finished_at = COALESCE(?4, finished_at) WHERE id = ?1 \
+             AND state IN (?5, ?6)",
+            params![id, state, error, finished, J_QUEUED, J_RUNNING],
+        )?;
+        Ok(n == 1)
+    }
+    fn set_job_resolved(&self, id: &str, resolved: &str) -> StoreResult<bool> {
+        let n = cached_exec(
+            &self.conn,
+            "UPDATE jobs SET resolved = ?2 WHERE id = ?1 AND state IN (?3, ?4)",
+            params![id, resolved, J_QUEUED, J_RUNNING],
+        )?;
+        Ok(n == 1)
+    }
+    fn release_worker(&self, worker: &str) -> StoreResult<usize> {
+        self.conn
+            .execute(
+                "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL \
+             WHERE worker_id = ?1 AND state = ?3",
+                params![worker, T_QUEUED, T_LEASED],
+            )
+            .map_err(StoreError::from)
+    }
+    fn task_existed(&self, task_id: i64) -> StoreResult<bool> {
+        let max: Option<i64> = self
+            .conn
+            .query_row(
+                "SELECT seq FROM sqlite_sequence WHERE name = 'tasks'",
+                [],
+                |r| r.get(0),
+            )
+            .optional()?;
+        Ok(task_id >= 1 && max.is_some_and(|m| task_id <= m))
+    }
+    fn pass_merged(
+        &self,
+        id: &str,
+        passes_done: u32,
+        spp_done: u32,
+        held: u32,
+        stats: &crate::film::RayStats,
+    ) -> StoreResult<()> {
+        cached_exec(
+            &self.conn,
+            "UPDATE jobs SET passes_done = ?2, spp_done = ?3, samples = samples + ?4, \
+             rays = rays + ?5, non_finite = non_finite + ?6 \
+             WHERE id = ?1 AND passes_done = ?2 - 1",
+            params![
+                id,
+                passes_done,
+                spp_done,
+                stats.samples as i64,
+                stats.rays() as i64,
+                stats.non_finite as i64
+            ],
+        )?;
+        cached_exec(
+            &self.conn,
+            "DELETE FROM tasks WHERE job_id = ?1 AND pass < ?2",
+            params![id, held.min(passes_done)],
+        )?;
+        Ok(())
+    }
+    fn add_series(&self, id: &str, p: &SeriesPoint) -> StoreResult<()> {
+        cached_exec(
+            &self.conn,
+            "INSERT OR REPLACE INTO series (job_id, pass, spp, seconds, relmse) VALUES (?1, ?2, ?3, ?4, ?5)",
+            params![id, p.pass, p.spp, p.seconds, p.relmse],
+        )?;
+        Ok(())
+    }
+    fn series(&self, id: &str) -> StoreResult<Vec<SeriesPoint>> {
+        let mut st = self.conn.prepare_cached(
+            "SELECT pass, spp, seconds, relmse FROM series WHERE job_id = ?1 ORDER BY pass",
+        )?;
+        st.query_map([id], |r| {
+            Ok(SeriesPoint {
+                pass: r.get(0)?,
+                spp: r.get(1)?,
+                seconds: r.get(2)?,
+                relmse: r.get(3)?,
+            })
+        })?
+        .collect::<rusqlite::Result<Vec<_>>>()
+        .map_err(StoreError::from)
+    }
+    fn create_tasks(
+        &self,
+        id: &str,
+        pass: u32,
+        tiles: std::ops::Range<u32>,
+        samples: std::ops::Range<u32>,
+    ) -> StoreResult<()> {
+        let tx = self.conn.unchecked_transaction()?;
+        {
+            let mut st = tx.prepare_cached(
+                "INSERT OR IGNORE INTO tasks (job_id, pass, tile, s0, s1, state) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+            )?;
+            for t in tiles {
+                st.execute(params![id, pass, t, samples.start, samples.end, T_QUEUED])?;
+            }
+        }
+        tx.commit().map_err(StoreError::from)
+    }
+    fn create_merge_tasks(
+        &self,
+        id: &str,
+        pass: u32,
+        groups: &[std::ops::Range<u32>],
+    ) -> StoreResult<()> {
+        let tx = self.conn.unchecked_transaction()?;
+        {
+            let mut st = tx.prepare_cached(
+                "INSERT OR IGNORE INTO tasks (job_id, kind, pass, tile, s0, s1, state) \
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+            )?;
+            for (g, bands) in groups.iter().enumerate() {
+                st.execute(params![
+                    id,
+                    K_MERGE,
+                    pass,
+                    g as u32,
+                    bands.start,
+                    bands.end,
+                    T_QUEUED
+                ])?;
+            }
+        }
+        tx.commit().map_err(StoreError::from)
+    }
+    fn merge_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>> {
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3 \
+             ORDER BY tile"
+        ))?;
+        st.query_map(params![id, pass, K_MERGE], task_row)?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
+    }
+    fn delete_merge_tasks(&self, id: &str, pass: u32) -> StoreResult<()> {
+        cached_exec(
+            &self.conn,
+            "DELETE FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3",
+            params![id, pass, K_MERGE],
+        )?;
+        Ok(())
+    }
+    fn complete_merge(&self, task_id: i64, attempt: u32, worker: &str) -> StoreResult<bool> {
+        let n = cached_exec(
+            &self.conn,
+            "UPDATE tasks SET state = ?4, lease_expires = NULL \
+             WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 AND state = ?5 AND kind = ?6",
+            params![task_id, attempt, worker, T_DONE, T_LEASED, K_MERGE],
+        )?;
+        if n == 1 {
+            cached_exec(
+                &self.conn,
+                "UPDATE workers SET last_done_at = ?2 WHERE id = ?1",
+                params![worker, now()],
+            )?;
+        }
+        Ok(n == 1)
+    }
+    fn last_tile(&self, id: &str, pass: u32) -> StoreResult<Option<u32>> {
+        cached_row(
+            &self.conn,
+            "SELECT MAX(tile) FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3",
+            params![id, pass, K_RENDER],
+            |r| r.get(0),
+        )
+        .map_err(StoreError::from)
+    }
+    fn last_pass(&self, id: &str) -> StoreResult<Option<u32>> {
+        cached_row(
+            &self.conn,
+            "SELECT MAX(pass) FROM tasks WHERE job_id = ?1",
+            [id],
+            |r| r.get(0),
+        )
+        .map_err(StoreError::from)
+    }
+    fn pass_open(&self, id: &str, pass: u32) -> StoreResult<bool> {
+        cached_row(
+            &self.conn,
+            "SELECT EXISTS (SELECT 1 FROM tasks WHERE state IN (?3, ?4) AND job_id = ?1 \
+             AND kind = ?5 AND pass = ?2)",
+            params![id, pass, T_QUEUED, T_LEASED, K_RENDER],
+            |r| r.get(0),
+        )
+        .map_err(StoreError::from)
+    }
+    fn tasks_done(&self, id: &str) -> StoreResult<u32> {
+        cached_row(
+            &self.conn,
+            "SELECT COUNT(*) FROM tasks WHERE job_id = ?1 AND state = ?2 AND kind = ?3 \
+             AND pass >= (SELECT passes_done FROM jobs WHERE id = ?1)",
+            params![id, T_DONE, K_RENDER],
+            |r| r.get(0),
+        )
+        .map_err(StoreError::from)
+    }
+    fn pass_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>> {
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND kind = ?3 AND pass = ?2 \
+             ORDER BY tile"
+        ))?;
+        st.query_map(params![id, pass, K_RENDER], task_row)?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
+    }
+    fn task(&self, task_id: i64) -> StoreResult<Option<TaskRow>> {
+        cached_row(
+            &self.conn,
+            &format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?1"),
+            [task_id],
+            task_row,
+        )
+        .optional()
+        .map_err(StoreError::from)
+    }
+    fn requeue(&self, task_id: i64) -> StoreResult<()> {
+        cached_exec(
+            &self.conn,
+            "UPDATE tasks SET state = ?2, worker_id = NULL WHERE id = ?1",
+            params![task_id, T_QUEUED],
+        )?;
+        Ok(())
+    }
+    fn lease(&self, worker: &str, lease_s: f64) -> StoreResult<Option<TaskRow>> {
+        let tx = self.conn.unchecked_transaction()?;
+        let unhealthy: Option<String> = cached_row(
+            &tx,
+            "SELECT unhealthy FROM workers WHERE id = ?1",
+            [worker],
+            |r| r.get(0),
+        )
+        .optional()?
+        .flatten();
+        if unhealthy.is_some() {
+            return Ok(None);
+        }
+        // Job by job (few), each an index lookup of (state, job, pass, tile): no sort of the
+        // queue, however many tasks it holds.
+        let jobs: Vec<String> = {
+            let mut st = tx.prepare_cached(
+                "SELECT id FROM jobs WHERE state IN (?1, ?2) AND NOT EXISTS \
+                 (SELECT 1 FROM blocklist b WHERE b.job_id = jobs.id AND b.worker_id = ?3) \
+                 ORDER BY seq",
+            )?;
+            st.query_map(params![J_QUEUED, J_RUNNING, worker], |r| r.get(0))?
+                .collect::<rusqlite::Result<_>>()?
+        };
+        let mut id: Option<i64> = None;
+        for job in &jobs {
+            id = tx
+                .prepare_cached(NEXT_QUEUED)?
+                .query_row(params![T_QUEUED, job, worker], |r| r.get(0))
+                .optional()?;
+            if id.is_some() {
+                break;
+            }
+        }
+        let Some(id) = id else {
+            return Ok(None);
+        };
+        let t = now();
+        cached_exec(
+            &tx,
+            "UPDATE tasks SET state = ?4, attempt = attempt + 1, worker_id = ?2, \
+             lease_expires = ?3 WHERE id = ?1",
+            params![id, worker, t + lease_s, T_LEASED],
+        )?;
+        cached_exec(
+            &tx,
+            "UPDATE jobs SET state = ?3, started_at = COALESCE(started_at, ?2) \
+             WHERE id = (SELECT job_id FROM tasks WHERE id = ?1) AND state = ?4",
+            params![id, t, J_RUNNING, J_QUEUED],
+        )?;
+        cached_exec(
+            &tx,
+            "UPDATE workers SET last_seen = ?2, state = ?3 WHERE id = ?1",
+            params![worker, t, WorkerState::Busy],
+        )?;
+        let row = cached_row(
+            &tx,
+            &format!("SELECT {TASK_COLS} FROM tasks WHERE id = ?1"),
+            [id],
+            task_row,
+        )?;
+        tx.commit()?;
+        Ok(Some(row))
+    }
+    fn extend(&self, task_id: i64, attempt: u32, worker: &str, lease_s: f64) -> StoreResult<bool> {
+        let n = cached_exec(
+            &self.conn,
+            "UPDATE tasks SET lease_expires = ?4 WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 \
+             AND state = ?5 AND job_id IN (SELECT id FROM jobs WHERE state = ?6)",
+            params![
+                task_id,
+                attempt,
+                worker,
+                now() + lease_s,
+                T_LEASED,
+                J_RUNNING
+            ],
+        )?;
+        Ok(n == 1)
+    }
+    fn complete(
+        &self,
+        task: &TaskRow,
+        worker: &str,
+        bytes: usize,
+        stored: std::ops::Range<u64>,
+        event: (EventKind, &serde_json::Value),
+    ) -> StoreResult<Option<Completed>> {
+        let (task_id, attempt) = (task.id, task.attempt);
+        let tx = self.conn.unchecked_transaction()?;
+        let n = cached_exec(
+            &tx,
+            "UPDATE tasks SET state = ?4, lease_expires = NULL, result_at = ?6, result_len = ?7 \
+             WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 AND state = ?5",
+            params![
+                task_id,
+                attempt,
+                worker,
+                T_DONE,
+                T_LEASED,
+                stored.start as i64,
+                (stored.end - stored.start) as i64
+            ],
+        )?;
+        if n == 1 {
+            cached_exec(
+                &tx,
+                "UPDATE jobs SET result_bytes = result_bytes + ?2 WHERE id = (SELECT job_id FROM tasks WHERE id = ?1)",
+                params![task_id, bytes as i64],
+            )?;
+            cached_exec(
+                &tx,
+                "UPDATE workers SET tasks_done = tasks_done + 1, last_done_at = ?2 WHERE id = ?1",
+                params![worker, now()],
+            )?;
+        }
+        if n != 1 {
+            return Ok(None);
+        }
+        let event = insert_event(&tx, &task.job_id, event.0, event.1)?;
+        let pass_open = self.pass_open(&task.job_id, task.pass)?;
+        tx.commit()?;
+        Ok(Some(Completed { event, pass_open }))
+    }
+    fn fail(
+        &self,
+        task_id: i64,
+        attempt: u32,
+        worker: &str,
+        error: &str,
+    ) -> StoreResult<Option<Failure>> {
+        let tx = self.conn.unchecked_transaction()?;
+        let task = cached_row(
+            &tx,
+            &format!(
+                "SELECT {TASK_COLS} FROM tasks WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 \
+                 AND state = ?4"
+            ),
+            params![task_id, attempt, worker, T_LEASED],
+            task_row,
+        )
+        .optional()?;
+        let Some(task) = task else {
+            return Ok(None);
+        };
+        let f = record_failure(&tx, &task, worker, Outcome::Failed, error)?;
+        tx.commit()?;
+        Ok(Some(f))
+    }
+    fn expire_leases(&self) -> StoreResult<Vec<Failure>> {
+        let tx = self.conn.unchecked_transaction()?;
+        let expired: Vec<TaskRow> = {
+            let mut st = tx.prepare_cached(&format!(
+                "SELECT {TASK_COLS} FROM tasks WHERE state = ?2 AND lease_expires < ?1"
+            ))?;
+            st.query_map(params![now(), T_LEASED], task_row)?
+                .collect::<rusqlite::Result<_>>()?
+        };
+        let mut lost = Vec::with_capacity(expired.len());
+        for task in &expired {
+            let worker = task.worker_id.clone().unwrap_or_default();
+            let error = format!("worker {worker} went silent: its lease expired");
+            lost.push(record_failure(&tx, task, &worker, Outcome::Lost, &error)?);
+        }
+        tx.commit()?;
+        Ok(lost)
+    }
+    fn extend_all_leases(&self, lease_s: f64) -> StoreResult<usize> {
+        Ok(self.conn.execute(
+            "UPDATE tasks SET lease_expires = ?1 WHERE state = ?2",
+            params![now() + lease_s, T_LEASED],
+        )?)
+    }
+    fn last_error(&self, task_id: i64) -> StoreResult<Option<String>> {
+        Ok(cached_row(
+            &self.conn,
+            "SELECT last_error FROM tasks WHERE id = ?1",
+            [task_id],
+            |r| r.get(0),
+        )
+        .optional()?
+        .flatten())
+    }
+    fn stranded_tasks(&self, silent_s: f64) -> StoreResult<Vec<TaskRow>> {
+        let live = "w.state NOT IN (?2, ?3) AND w.last_seen >= ?4 AND w.unhealthy IS NULL";
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {TASK_COLS} FROM tasks WHERE state = ?1 \
+             AND id IN (SELECT task_id FROM failures) \
+             AND job_id IN (SELECT id FROM jobs WHERE state IN (?5, ?6)) \
+             AND EXISTS (SELECT 1 FROM workers w WHERE {live}) \
+             AND NOT EXISTS (SELECT 1 FROM workers w WHERE {live} \
+               AND NOT EXISTS (SELECT 1 FROM failures f \
+                 WHERE f.task_id = tasks.id AND f.worker_id = w.id) \
+               AND NOT EXISTS (SELECT 1 FROM blocklist b \
+                 WHERE b.job_id = tasks.job_id AND b.worker_id = w.id))"
+        ))?;
+        st.query_map(
+            params![
+                T_QUEUED,
+                WorkerState::Gone,
+                WorkerState::Left,
+                now() - silent_s,
+                J_QUEUED,
+                J_RUNNING
+            ],
+            task_row,
+        )?
+        .collect::<rusqlite::Result<_>>()
+        .map_err(StoreError::from)
+    }
+    fn register_worker(
+        &self,
+        id: &str,
+        name: &str,
+        threads: u32,
+        version: &str,
+    ) -> StoreResult<()> {
+        let t = now();
+        cached_exec(
+            &self.conn,
+            "INSERT INTO workers (id, name, threads, version, registered_at, last_seen, state) \
+             VALUES (?1, ?2, ?3, ?4, ?5, ?5, ?6) ON CONFLICT (id) DO UPDATE SET \
+             name = ?2, threads = ?3, version = ?4, last_seen = ?5, state = ?6",
+            params![id, name, threads, version, t, WorkerState::Idle],
+        )?;
+        Ok(())
+    }
+    fn touch_worker(&self, id: &str, state: Option<WorkerState>) -> StoreResult<bool> {
+        let n = cached_exec(
+            &self.conn,
+            "UPDATE workers SET last_seen = ?2, state = COALESCE(?3, \
+             CASE state WHEN ?4 THEN ?5 ELSE state END) WHERE id = ?1",
+            params![id, now(), state, WorkerState::Gone, WorkerState::Idle],
+        )?;
+        Ok(n == 1)
+    }
+    fn mark_gone(&self, silent_s: f64) -> StoreResult<usize> {
+        self.conn
+            .execute(
+                "UPDATE workers SET state = ?2 WHERE state != ?2 AND last_seen < ?1",
+                params![now() - silent_s, WorkerState::Gone],
+            )
+            .map_err(StoreError::from)
+    }
+    fn workers(&self) -> StoreResult<Vec<WorkerInfo>> {
+        let mut held: HashMap<String, Vec<WorkerTask>> = HashMap::new();
+        let mut st = self.conn.prepare_cached(
+            "SELECT worker_id, id, job_id, pass, tile, attempt, kind FROM tasks \
+             WHERE state = ?1 AND worker_id IS NOT NULL ORDER BY id",
+        )?;
+        let rows = st.query_map(params![TaskState::Leased], |r| {
+            Ok((
+                r.get::<_, String>(0)?,
+                WorkerTask {
+                    id: r.get(1)?,
+                    job_id: r.get(2)?,
+                    pass: r.get(3)?,
+                    tile: r.get(4)?,
+                    attempt: r.get(5)?,
+                    kind: r.get(6)?,
+                },
+            ))
+        })?;
+        for row in rows {
+            let (worker, task) = row?;
+            held.entry(worker).or_default().push(task);
+        }
+        let mut blocked: HashMap<String, Vec<String>> = HashMap::new();
+        let mut st = self
+            .conn
+            .prepare_cached("SELECT worker_id, job_id FROM blocklist ORDER BY since")?;
+        for row in st.query_map([], |r| Ok((r.get::<_, String>(0)?, r.get::<_, String>(1)?)))? {
+            let (worker, job) = row?;
+            blocked.entry(worker).or_default().push(job);
+        }
+        let mut st = self.conn.prepare_cached(
+            "SELECT id, name, threads, version, registered_at, last_seen, state, tasks_done, \
+             unhealthy FROM workers ORDER BY registered_at",
+        )?;
+        st.query_map([], |r| {
+            let id: String = r.get(0)?;
+            Ok(WorkerInfo {
+                tasks: held.remove(&id).unwrap_or_default(),
+                blocklisted_jobs: blocked.remove(&id).unwrap_or_default(),
+                unhealthy: r.get(8)?,
+                id,
+                name: r.get(1)?,
+                threads: r.get(2)?,
+                version: r.get(3)?,
+                registered_at: r.get(4)?,
+                last_seen: r.get(5)?,
+                state: r.get(6)?,
+                tasks_done: r.get(7)?,
+            })
+        })?
+        .collect::<rusqlite::Result<Vec<_>>>()
+        .map_err(StoreError::from)
+    }
+    fn add_event(
+        &self,
+        job: &str,
+        kind: EventKind,
+        data: &serde_json::Value,
+    ) -> StoreResult<EventRow> {
+        Ok(insert_event(&self.conn, job, kind, data)?)
+    }
+    fn events_after(&self, job: &str, after: i64) -> StoreResult<Vec<EventRow>> {
+        let mut st = self.conn.prepare_cached(
+            "SELECT id, job_id, kind, data, at FROM events WHERE job_id = ?1 AND id > ?2 ORDER BY id",
+        )?;
+        st.query_map(params![job, after], |r| {
+            let data: String = r.get(3)?;
+            Ok(EventRow {
+                id: r.get(0)?,
+                job_id: r.get(1)?,
+                kind: r.get(2)?,
+                data: serde_json::from_str(&data).unwrap_or(serde_json::Value::Null),
+                at: r.get(4)?,
+            })
+        })?
+        .collect::<rusqlite::Result<Vec<_>>>()
+        .map_err(StoreError::from)
+    }
+    fn state_counts(&self, table: &str) -> StoreResult<Vec<(String, i64)>> {
+        let table = match table {
+            "jobs" | "tasks" | "workers" => table,
+            _ => return Ok(Vec::new()),
+        };
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT state, COUNT(*) FROM {table} GROUP BY state"
+        ))?;
+        st.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Leases bind new values to cached statements; none of them may be parsed again for it
+    /// (SQLite's STAT4 build re-prepared the lease query on every lease without QPSG).
+    #[test]
+    fn leasing_reuses_prepared_statements() {
+        let dir = std::env::temp_dir().join(format!("omis-store-{}", uuid::Uuid::new_v4()));
+        std::fs::create_dir_all(&dir).expect("temporary folder");
+        let db = SqliteStore::open(&dir.join("db.sqlite")).expect("store");
+        for (job, tiles) in [("a", 3), ("b", 40)] {
+            db.insert_job(&NewJob {
+                id: job,
+                name: None,
+                settings: "{}",
+                resolved: "{}",
+                scene_id: "s",
+                scene_main: "scene.json",
+                reference: None,
+                accum_bytes: 0,
+            })
+            .expect("job");
+            db.create_tasks(job, 0, 0..tiles, 0..16).expect("tasks");
+        }
+        db.register_worker("w", "w", 1, "test").expect("worker");
+        let mut leased = Vec::new();
+        for _ in 0..12 {
+            let t = db.lease("w", 60.0).expect("lease").expect("a queued task");
+            leased.push((t.job_id, t.tile));
+        }
+        // Job by job in order, tile by tile: the lease query's plan still holds.
+        let want: Vec<(String, u32)> = (0..3)
+            .map(|t| ("a".to_string(), t))
+            .chain((0..9).map(|t| ("b".to_string(), t)))
+            .collect();
+        assert_eq!(leased, want);
+        let st = db.conn.prepare_cached(NEXT_QUEUED).expect("cached");
+        assert_eq!(
+            st.get_status(rusqlite::StatementStatus::RePrepare),
+            0,
+            "the lease query was prepared again"
+        );
+        drop(st);
+        drop(db);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
