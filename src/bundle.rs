@@ -23,6 +23,9 @@ pub fn pack_files(scene_path: &Path, files: &[PathBuf]) -> Result<(Vec<u8>, Stri
     let base = crate::scene::json::scene_folder(scene_path)
         .map_err(|e| format!("{}: {e}", scene_path.display()))?;
     let mut tar = tar::Builder::new(Vec::new());
+    // The coordinator accepts plain files only; a file with holes on disk (a copied texture,
+    // say) must still go as a plain entry, not a GNU sparse one.
+    tar.sparse(false);
     tar.append_path_with_name(scene_path, &main)
         .map_err(|e| format!("{}: {e}", scene_path.display()))?;
     for f in files {
@@ -196,5 +199,36 @@ pub fn choose_main(files: &[String], main: Option<&str>) -> Result<String, Strin
                 .collect::<Vec<_>>()
                 .join(", ")
         )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::{Seek, SeekFrom, Write};
+
+    #[test]
+    fn a_file_with_holes_is_packed_as_a_plain_file() {
+        let dir = std::env::temp_dir().join(format!("omis-bundle-sparse-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("temp dir");
+        let scene = dir.join("scene.json");
+        std::fs::write(&scene, "{}").expect("scene");
+        // 1 MiB of hole, then a byte: sparse on file systems that keep holes.
+        let holes = dir.join("texture.bin");
+        let mut f = std::fs::File::create(&holes).expect("file");
+        f.seek(SeekFrom::Start(1 << 20)).expect("seek");
+        f.write_all(b"x").expect("write");
+        drop(f);
+        let (tar, main) = pack_files(&scene, std::slice::from_ref(&holes)).expect("packed");
+        assert_eq!(main, "scene.json");
+        let mut archive = tar::Archive::new(tar.as_slice());
+        for entry in archive.entries().expect("a tar") {
+            let entry = entry.expect("entry");
+            assert_eq!(entry.header().entry_type(), tar::EntryType::Regular);
+            if entry.path().expect("path").as_ref() == Path::new("texture.bin") {
+                assert_eq!(entry.size(), (1 << 20) + 1);
+            }
+        }
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -2,7 +2,7 @@
 //! importer read), written to a file, so other clients (the Python package) pack exactly the same.
 
 use super::job_args::parse_defines;
-use crate::service::bundle;
+use crate::bundle;
 use anyhow::Context;
 use clap::Args;
 use std::path::PathBuf;
