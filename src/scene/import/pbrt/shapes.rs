@@ -19,6 +19,17 @@ pub(super) struct ShapeCall {
     pub(super) loc: Loc,
 }
 
+/// A polygon mesh's vertex arrays as its parameters give them, checked (`Parser::polygon_mesh`).
+pub(super) struct PolygonMesh {
+    pub(super) positions: Vec<Vec3>,
+    /// `corners` vertex indices a polygon, each within `positions`.
+    pub(super) indices: Vec<i64>,
+    /// None, or one a position.
+    pub(super) normals: Vec<Vec3>,
+    /// None, or one a position.
+    pub(super) uvs: Vec<Vec2>,
+}
+
 impl Parser {
     /// Handles `ObjectBegin`, `ObjectEnd` and `ObjectInstance`; false for any other directive.
     pub(super) fn object_directive(&mut self, name: &str, loc: Loc) -> R<bool> {
@@ -171,6 +182,86 @@ impl Parser {
         )
     }
 
+    /// The vertex arrays of a polygon mesh (`trianglemesh`; pbrt-v4's `bilinearmesh`), checked:
+    /// `P` (errors name its type `point`), `indices` (`corners` a polygon, every one a vertex;
+    /// left out only for a single polygon), `N` (none or one a vertex) and the uvs of the first
+    /// of `uv_names` given (none or two numbers a vertex).
+    pub(super) fn polygon_mesh(
+        &mut self,
+        ps: &ParamSet,
+        loc: Loc,
+        shape: &str,
+        point: &str,
+        corners: usize,
+        uv_names: &[&str],
+    ) -> R<PolygonMesh> {
+        let p = self
+            .vec3s(ps, "P", &["point3"])?
+            .ok_or_else(|| self.err(loc, format!("{shape} has no \"{point} P\"")))?;
+        let idx = match self.ints(ps, "indices")? {
+            Some(i) => i,
+            None if p.len() == corners => (0..corners as i64).collect(),
+            None => {
+                return Err(self.err(
+                    loc,
+                    format!(
+                        "{shape} has no \"integer indices\" (only allowed for exactly {corners} vertices)"
+                    ),
+                ));
+            }
+        };
+        if idx.len() % corners != 0 {
+            return Err(self.err(
+                loc,
+                format!(
+                    "{shape}: {} indices, not a multiple of {corners}",
+                    idx.len()
+                ),
+            ));
+        }
+        if let Some(&bad) = idx.iter().find(|&&i| i < 0 || i as usize >= p.len()) {
+            return Err(self.err(
+                loc,
+                format!("{shape}: index {bad} out of range for {} vertices", p.len()),
+            ));
+        }
+        let normals = self.vec3s(ps, "N", &["normal3"])?.unwrap_or_default();
+        if !normals.is_empty() && normals.len() != p.len() {
+            return Err(self.err(
+                loc,
+                format!(
+                    "{shape}: {} normals for {} vertices",
+                    normals.len(),
+                    p.len()
+                ),
+            ));
+        }
+        let uv_param = uv_names
+            .iter()
+            .find_map(|n| ps.find(n, &["float", "point2"]));
+        let uvs: Vec<Vec2> = match uv_param {
+            Some(param) => {
+                let v = self.nums(param)?;
+                if v.len() != 2 * p.len() {
+                    return Err(self.err(
+                        param.loc,
+                        format!("{shape}: {} uv values for {} vertices", v.len(), p.len()),
+                    ));
+                }
+                v.chunks_exact(2)
+                    .map(|c| Vec2::new(c[0] as f32, c[1] as f32))
+                    .collect()
+            }
+            None => Vec::new(),
+        };
+        Ok(PolygonMesh {
+            positions: p,
+            indices: idx,
+            normals,
+            uvs,
+        })
+    }
+
     /// The triangles of a `trianglemesh` or `plymesh` (any other type is an error), and the
     /// place its errors name (`place`, with the mesh file's name for a `plymesh`).
     pub(super) fn mesh_of(&mut self, call: &ShapeCall, place: String) -> R<(MeshData, String)> {
@@ -179,69 +270,13 @@ impl Parser {
         let mut place = place;
         let mesh = match call.ty.as_str() {
             "trianglemesh" => {
-                let p = self
-                    .vec3s(ps, "P", &["point3"])?
-                    .ok_or_else(|| self.err(loc, "trianglemesh has no \"point P\""))?;
-                let idx = match self.ints(ps, "indices")? {
-                    Some(i) => i,
-                    None if p.len() == 3 => vec![0, 1, 2],
-                    None => {
-                        return Err(self.err(loc, "trianglemesh has no \"integer indices\" (only allowed for exactly 3 vertices)"));
-                    }
-                };
-                if idx.len() % 3 != 0 {
-                    return Err(self.err(
-                        loc,
-                        format!("trianglemesh: {} indices, not a multiple of 3", idx.len()),
-                    ));
-                }
-                if let Some(&bad) = idx.iter().find(|&&i| i < 0 || i as usize >= p.len()) {
-                    return Err(self.err(
-                        loc,
-                        format!(
-                            "trianglemesh: index {bad} out of range for {} vertices",
-                            p.len()
-                        ),
-                    ));
-                }
-                let normals = self.vec3s(ps, "N", &["normal3"])?.unwrap_or_default();
-                if !normals.is_empty() && normals.len() != p.len() {
-                    return Err(self.err(
-                        loc,
-                        format!(
-                            "trianglemesh: {} normals for {} vertices",
-                            normals.len(),
-                            p.len()
-                        ),
-                    ));
-                }
-                let uv_param = ["uv", "st"]
-                    .into_iter()
-                    .find_map(|n| ps.find(n, &["float", "point2"]));
-                let uvs: Vec<Vec2> = match uv_param {
-                    Some(param) => {
-                        let v = self.nums(param)?;
-                        if v.len() != 2 * p.len() {
-                            return Err(self.err(
-                                param.loc,
-                                format!(
-                                    "trianglemesh: {} uv values for {} vertices",
-                                    v.len(),
-                                    p.len()
-                                ),
-                            ));
-                        }
-                        v.chunks_exact(2)
-                            .map(|c| Vec2::new(c[0] as f32, c[1] as f32))
-                            .collect()
-                    }
-                    None => Vec::new(),
-                };
+                let m = self.polygon_mesh(ps, loc, "trianglemesh", "point", 3, &["uv", "st"])?;
                 MeshData {
-                    positions: p,
-                    normals,
-                    uvs,
-                    indices: idx
+                    positions: m.positions,
+                    normals: m.normals,
+                    uvs: m.uvs,
+                    indices: m
+                        .indices
                         .chunks_exact(3)
                         .map(|c| [c[0] as u32, c[1] as u32, c[2] as u32])
                         .collect(),

@@ -141,17 +141,30 @@ impl Parser {
             }
         };
         self.report_unused(&ps, &what);
+        self.define_texture(name, is_float, spec, &class, "float image");
+        Ok(())
+    }
+
+    /// Names `spec` in the graphics state: as a float texture (`is_float`) it keeps a constant
+    /// alone, and a varying one of class `class` is unsupported as `"{class} ({varying})"`.
+    pub(super) fn define_texture(
+        &mut self,
+        name: String,
+        is_float: bool,
+        spec: SpecTex,
+        class: &str,
+        varying: &str,
+    ) {
         if is_float {
             let f = match spec {
                 SpecTex::Ok(Texture::Constant(c)) => FloatTex::Const(c.x),
-                SpecTex::Ok(_) => FloatTex::Unsupported(format!("{class} (float image)")),
+                SpecTex::Ok(_) => FloatTex::Unsupported(format!("{class} ({varying})")),
                 SpecTex::Unsupported(c) => FloatTex::Unsupported(c),
             };
             Rc::make_mut(&mut self.g.float_tex).insert(name, f);
         } else {
             Rc::make_mut(&mut self.g.spec_tex).insert(name, spec);
         }
-        Ok(())
     }
 
     /// An operand of a `scale` texture: a value or a named texture.
