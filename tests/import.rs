@@ -4,6 +4,7 @@
 
 mod common;
 
+use common::import::{assert_has, load, load_err, warning};
 use omis::film::PixelSums;
 use omis::geometry::{Vec2, Vec3};
 use omis::integrator::RenderSettings;
@@ -19,39 +20,6 @@ use std::time::Instant;
 
 fn folder(name: &str) -> PathBuf {
     common::folder("import", name)
-}
-
-fn load(path: &Path) -> Scene {
-    match Scene::load(path) {
-        Ok(s) => s,
-        Err(e) => panic!("{} should load: {e}", path.display()),
-    }
-}
-
-fn load_err(path: &Path) -> String {
-    match Scene::load(path) {
-        Ok(_) => panic!("{} loaded but should not", path.display()),
-        Err(e) => e.to_string(),
-    }
-}
-
-fn assert_has(msg: &str, parts: &[&str]) {
-    for p in parts {
-        assert!(msg.contains(p), "'{msg}' should mention '{p}'");
-    }
-}
-
-fn warning<'a>(scene: &'a Scene, part: &str) -> &'a str {
-    scene
-        .warnings
-        .iter()
-        .find(|w| w.contains(part))
-        .unwrap_or_else(|| {
-            panic!(
-                "no warning mentions '{part}'; warnings: {:#?}",
-                scene.warnings
-            )
-        })
 }
 
 fn material<'a>(scene: &'a Scene, name: &str) -> &'a omis::material::Material {
