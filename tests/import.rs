@@ -36,7 +36,7 @@ fn close(a: f32, b: f32, tol: f32) -> bool {
 
 fn render(scene: &Scene, spp: u32, max_depth: u32, seed: u64) -> PixelSums {
     let settings = RenderSettings {
-        spp,
+        sample_block: spp,
         max_depth,
         seed,
         sampler: SamplerKind::Independent,
@@ -1341,7 +1341,7 @@ fn staircase_relmse_against_tungsten() {
         .unwrap_or(64);
     let max_depth = scene.defaults.max_depth.unwrap_or(64);
     let settings = RenderSettings {
-        spp,
+        sample_block: spp,
         max_depth,
         seed: 1,
         sampler: SamplerKind::Sobol,

@@ -28,7 +28,7 @@ fn renders(scene: &Scene, first_seed: u64) -> Vec<Image> {
         .map(|k| {
             let s = RenderSettings {
                 integrator: IntegratorKind::Pt,
-                spp: SPP,
+                sample_block: SPP,
                 max_depth: scene.defaults.max_depth.unwrap_or(5),
                 sampler: SamplerKind::Independent,
                 seed: first_seed + k,

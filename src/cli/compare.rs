@@ -317,7 +317,7 @@ impl Comparison<'_> {
                 Method::Pt => MisKind::Balance,
                 Method::Bdpt(m) => m,
             },
-            spp,
+            sample_block: spp,
             max_depth: a.max_depth,
             seed,
             sampler: a.sampler.into(),

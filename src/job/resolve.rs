@@ -18,8 +18,8 @@ pub struct Resolved {
     pub width: u32,
     /// Image height in pixels.
     pub height: u32,
-    /// `render.spp` is the stratification block of the sampler: the total spp of a fixed-spp
-    /// job, the pass size of a time-budget job.
+    /// `render.sample_block` is the stratification block of the sampler: the total spp of a
+    /// fixed-spp job, the pass size of a time-budget job.
     pub render: RenderSettings,
     /// Total samples per pixel, or None for a time budget without spp.
     pub spp: Option<u32>,
@@ -188,7 +188,7 @@ impl JobSettings {
             };
         let mut render = RenderSettings {
             integrator: self.integrator,
-            spp: spp.unwrap_or(pass_size),
+            sample_block: spp.unwrap_or(pass_size),
             max_depth,
             seed: self.seed,
             sampler: self.sampler,

@@ -440,3 +440,18 @@ fn unknown_fields_are_refused() {
     assert_eq!(s.spp, Some(4));
     assert_eq!(s.resolution, Some([8, 6]));
 }
+
+/// Workers and stored jobs read `RenderSettings` by its JSON names: the sampler's block is
+/// `spp` there.
+#[test]
+fn the_sample_block_is_spp_in_json() {
+    let settings = RenderSettings {
+        sample_block: 7,
+        ..Default::default()
+    };
+    let json = serde_json::to_value(&settings).expect("serialises");
+    assert_eq!(json["spp"], 7, "{json}");
+    assert!(json.get("sample_block").is_none(), "{json}");
+    let back: RenderSettings = serde_json::from_value(json).expect("parses");
+    assert_eq!(back, settings);
+}
