@@ -81,6 +81,23 @@ impl Parser {
         if !self.in_world {
             return Err(self.err(loc, "Shape outside WorldBegin/WorldEnd"));
         }
+        let Some(call) = self.shape_call(ty, params, loc, "pbrt-v3") else {
+            return Ok(());
+        };
+        let emission = self.g.area;
+        self.emit_shape(&call, Mat4::IDENTITY, emission)
+    }
+
+    /// The call of shape `ty` with `params` at `loc` in the current graphics state, to be added
+    /// now; None where it is recorded for the object being defined instead (whose shapes do
+    /// not emit, as in `pbrt`, which the warning names).
+    pub(super) fn shape_call(
+        &mut self,
+        ty: String,
+        params: ParamSet,
+        loc: Loc,
+        pbrt: &str,
+    ) -> Option<ShapeCall> {
         let call = ShapeCall {
             ty,
             params,
@@ -89,15 +106,14 @@ impl Parser {
             reverse: self.g.reverse,
             loc,
         };
-        if let Some((_, calls)) = &mut self.defining {
-            calls.push(call);
-            if self.g.area.is_some() {
-                self.warn(loc, "area lights inside object instances are not supported (as in pbrt-v3); the shape does not emit");
-            }
-            return Ok(());
+        let Some((_, calls)) = &mut self.defining else {
+            return Some(call);
+        };
+        calls.push(call);
+        if self.g.area.is_some() {
+            self.warn(loc, format!("area lights inside object instances are not supported (as in {pbrt}); the shape does not emit"));
         }
-        let emission = self.g.area;
-        self.emit_shape(&call, Mat4::IDENTITY, emission)
+        None
     }
 
     /// Adds one shape, placed by `outer * call.ctm`.
@@ -116,7 +132,7 @@ impl Parser {
                 format!("{what}: the transform is singular or not finite"),
             )
         })?;
-        let place = self.shape_place(loc);
+        let place = self.place_of(loc);
         if call.ty == "sphere" {
             return self.emit_sphere(call, &m, &t, emission, &place);
         }
@@ -124,8 +140,8 @@ impl Parser {
         self.add_shape_mesh(call, mesh, &t, emission, &place)
     }
 
-    /// The place a shape's errors name: its line, and its file when included.
-    pub(super) fn shape_place(&self, loc: Loc) -> String {
+    /// The place a message names: the line of `loc`, and its file when included.
+    pub(super) fn place_of(&self, loc: Loc) -> String {
         if loc.file == 0 {
             format!("line {}", loc.line)
         } else {

@@ -93,17 +93,7 @@ impl Parser {
                         format!("{what}: mapping \"{m}\" is not supported; uv mapping used"),
                     );
                 }
-                if let Some(w) = self.string(&ps, "wrap")?
-                    && w != "repeat"
-                {
-                    self.warn(
-                        loc,
-                        format!("{what}: wrap \"{w}\" is not supported; repeat used"),
-                    );
-                }
-                // Filtering does not change the expected value at a point.
-                let _ = self.string(&ps, "filter")?;
-                let _ = self.float(&ps, "maxanisotropy", 8.0)?;
+                self.image_wrap_and_filter(&ps, &what, loc)?;
                 let _ = self.boolean(&ps, "trilinear", false)?;
                 SpecTex::Ok(Texture::Bitmap {
                     image,
@@ -142,6 +132,22 @@ impl Parser {
         };
         self.report_unused(&ps, &what);
         self.define_texture(name, is_float, spec, &class, "float image");
+        Ok(())
+    }
+
+    /// An image texture's `wrap` (repeat alone; another is warned about) and its filter, which
+    /// does not change the expected value at a point.
+    pub(super) fn image_wrap_and_filter(&mut self, ps: &ParamSet, what: &str, loc: Loc) -> R<()> {
+        if let Some(w) = self.string(ps, "wrap")?
+            && w != "repeat"
+        {
+            self.warn(
+                loc,
+                format!("{what}: wrap \"{w}\" is not supported; repeat used"),
+            );
+        }
+        let _ = self.string(ps, "filter")?;
+        let _ = self.float(ps, "maxanisotropy", 8.0)?;
         Ok(())
     }
 

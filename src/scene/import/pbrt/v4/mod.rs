@@ -181,17 +181,7 @@ impl Parser {
         let list = self
             .refused
             .iter()
-            .map(|(loc, m)| {
-                if loc.file == 0 {
-                    format!("line {}: {m}", loc.line)
-                } else {
-                    format!(
-                        "{} line {}: {m}",
-                        self.files[loc.file as usize].display(),
-                        loc.line
-                    )
-                }
-            })
+            .map(|(loc, m)| format!("{}: {m}", self.place_of(*loc)))
             .collect::<Vec<_>>()
             .join("; ");
         Err(SceneError::new(

@@ -83,21 +83,9 @@ impl Parser {
         if !self.in_world {
             return Err(self.err(loc, "Shape outside WorldBegin"));
         }
-        let call = ShapeCall {
-            ty,
-            params,
-            ctm: self.g.ctm,
-            material: self.current_material(),
-            reverse: self.g.reverse,
-            loc,
-        };
-        if let Some((_, calls)) = &mut self.defining {
-            calls.push(call);
-            if self.g.area.is_some() {
-                self.warn(loc, "area lights inside object instances are not supported (as in pbrt-v4); the shape does not emit");
-            }
+        let Some(call) = self.shape_call(ty, params, loc, "pbrt-v4") else {
             return Ok(());
-        }
+        };
         let emits = self.g.area.is_some();
         self.v4_emit_shape(&call, Mat4::IDENTITY, emits)
     }
@@ -151,7 +139,7 @@ impl Parser {
                 );
             }
         }
-        let place = self.shape_place(loc);
+        let place = self.place_of(loc);
         let mesh = match call.ty.as_str() {
             "sphere" => {
                 // pbrt-v3's sphere (v3's reader checks it); the area for `power` only.

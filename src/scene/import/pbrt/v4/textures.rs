@@ -135,17 +135,7 @@ impl Parser {
                     );
                 }
                 let mapping = self.v4_uv_mapping(&ps, &what, loc)?;
-                if let Some(w) = self.string(&ps, "wrap")?
-                    && w != "repeat"
-                {
-                    self.warn(
-                        loc,
-                        format!("{what}: wrap \"{w}\" is not supported; repeat used"),
-                    );
-                }
-                // Filtering does not change the expected value at a point.
-                let _ = self.string(&ps, "filter")?;
-                let _ = self.float(&ps, "maxanisotropy", 8.0)?;
+                self.image_wrap_and_filter(&ps, &what, loc)?;
                 SpecTex::Ok(uv_mapped(
                     Texture::Bitmap {
                         image,
