@@ -108,6 +108,28 @@ impl SceneBuilder {
         SceneError::new(self.file(), location, message)
     }
 
+    /// Refuses a primitive's `material` that is not one of the builder's, and an `emission`
+    /// that is not finite and >= 0.
+    fn check_surface(
+        &self,
+        material: u32,
+        emission: Option<Rgb>,
+        location: &str,
+    ) -> Result<(), SceneError> {
+        if let Some(e) = emission
+            && !(e.is_finite() && e.min_element() >= 0.0)
+        {
+            return Err(self.err(
+                location,
+                format!("emission must be finite and >= 0, got {e:?}"),
+            ));
+        }
+        if material as usize >= self.materials.len() {
+            return Err(self.err(location, "material index out of range"));
+        }
+        Ok(())
+    }
+
     /// Adds a mesh transformed to world space. `location` names it in errors.
     ///
     /// Vertices must lie within `MAX_COORDINATE` of the origin.
@@ -160,17 +182,7 @@ impl SceneBuilder {
                 ),
             ));
         }
-        if let Some(e) = emission
-            && !(e.is_finite() && e.min_element() >= 0.0)
-        {
-            return Err(self.err(
-                location,
-                format!("emission must be finite and >= 0, got {e:?}"),
-            ));
-        }
-        if material as usize >= self.materials.len() {
-            return Err(self.err(location, "material index out of range"));
-        }
+        self.check_surface(material, emission, location)?;
         let base = self.positions.len() as u32;
         for (i, &p) in mesh.positions.iter().enumerate() {
             let w = transform.point(p);
@@ -247,17 +259,7 @@ impl SceneBuilder {
         if !within_world(center.abs() + radius) {
             return Err(self.err(location, beyond_world("the sphere", center.abs() + radius)));
         }
-        if let Some(e) = emission
-            && !(e.is_finite() && e.min_element() >= 0.0)
-        {
-            return Err(self.err(
-                location,
-                format!("emission must be finite and >= 0, got {e:?}"),
-            ));
-        }
-        if material as usize >= self.materials.len() {
-            return Err(self.err(location, "material index out of range"));
-        }
+        self.check_surface(material, emission, location)?;
         self.spheres.push(Sphere {
             center,
             radius,
