@@ -37,7 +37,7 @@ fn load(name: &str, w: u32, h: u32) -> Scene {
 fn base(integrator: IntegratorKind, spp: u32) -> RenderSettings {
     RenderSettings {
         integrator,
-        spp,
+        sample_block: spp,
         max_depth: 4,
         sampler: SamplerKind::Independent,
         ..Default::default()

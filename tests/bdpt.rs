@@ -45,7 +45,7 @@ fn bdpt(mis: MisKind, spp: u32, max_depth: u32) -> RenderSettings {
     RenderSettings {
         integrator: IntegratorKind::Bdpt,
         mis,
-        spp,
+        sample_block: spp,
         max_depth,
         sampler: SamplerKind::Independent,
         ..Default::default()
@@ -63,7 +63,7 @@ fn alone(techniques: Techniques, spp: u32, max_depth: u32) -> RenderSettings {
 fn pt(spp: u32, max_depth: u32) -> RenderSettings {
     RenderSettings {
         integrator: IntegratorKind::Pt,
-        spp,
+        sample_block: spp,
         max_depth,
         sampler: SamplerKind::Independent,
         ..Default::default()

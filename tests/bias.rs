@@ -21,7 +21,7 @@ fn settings(mis: MisKind, kappa: f64, spp: u32, seed: u64) -> RenderSettings {
     RenderSettings {
         integrator: IntegratorKind::Bdpt,
         mis,
-        spp,
+        sample_block: spp,
         max_depth: MAX_DEPTH,
         optimal_max_depth: MAX_DEPTH,
         optimal_kappa: kappa,

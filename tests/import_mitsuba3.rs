@@ -4,12 +4,13 @@
 
 mod common;
 
+use common::import::{assert_has, load_err_with as load_err, load_with as load};
 use omis::geometry::Vec3;
 use omis::light::Light;
 use omis::material::{Distribution, MaterialKind};
-use omis::scene::{Scene, SceneParams};
+use omis::scene::SceneParams;
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::Command;
 
 fn folder(name: &str) -> PathBuf {
@@ -22,23 +23,6 @@ fn params(kv: &[(&str, &str)]) -> SceneParams {
             .map(|(k, v)| (k.to_string(), v.to_string()))
             .collect::<BTreeMap<_, _>>(),
     )
-}
-
-fn load(path: &Path, p: &SceneParams) -> Scene {
-    Scene::load_with(path, p).unwrap_or_else(|e| panic!("{} should load: {e}", path.display()))
-}
-
-fn load_err(path: &Path, p: &SceneParams) -> String {
-    match Scene::load_with(path, p) {
-        Ok(_) => panic!("{} loaded but should not", path.display()),
-        Err(e) => e.to_string(),
-    }
-}
-
-fn assert_has(msg: &str, parts: &[&str]) {
-    for p in parts {
-        assert!(msg.contains(p), "'{msg}' should mention '{p}'");
-    }
 }
 
 /// A scene: a sensor of `w` x `h` pixels at the origin looking down -z, then `body`.

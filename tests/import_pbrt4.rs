@@ -4,6 +4,7 @@
 
 mod common;
 
+use common::import::{assert_has, load, load_err, warning};
 use omis::film::Image;
 use omis::geometry::Vec3;
 use omis::integrator::{IntegratorKind, RenderSettings};
@@ -11,32 +12,6 @@ use omis::light::Light;
 use omis::material::MaterialKind;
 use omis::sampler::SamplerKind;
 use omis::scene::Scene;
-use std::path::Path;
-
-fn load(path: &Path) -> Scene {
-    Scene::load(path).unwrap_or_else(|e| panic!("{} should load: {e}", path.display()))
-}
-
-fn load_err(path: &Path) -> String {
-    match Scene::load(path) {
-        Ok(_) => panic!("{} loaded but should not", path.display()),
-        Err(e) => e.to_string(),
-    }
-}
-
-fn assert_has(msg: &str, parts: &[&str]) {
-    for p in parts {
-        assert!(msg.contains(p), "'{msg}' should mention '{p}'");
-    }
-}
-
-fn warning<'a>(scene: &'a Scene, part: &str) -> &'a str {
-    scene
-        .warnings
-        .iter()
-        .find(|w| w.contains(part))
-        .unwrap_or_else(|| panic!("no warning mentions '{part}': {:#?}", scene.warnings))
-}
 
 /// Pixels of the twin renders (small: the comparison is of means over the image and its
 /// quarters).
@@ -53,7 +28,7 @@ fn renders(scene: &Scene, first_seed: u64) -> Vec<Image> {
         .map(|k| {
             let s = RenderSettings {
                 integrator: IntegratorKind::Pt,
-                spp: SPP,
+                sample_block: SPP,
                 max_depth: scene.defaults.max_depth.unwrap_or(5),
                 sampler: SamplerKind::Independent,
                 seed: first_seed + k,

@@ -15,7 +15,7 @@ fn optimal(spp: u32, max_depth: u32, d_opt: u32) -> RenderSettings {
     RenderSettings {
         integrator: IntegratorKind::Bdpt,
         mis: MisKind::Optimal,
-        spp,
+        sample_block: spp,
         max_depth,
         optimal_max_depth: d_opt,
         sampler: SamplerKind::Independent,
@@ -523,7 +523,7 @@ fn optimal_at_64_spp_is_unbiased_against_a_long_path_traced_reference() {
         let pt = seeds(
             &scene,
             &RenderSettings {
-                spp: 256,
+                sample_block: 256,
                 max_depth: 5,
                 sampler: SamplerKind::Independent,
                 ..Default::default()

@@ -53,7 +53,7 @@ fn furnace_every_pixel_matches_the_analytic_sum() {
     for max_depth in [0u32, 1, 2, 5, 12] {
         let expected: f64 = (0..=max_depth).map(|d| 0.5f64.powi(d as i32)).sum();
         let settings = RenderSettings {
-            spp: 1024,
+            sample_block: 1024,
             max_depth,
             seed: 7,
             sampler: SamplerKind::Independent,
@@ -116,7 +116,7 @@ fn light_sampling_equals_bsdf_sampling_for_direct_light() {
         let scene = plane_scene(light);
         let run = |direct, spp| {
             let s = RenderSettings {
-                spp,
+                sample_block: spp,
                 max_depth: 1,
                 seed: 11,
                 sampler: SamplerKind::Independent,
@@ -171,7 +171,7 @@ fn renders_are_bit_identical_for_any_thread_count() {
         SamplerKind::Sobol,
     ] {
         let settings = RenderSettings {
-            spp: 4,
+            sample_block: 4,
             max_depth: 5,
             seed: 3,
             sampler,

@@ -45,7 +45,7 @@ fn settings(integrator: IntegratorKind, mis: MisKind, spp: u32, max_depth: u32) 
     RenderSettings {
         integrator,
         mis,
-        spp,
+        sample_block: spp,
         max_depth,
         sampler: SamplerKind::Independent,
         ..Default::default()

@@ -240,7 +240,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         let rates = measure_rays(scene.accel(), lo, hi, a.rays, &pool);
         let settings = RenderSettings {
             integrator: IntegratorKind::Pt,
-            spp: a.spp,
+            sample_block: a.spp,
             max_depth: a.max_depth,
             seed: 1,
             sampler: SamplerKind::Sobol,

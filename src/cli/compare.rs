@@ -13,7 +13,7 @@ use crate::scene::Scene;
 use crate::service::exr_header;
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub struct CompareArgs {
@@ -197,7 +197,38 @@ fn relative_variance(imgs: &[&Image], eps: f64) -> f64 {
     acc / count as f64
 }
 
+/// Runs `omis compare`: the renders, the table, the plots and `results.json`.
 pub fn run(a: CompareArgs) -> Result<()> {
+    let roulette_from = check_args(&a)?;
+    let reference = Reference::load(&a.reference, a.max_depth)?;
+    let scene = load_scene(&a.scene, &reference.beauty)?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let mut methods: Vec<Method> = a.mis.iter().map(|&m| Method::Bdpt(m.into())).collect();
+    if a.pt {
+        methods.push(Method::Pt);
+    }
+    let comparison = Comparison {
+        a: &a,
+        reference: &reference,
+        // A pilot moves the camera for its replicas (and gives it back) before its render
+        // borrows the scene.
+        scene: std::cell::RefCell::new(scene),
+        pool: super::thread_pool(a.threads)?,
+        methods,
+        roulette_from,
+    };
+    let points = comparison.equal_spp()?;
+    let timed = match a.equal_time {
+        Some(t) => comparison.equal_time(t)?,
+        None => Vec::new(),
+    };
+    print_table(&points, &timed, &a);
+    write_plots(&points, &a)?;
+    write_results(&a, &reference.beauty, roulette_from, &points, &timed)
+}
+
+/// Refuses arguments that cannot make a comparison; the first vertex of BDPT's roulette.
+fn check_args(a: &CompareArgs) -> Result<u32> {
     if a.seeds == 0 || a.spp.is_empty() || a.mis.is_empty() {
         bail!("need at least one seed, one spp and one strategy");
     }
@@ -219,64 +250,101 @@ pub fn run(a: CompareArgs) -> Result<()> {
     if a.cpu_time && super::procstat::cpu_seconds(None).is_nan() {
         bail!("--cpu-time: this system does not report the process's CPU time");
     }
-    // The header first: a small file can claim a frame too large to decode.
-    exr_header::check_cli(&a.reference).map_err(anyhow::Error::msg)?;
-    let layers = exr_io::read_exr_layers(&a.reference).map_err(anyhow::Error::msg)?;
-    let reference = layers
-        .iter()
-        .find(|(n, _)| n.is_empty())
-        .map(|(_, i)| i.clone())
-        .unwrap_or_else(|| layers[0].1.clone());
-    let ref_depths: Vec<Option<Image>> = (0..=a.max_depth)
-        .map(|d| {
-            layers
-                .iter()
-                .find(|(n, _)| *n == format!("depth{d}"))
-                .map(|(_, i)| i.clone())
-        })
-        .collect();
-    let mut scene = Scene::load(&a.scene).map_err(anyhow::Error::msg)?;
+    Ok(roulette_from)
+}
+
+/// The reference EXR: its beauty, and its depth layers where it has them.
+struct Reference {
+    beauty: Image,
+    /// Layer `depth{d}` for d = 0 ..= max depth, where the file has it.
+    depths: Vec<Option<Image>>,
+}
+
+impl Reference {
+    /// Reads the reference EXR, its beauty and its layers of depths 0 ..= `max_depth`.
+    fn load(path: &Path, max_depth: u32) -> Result<Reference> {
+        // The header first: a small file can claim a frame too large to decode.
+        exr_header::check_cli(path).map_err(anyhow::Error::msg)?;
+        let layers = exr_io::read_exr_layers(path).map_err(anyhow::Error::msg)?;
+        let beauty = layers
+            .iter()
+            .find(|(n, _)| n.is_empty())
+            .map(|(_, i)| i.clone())
+            .unwrap_or_else(|| layers[0].1.clone());
+        let depths = (0..=max_depth)
+            .map(|d| {
+                layers
+                    .iter()
+                    .find(|(n, _)| *n == format!("depth{d}"))
+                    .map(|(_, i)| i.clone())
+            })
+            .collect();
+        Ok(Reference { beauty, depths })
+    }
+}
+
+/// The scene at the reference's resolution.
+fn load_scene(path: &Path, reference: &Image) -> Result<Scene> {
+    let mut scene = Scene::load(path).map_err(anyhow::Error::msg)?;
     scene.camera = scene
         .camera
         .with_resolution(reference.width as u32, reference.height as u32)
         .map_err(anyhow::Error::msg)?;
-    // A pilot moves the camera for its replicas (and gives it back) before its render borrows
-    // the scene.
-    let scene = std::cell::RefCell::new(scene);
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let pool = super::thread_pool(a.threads)?;
-    let mut methods: Vec<Method> = a.mis.iter().map(|&m| Method::Bdpt(m.into())).collect();
-    if a.pt {
-        methods.push(Method::Pt);
+    Ok(scene)
+}
+
+/// What every render of a comparison shares: the arguments, the reference, the scene, the pool
+/// and the methods compared.
+struct Comparison<'a> {
+    a: &'a CompareArgs,
+    reference: &'a Reference,
+    scene: std::cell::RefCell<Scene>,
+    pool: rayon::ThreadPool,
+    methods: Vec<Method>,
+    roulette_from: u32,
+}
+
+impl Comparison<'_> {
+    /// The settings of a render of `method` at `spp` with `seed` and D_opt `d_opt`.
+    fn base(&self, method: Method, spp: u32, seed: u64, d_opt: u32) -> RenderSettings {
+        let a = self.a;
+        RenderSettings {
+            integrator: match method {
+                Method::Pt => IntegratorKind::Pt,
+                Method::Bdpt(_) => IntegratorKind::Bdpt,
+            },
+            mis: match method {
+                Method::Pt => MisKind::Balance,
+                Method::Bdpt(m) => m,
+            },
+            sample_block: spp,
+            max_depth: a.max_depth,
+            seed,
+            sampler: a.sampler.into(),
+            optimal_max_depth: d_opt,
+            optimal_kappa: a.kappa,
+            depth_layers: true,
+            // BDPT's roulette as `omis render` resolves it (the path tracer has its own).
+            roulette: !a.no_roulette,
+            roulette_from: self.roulette_from,
+            ..Default::default()
+        }
     }
-    let base = |method: Method, spp: u32, seed: u64, d_opt: u32| RenderSettings {
-        integrator: match method {
-            Method::Pt => IntegratorKind::Pt,
-            Method::Bdpt(_) => IntegratorKind::Bdpt,
-        },
-        mis: match method {
-            Method::Pt => MisKind::Balance,
-            Method::Bdpt(m) => m,
-        },
-        spp,
-        max_depth: a.max_depth,
-        seed,
-        sampler: a.sampler.into(),
-        optimal_max_depth: d_opt,
-        optimal_kappa: a.kappa,
-        depth_layers: true,
-        // BDPT's roulette as `omis render` resolves it (the path tracer has its own).
-        roulette: !a.no_roulette,
-        roulette_from,
-        ..Default::default()
-    };
-    // `--optimal-max-depth auto`: each optimal render's pilot, as `omis render` runs it for a job
-    // of `samples` pixel samples or a budget of `budget_s` seconds (on the budget's clock).
-    let pixels = reference.width as u64 * reference.height as u64;
-    let pilot = |method: Method, seed: u64, spp: Option<u32>, budget_s: Option<f64>| {
+
+    /// `--optimal-max-depth auto`: an optimal render's pilot, as `omis render` runs it for a job
+    /// of `spp` samples per pixel or a budget of `budget_s` seconds (on the budget's clock).
+    fn pilot(
+        &self,
+        method: Method,
+        seed: u64,
+        spp: Option<u32>,
+        budget_s: Option<f64>,
+    ) -> Option<Pilot> {
+        let a = self.a;
         if a.optimal_max_depth.0.is_some() || !matches!(method, Method::Bdpt(k) if k.is_optimal()) {
             return None;
         }
+        let pixels = self.reference.beauty.width as u64 * self.reference.beauty.height as u64;
         let wall0 = std::time::Instant::now();
         let cpu0 = super::procstat::cpu_seconds(None);
         let clock = || {
@@ -293,10 +361,12 @@ pub fn run(a: CompareArgs) -> Result<()> {
                 clock: &clock,
             }),
         };
-        let s = base(method, 1, seed, 0);
-        let mut scene = scene.borrow_mut();
+        let s = self.base(method, 1, seed, 0);
+        let mut scene = self.scene.borrow_mut();
         let scene: &mut Scene = &mut scene;
-        let choice = pool.install(|| optimal_depth::choose(scene, &s, a.eps, size));
+        let choice = self
+            .pool
+            .install(|| optimal_depth::choose(scene, &s, a.eps, size));
         let point = spp.map_or_else(|| "equal time".to_string(), |n| format!("{n} spp"));
         eprintln!(
             "{} seed {seed}, {point}: {}",
@@ -309,25 +379,35 @@ pub fn run(a: CompareArgs) -> Result<()> {
             cpu: super::procstat::cpu_seconds(None) - cpu0,
             on_clock: clock(),
         })
-    };
-    let settings = |method: Method, spp: u32, seed: u64, pilot: &Option<Pilot>| {
-        let d_opt = match (pilot, a.optimal_max_depth.0) {
+    }
+
+    /// The settings of a render, with the D_opt its pilot chose, or the argument's.
+    fn settings(
+        &self,
+        method: Method,
+        spp: u32,
+        seed: u64,
+        pilot: &Option<Pilot>,
+    ) -> RenderSettings {
+        let d_opt = match (pilot, self.a.optimal_max_depth.0) {
             (Some(p), _) => p.choice.chosen,
             (None, Some(d)) => d,
             (None, None) => crate::mis::DEFAULT_OPTIMAL_MAX_DEPTH,
         };
-        base(method, spp, seed, d_opt)
-    };
-    // One render reduced to what its point needs; the film is dropped here, so a comparison
-    // holds images, not every render's accumulators.
-    let summarize = |Run { out, cpu, pilot }: Run| -> Result<Rendered> {
+        self.base(method, spp, seed, d_opt)
+    }
+
+    /// One render reduced to what its point needs; the film is dropped here, so a comparison
+    /// holds images, not every render's accumulators.
+    fn summarize(&self, Run { out, cpu, pilot }: Run) -> Result<Rendered> {
+        let eps = self.a.eps;
         let img = out.image();
-        let e = metrics::compare(&img, &reference, a.eps).map_err(anyhow::Error::msg)?;
+        let e = metrics::compare(&img, &self.reference.beauty, eps).map_err(anyhow::Error::msg)?;
         let mut depths = Vec::new();
         for (d, im) in out.film.depth_images().into_iter().enumerate() {
-            depths.push(match ref_depths.get(d) {
+            depths.push(match self.reference.depths.get(d) {
                 Some(Some(r)) => DepthError::Against(
-                    metrics::compare(&im, r, a.eps)
+                    metrics::compare(&im, r, eps)
                         .map_err(anyhow::Error::msg)?
                         .relmse,
                 ),
@@ -344,115 +424,75 @@ pub fn run(a: CompareArgs) -> Result<()> {
             depths,
             pilot,
         })
-    };
-    let eval = |method: Method, spp: u32, runs: Vec<Rendered>| -> Point {
-        let n = runs.len() as f64;
-        let rel: Vec<f64> = runs.iter().map(|r| r.relmse).collect();
-        let trimmed: Vec<f64> = runs.iter().map(|r| r.relmse_trimmed).collect();
-        let (m, sd) = mean_sd(&rel);
-        let per_depth = (0..=a.max_depth as usize)
-            .map(|d| {
-                let of_depth = runs.iter().filter_map(|r| r.depths.get(d));
-                let against: Vec<f64> = of_depth
-                    .clone()
-                    .filter_map(|e| match e {
-                        DepthError::Against(v) => Some(*v),
-                        DepthError::Image(_) => None,
-                    })
-                    .collect();
-                if against.is_empty() {
-                    let imgs: Vec<&Image> = of_depth
-                        .filter_map(|e| match e {
-                            DepthError::Image(im) => Some(im),
-                            DepthError::Against(_) => None,
-                        })
-                        .collect();
-                    relative_variance(&imgs, a.eps)
-                } else {
-                    mean_sd(&against).0
-                }
-            })
-            .collect();
-        Point {
-            method,
-            spp,
-            relmse: m,
-            relmse_sd: sd,
-            relmse_trimmed: mean_sd(&trimmed).0,
-            seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
-            cpu_seconds: runs.iter().map(|r| r.cpu).sum::<f64>() / n,
-            bytes_per_pixel: runs.first().map_or(0, |r| r.bytes_per_pixel),
-            relmse_per_depth: per_depth,
-            optimal_depth: runs
-                .iter()
-                .filter_map(|r| r.pilot.as_ref().map(|p| p.choice.clone()))
-                .collect(),
-            pilot_cpu_seconds: runs
-                .iter()
-                .map(|r| r.pilot.as_ref().map_or(0.0, |p| p.cpu))
-                .sum::<f64>()
-                / n,
-        }
-    };
-    // Every method's renders of a seed run back to back, the first method rotating with the
-    // seed: a machine whose speed drifts during the comparison (other load, thermal limits)
-    // then slows every method alike, which matters most for the equal-time budgets.
-    let interleaved = |render: &dyn Fn(Method, u64) -> Run| -> Result<Vec<Vec<Rendered>>> {
+    }
+
+    /// Every method's renders of a seed run back to back, the first method rotating with the
+    /// seed: a machine whose speed drifts during the comparison (other load, thermal limits)
+    /// then slows every method alike, which matters most for the equal-time budgets.
+    fn interleaved(&self, render: &dyn Fn(Method, u64) -> Run) -> Result<Vec<Vec<Rendered>>> {
+        let methods = &self.methods;
         let mut runs: Vec<Vec<Rendered>> = methods.iter().map(|_| Vec::new()).collect();
-        for seed in 0..a.seeds {
+        for seed in 0..self.a.seeds {
             for k in 0..methods.len() {
                 let m = (k + seed as usize) % methods.len();
-                runs[m].push(summarize(render(methods[m], seed))?);
+                runs[m].push(self.summarize(render(methods[m], seed))?);
             }
         }
         Ok(runs)
-    };
-
-    let mut points = Vec::new();
-    for &spp in &a.spp {
-        let runs = interleaved(&|mis, seed| {
-            let pilot = pilot(mis, seed, Some(spp), None);
-            let s = settings(mis, spp, seed, &pilot);
-            let job = Resolved {
-                max_pass_size: Some(MAX_PASS_SIZE),
-                ..Resolved::fixed(&scene.borrow(), &s, TILE_SIZE, 1)
-            };
-            let (out, cpu) = timed_render(&pool, &job, &scene.borrow(), false);
-            Run { out, cpu, pilot }
-        })?;
-        for (&mis, runs) in methods.iter().zip(runs) {
-            let p = eval(mis, spp, runs);
-            eprintln!(
-                "{:>8} {:>5} spp: relMSE {:.4e} +- {:.1e}  {:.2} s",
-                p.method.name(),
-                spp,
-                p.relmse,
-                p.relmse_sd,
-                p.seconds
-            );
-            points.push(p);
-        }
     }
-    let mut timed = Vec::new();
-    if let Some(t) = a.equal_time {
+
+    /// The points at each of the arguments' sample counts.
+    fn equal_spp(&self) -> Result<Vec<Point>> {
+        let mut points = Vec::new();
+        for &spp in &self.a.spp {
+            let runs = self.interleaved(&|mis, seed| {
+                let pilot = self.pilot(mis, seed, Some(spp), None);
+                let s = self.settings(mis, spp, seed, &pilot);
+                let job = Resolved {
+                    max_pass_size: Some(MAX_PASS_SIZE),
+                    ..Resolved::fixed(&self.scene.borrow(), &s, TILE_SIZE, 1)
+                };
+                let (out, cpu) = timed_render(&self.pool, &job, &self.scene.borrow(), false);
+                Run { out, cpu, pilot }
+            })?;
+            for (&mis, runs) in self.methods.iter().zip(runs) {
+                let p = point(mis, spp, runs, self.a);
+                eprintln!(
+                    "{:>8} {:>5} spp: relMSE {:.4e} +- {:.1e}  {:.2} s",
+                    p.method.name(),
+                    spp,
+                    p.relmse,
+                    p.relmse_sd,
+                    p.seconds
+                );
+                points.push(p);
+            }
+        }
+        Ok(points)
+    }
+
+    /// The points at an equal time of `t` seconds per render.
+    fn equal_time(&self, t: f64) -> Result<Vec<Point>> {
         if !(t > 0.0 && t.is_finite()) {
             bail!("--equal-time must be a positive number of seconds");
         }
-        let runs = interleaved(&|mis, seed| {
+        let a = self.a;
+        let runs = self.interleaved(&|mis, seed| {
             // The pilot's time counts against the budget, as in `omis render --time-budget`.
-            let pilot = pilot(mis, seed, None, Some(t));
-            let s = settings(mis, 1, seed, &pilot);
+            let pilot = self.pilot(mis, seed, None, Some(t));
+            let s = self.settings(mis, 1, seed, &pilot);
             let job = Resolved {
                 max_pass_size: Some(MAX_TIMED_PASS_SIZE),
                 pilot_s: pilot.as_ref().map(|p| p.on_clock),
-                ..Resolved::timed(&scene.borrow(), &s, TILE_SIZE, 1, t)
+                ..Resolved::timed(&self.scene.borrow(), &s, TILE_SIZE, 1, t)
             };
-            let (out, cpu) = timed_render(&pool, &job, &scene.borrow(), a.cpu_time);
+            let (out, cpu) = timed_render(&self.pool, &job, &self.scene.borrow(), a.cpu_time);
             Run { out, cpu, pilot }
         })?;
-        for (&mis, runs) in methods.iter().zip(runs) {
+        let mut timed = Vec::new();
+        for (&mis, runs) in self.methods.iter().zip(runs) {
             let spp = runs.iter().map(|r| r.spp).min().unwrap_or(0);
-            let p = eval(mis, spp, runs);
+            let p = point(mis, spp, runs, a);
             eprintln!(
                 "{:>8} equal {} time {t} s: {} spp, relMSE {:.4e}",
                 p.method.name(),
@@ -462,10 +502,70 @@ pub fn run(a: CompareArgs) -> Result<()> {
             );
             timed.push(p);
         }
+        Ok(timed)
     }
+}
 
-    print_table(&points, &timed, &a);
-    write_plots(&points, &a)?;
+/// The point of `method` at `spp` from its renders: relMSE over seeds, per depth against the
+/// reference's layers or, without them, the relative variance across seeds; times and costs.
+fn point(method: Method, spp: u32, runs: Vec<Rendered>, a: &CompareArgs) -> Point {
+    let n = runs.len() as f64;
+    let rel: Vec<f64> = runs.iter().map(|r| r.relmse).collect();
+    let trimmed: Vec<f64> = runs.iter().map(|r| r.relmse_trimmed).collect();
+    let (m, sd) = mean_sd(&rel);
+    let per_depth = (0..=a.max_depth as usize)
+        .map(|d| {
+            let of_depth = runs.iter().filter_map(|r| r.depths.get(d));
+            let against: Vec<f64> = of_depth
+                .clone()
+                .filter_map(|e| match e {
+                    DepthError::Against(v) => Some(*v),
+                    DepthError::Image(_) => None,
+                })
+                .collect();
+            if against.is_empty() {
+                let imgs: Vec<&Image> = of_depth
+                    .filter_map(|e| match e {
+                        DepthError::Image(im) => Some(im),
+                        DepthError::Against(_) => None,
+                    })
+                    .collect();
+                relative_variance(&imgs, a.eps)
+            } else {
+                mean_sd(&against).0
+            }
+        })
+        .collect();
+    Point {
+        method,
+        spp,
+        relmse: m,
+        relmse_sd: sd,
+        relmse_trimmed: mean_sd(&trimmed).0,
+        seconds: runs.iter().map(|r| r.seconds).sum::<f64>() / n,
+        cpu_seconds: runs.iter().map(|r| r.cpu).sum::<f64>() / n,
+        bytes_per_pixel: runs.first().map_or(0, |r| r.bytes_per_pixel),
+        relmse_per_depth: per_depth,
+        optimal_depth: runs
+            .iter()
+            .filter_map(|r| r.pilot.as_ref().map(|p| p.choice.clone()))
+            .collect(),
+        pilot_cpu_seconds: runs
+            .iter()
+            .map(|r| r.pilot.as_ref().map_or(0.0, |p| p.cpu))
+            .sum::<f64>()
+            / n,
+    }
+}
+
+/// Writes `results.json` into the output folder, and prints it with `--json`.
+fn write_results(
+    a: &CompareArgs,
+    reference: &Image,
+    roulette_from: u32,
+    points: &[Point],
+    timed: &[Point],
+) -> Result<()> {
     let result = serde_json::json!({
         "scene": a.scene.display().to_string(),
         "reference": a.reference.display().to_string(),

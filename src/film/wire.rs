@@ -1634,7 +1634,7 @@ mod tests {
         let s = RenderSettings {
             integrator: IntegratorKind::Bdpt,
             mis: crate::mis::MisKind::Optimal,
-            spp: 2,
+            sample_block: 2,
             max_depth: 3,
             optimal_max_depth: 2,
             strategies: true,

@@ -65,8 +65,10 @@ impl Techniques {
 pub struct RenderSettings {
     /// Path tracing or BDPT.
     pub integrator: IntegratorKind,
-    /// Samples per pixel: the sampler's stratification block (a time-budget job's pass size).
-    pub spp: u32,
+    /// Samples per pixel of the sampler's stratification block: a fixed-spp job's total, a
+    /// time-budget job's pass size (`Resolved::spp` is the job's total).
+    #[serde(rename = "spp")]
+    pub sample_block: u32,
     /// Longest path kept, in bounces.
     pub max_depth: u32,
     /// Seed of every random number.
@@ -189,7 +191,7 @@ impl Default for RenderSettings {
     fn default() -> Self {
         RenderSettings {
             integrator: IntegratorKind::Pt,
-            spp: 16,
+            sample_block: 16,
             max_depth: 5,
             seed: 0,
             sampler: SamplerKind::Sobol,

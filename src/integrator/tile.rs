@@ -284,7 +284,7 @@ pub fn render_tile_cached(
                     x,
                     y,
                     i,
-                    settings.spp,
+                    settings.sample_block,
                     Stream::Camera,
                 );
                 let l = match settings.integrator {
@@ -315,7 +315,7 @@ pub fn render_tile_cached(
                             x,
                             y,
                             i,
-                            settings.spp,
+                            settings.sample_block,
                             Stream::Light,
                         );
                         let layers = if film.layers.is_empty() {
@@ -438,7 +438,7 @@ fn render_tile_vcm(
                     x,
                     y,
                     i,
-                    settings.spp,
+                    settings.sample_block,
                     Stream::Camera,
                 );
                 if bpm {

@@ -134,7 +134,7 @@ impl PhotonMap {
                     x,
                     y,
                     iteration,
-                    settings.spp,
+                    settings.sample_block,
                     Stream::Light,
                 );
                 bdpt::light_subpath(scene, &mut sampler, max_depth, &mut ws, &mut stats);

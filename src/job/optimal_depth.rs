@@ -213,7 +213,7 @@ struct Replica {
 
 /// Renders one pilot replica.
 fn replica(scene: &Scene, s: &RenderSettings, dmax: u32) -> Replica {
-    let job = super::Resolved::fixed(scene, s, 16, s.spp);
+    let job = super::Resolved::fixed(scene, s, 16, s.sample_block);
     let out = job.render_in_process(scene, &|_| {});
     let light_paths = out.film.light_paths();
     let acc = out.film.acc;
@@ -301,7 +301,7 @@ fn replicas_at(
     let rendered = ks
         .map(|k| {
             let s = RenderSettings {
-                spp: PILOT_SPP,
+                sample_block: PILOT_SPP,
                 seed: replica_seed(settings.seed, k),
                 mis: MisKind::Optimal,
                 optimal_max_depth: dmax,

@@ -46,7 +46,7 @@ impl RenderOutput {
 }
 
 impl Resolved {
-    /// A fixed-spp job of `settings.spp` samples at the scene camera's resolution, in tiles of
+    /// A fixed-spp job of `settings.sample_block` samples at the scene camera's resolution, in tiles of
     /// `tile_size` and passes of `pass_size` samples (no limits checked: for callers that build
     /// their settings themselves, as benchmarks and tests do).
     pub fn fixed(
@@ -60,7 +60,7 @@ impl Resolved {
             width: scene.camera.width,
             height: scene.camera.height,
             render: settings.clone(),
-            spp: Some(settings.spp),
+            spp: Some(settings.sample_block),
             time_budget_s: None,
             budget_spp: None,
             pilot_s: None,
@@ -84,7 +84,7 @@ impl Resolved {
         let pass_size = pass_size.max(1);
         Resolved {
             render: RenderSettings {
-                spp: pass_size,
+                sample_block: pass_size,
                 ..settings.clone()
             },
             spp: None,

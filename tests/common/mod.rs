@@ -2,6 +2,7 @@
 //! pool of a given size, and the rule for tests that need `../shared/scenes`.
 #![allow(dead_code)] // Each test crate uses a subset.
 
+pub mod import;
 pub mod service;
 
 use omis::film::{Film, Image};

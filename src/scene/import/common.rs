@@ -2,6 +2,7 @@
 //! bitmap cache, and the geometric conversions both foreign formats need.
 
 use super::resolve::SceneFile;
+use super::xml::Node;
 use crate::camera::Camera;
 use crate::geometry::{Frame, Mat4, Rgb, Transform, Vec3};
 use crate::material::{Bitmap, Material, MaterialKind, Texture};
@@ -117,6 +118,18 @@ pub(crate) fn camera_from(
     let cam = Camera::new(position, position + forward, up, vfov, w, h)?;
     let flip = c2w.vector(raster_x).dot(cam.right()) < 0.0;
     Ok(cam.with_flip_x(flip))
+}
+
+/// The file a Mitsuba `<shape type="obj">` or `<shape type="ply">` names (either version's
+/// files), where it names one.
+pub(crate) fn mitsuba_mesh_file(n: &Node) -> Option<&str> {
+    if n.tag != "shape" || !matches!(n.attr("type"), Some("obj" | "ply")) {
+        return None;
+    }
+    n.children
+        .iter()
+        .find(|k| k.attr("name") == Some("filename"))
+        .and_then(|k| k.attr("value"))
 }
 
 /// Mitsuba's `<lookat>` (0.5 and 3 alike): +z toward the target, +x = up x z, at `origin`; with

@@ -6,11 +6,32 @@
 use super::resolve::SceneFile;
 use crate::geometry::{Vec2, Vec3};
 use crate::scene::MeshData;
+use rayon::prelude::*;
 use std::io::BufRead;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+/// Why a mesh file could not be read. Its text names the cause; the caller adds the file.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum MeshError {
+    /// The file could not be opened (the system's reason).
+    #[error("cannot open: {0}")]
+    Open(String),
+    /// The file could not be read to its end (the system's reason).
+    #[error("cannot read: {0}")]
+    Read(String),
+    /// The extension names no format we read.
+    #[error("unknown mesh format '.{0}' (expected .obj or .ply)")]
+    UnknownFormat(String),
+    /// A gzipped PLY file that would unpack to more than `MAX_GUNZIPPED_PLY` bytes.
+    #[error("the PLY file unpacks to {0} bytes, more than the {max} allowed", max = MAX_GUNZIPPED_PLY)]
+    TooLarge(usize),
+    /// The contents are not a mesh we read: what is wrong, and where.
+    #[error("{0}")]
+    Malformed(String),
+}
 
 /// Loads an OBJ or PLY file of a scene by extension. Polygons are triangulated as fans.
-pub fn load_mesh(file: &SceneFile) -> Result<MeshData, String> {
+pub fn load_mesh(file: &SceneFile) -> Result<MeshData, MeshError> {
     let ext = file
         .path()
         .extension()
@@ -20,20 +41,20 @@ pub fn load_mesh(file: &SceneFile) -> Result<MeshData, String> {
     match ext.as_str() {
         "obj" => read_obj(file),
         "ply" => read_ply(file),
-        other => Err(format!(
-            "unknown mesh format '.{other}' (expected .obj or .ply)"
-        )),
+        other => Err(MeshError::UnknownFormat(other.to_string())),
     }
 }
 
 /// Loads a scene's OBJ file.
-pub fn read_obj(file: &SceneFile) -> Result<MeshData, String> {
-    obj_from(&mut file.open().map_err(|e| format!("cannot open: {e}"))?)
+pub fn read_obj(file: &SceneFile) -> Result<MeshData, MeshError> {
+    obj_from(&mut file.open().map_err(|e| MeshError::Open(e.to_string()))?)
+        .map_err(MeshError::Malformed)
 }
 
 /// Loads a scene's PLY file.
-pub fn read_ply(file: &SceneFile) -> Result<MeshData, String> {
-    ply_from(&mut file.open().map_err(|e| format!("cannot open: {e}"))?)
+pub fn read_ply(file: &SceneFile) -> Result<MeshData, MeshError> {
+    ply_from(&mut file.open().map_err(|e| MeshError::Open(e.to_string()))?)
+        .map_err(MeshError::Malformed)
 }
 
 /// Largest decompressed size of a gzipped PLY file (a hostile file cannot make us allocate
@@ -41,36 +62,50 @@ pub fn read_ply(file: &SceneFile) -> Result<MeshData, String> {
 const MAX_GUNZIPPED_PLY: usize = 1 << 30;
 
 /// Loads a scene's gzipped PLY file (`.ply.gz`, as pbrt-v4 writes them).
-pub fn read_ply_gz(file: &SceneFile) -> Result<MeshData, String> {
+pub fn read_ply_gz(file: &SceneFile) -> Result<MeshData, MeshError> {
     use std::io::Read;
     let mut packed = Vec::new();
     file.open()
-        .map_err(|e| format!("cannot open: {e}"))?
+        .map_err(|e| MeshError::Open(e.to_string()))?
         .take(MAX_GUNZIPPED_PLY as u64 + 1)
         .read_to_end(&mut packed)
-        .map_err(|e| format!("cannot read: {e}"))?;
+        .map_err(|e| MeshError::Read(e.to_string()))?;
     // The gzip trailer ends with the uncompressed size modulo 2^32 (RFC 1952, section 2.3.1).
     let Some(tail) = packed.len().checked_sub(4).map(|at| &packed[at..]) else {
-        return Err("not a gzip file (too short)".into());
+        return Err(MeshError::Malformed("not a gzip file (too short)".into()));
     };
     let size = u32::from_le_bytes([tail[0], tail[1], tail[2], tail[3]]) as usize;
     if size > MAX_GUNZIPPED_PLY {
-        return Err(format!(
-            "the PLY file unpacks to {size} bytes, more than the {MAX_GUNZIPPED_PLY} allowed"
-        ));
+        return Err(MeshError::TooLarge(size));
     }
     let mut plain = vec![0u8; size];
     let n = libdeflater::Decompressor::new()
         .gzip_decompress(&packed, &mut plain)
-        .map_err(|e| format!("malformed gzip data: {e:?}"))?;
+        .map_err(|e| MeshError::Malformed(format!("malformed gzip data: {e:?}")))?;
     plain.truncate(n);
-    ply_from(&mut std::io::Cursor::new(plain))
+    ply_from(&mut std::io::Cursor::new(plain)).map_err(MeshError::Malformed)
+}
+
+/// Reads `files` in parallel (PLY by extension, else OBJ): each one's path with its mesh or
+/// error, for importers that read every mesh of a scene before its shapes.
+pub(crate) fn read_meshes(files: Vec<SceneFile>) -> Vec<(PathBuf, Result<MeshData, MeshError>)> {
+    files
+        .into_par_iter()
+        .map(|f| {
+            let ply = f
+                .path()
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("ply"));
+            let m = if ply { read_ply(&f) } else { read_obj(&f) };
+            (f.path().to_path_buf(), m)
+        })
+        .collect()
 }
 
 /// Loads an OBJ file that is not part of a scene (a scene's files go through its resolver).
-pub fn load_obj(path: &Path) -> Result<MeshData, String> {
-    let file = std::fs::File::open(path).map_err(|e| format!("cannot open: {e}"))?;
-    obj_from(&mut std::io::BufReader::new(file))
+pub fn load_obj(path: &Path) -> Result<MeshData, MeshError> {
+    let file = std::fs::File::open(path).map_err(|e| MeshError::Open(e.to_string()))?;
+    obj_from(&mut std::io::BufReader::new(file)).map_err(MeshError::Malformed)
 }
 
 fn obj_from(reader: &mut impl BufRead) -> Result<MeshData, String> {

@@ -37,6 +37,48 @@ impl Node {
     }
 }
 
+/// The error at element `n` of `file`: its line, and `message`.
+pub(crate) fn error_at(file: &Path, n: &Node, message: impl Into<String>) -> SceneError {
+    SceneError::new(file, format!("line {}", n.line), message)
+}
+
+/// The `value` attribute of element `n` of `file`.
+pub(crate) fn value_of<'a>(file: &Path, n: &'a Node) -> R<&'a str> {
+    n.attr("value")
+        .ok_or_else(|| error_at(file, n, format!("{} has no value", n.label())))
+}
+
+/// The `<integer>` property `name` of `p` (an element of `file`), or `default` without one.
+pub(crate) fn int_prop(file: &Path, p: &Props, name: &str, default: i64) -> R<i64> {
+    match p.get(name) {
+        Some(n) if n.tag == "integer" => {
+            let v = value_of(file, n)?;
+            v.trim()
+                .parse::<i64>()
+                .map_err(|_| error_at(file, n, format!("{}: malformed integer '{v}'", n.label())))
+        }
+        Some(n) => Err(error_at(
+            file,
+            n,
+            format!("{} should be an <integer>", n.label()),
+        )),
+        None => Ok(default),
+    }
+}
+
+/// The `<string>` property `name` of `p` (an element of `file`), if it has one.
+pub(crate) fn string_prop(file: &Path, p: &Props, name: &str) -> R<Option<String>> {
+    match p.get(name) {
+        Some(n) if n.tag == "string" => Ok(Some(value_of(file, n)?.to_string())),
+        Some(n) => Err(error_at(
+            file,
+            n,
+            format!("{} should be a <string>", n.label()),
+        )),
+        None => Ok(None),
+    }
+}
+
 /// Line starts of a text, to turn byte positions into line numbers.
 struct Lines(Vec<usize>);
 

@@ -27,8 +27,9 @@ mod textures;
 use super::common::{Bitmaps, Warnings};
 use super::resolve::Resolver;
 use crate::material::{Material, Texture};
+use crate::scene::import::mesh::MeshError;
 use crate::scene::import::xml::Props;
-use crate::scene::import::xml::{Node, parse_xml};
+use crate::scene::import::xml::{self, Node, parse_xml};
 use crate::scene::{MeshData, SceneBuilder, SceneError, SceneParams};
 use std::collections::HashMap;
 use std::path::Path;
@@ -57,7 +58,7 @@ struct Ctx {
     warn: Warnings,
     ids: HashMap<String, Obj>,
     bitmaps: Bitmaps,
-    meshes: HashMap<PathBuf, Result<MeshData, String>>,
+    meshes: HashMap<PathBuf, Result<MeshData, MeshError>>,
     default_bsdf: Option<u32>,
 }
 
@@ -185,7 +186,7 @@ fn contains_id(n: &Node) -> bool {
 
 impl Ctx {
     fn err(&self, n: &Node, m: impl Into<String>) -> SceneError {
-        SceneError::new(&self.file, format!("line {}", n.line), m)
+        xml::error_at(&self.file, n, m)
     }
 
     fn warn(&mut self, n: &Node, m: impl Into<String>) {

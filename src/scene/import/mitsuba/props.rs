@@ -4,12 +4,11 @@
 use super::{Ctx, R};
 use crate::geometry::{Mat4, Rgb, Vec3};
 use crate::material::texture::srgb_to_linear;
-use crate::scene::import::xml::{Node, Props, split_numbers};
+use crate::scene::import::xml::{self, Node, Props, split_numbers};
 
 impl Ctx {
     pub(super) fn value_attr<'a>(&self, n: &'a Node) -> R<&'a str> {
-        n.attr("value")
-            .ok_or_else(|| self.err(n, format!("{} has no value", n.label())))
+        xml::value_of(&self.file, n)
     }
 
     pub(super) fn num_of(&self, n: &Node) -> R<f32> {
@@ -34,16 +33,7 @@ impl Ctx {
     }
 
     pub(super) fn int(&self, p: &Props, name: &str, default: i64) -> R<i64> {
-        match p.get(name) {
-            Some(n) if n.tag == "integer" => {
-                let v = self.value_attr(n)?;
-                v.trim()
-                    .parse::<i64>()
-                    .map_err(|_| self.err(n, format!("{}: malformed integer '{v}'", n.label())))
-            }
-            Some(n) => Err(self.err(n, format!("{} should be an <integer>", n.label()))),
-            None => Ok(default),
-        }
+        xml::int_prop(&self.file, p, name, default)
     }
 
     pub(super) fn boolean(&self, p: &Props, name: &str, default: bool) -> R<bool> {
@@ -62,11 +52,7 @@ impl Ctx {
     }
 
     pub(super) fn string(&self, p: &Props, name: &str) -> R<Option<String>> {
-        match p.get(name) {
-            Some(n) if n.tag == "string" => Ok(Some(self.value_attr(n)?.to_string())),
-            Some(n) => Err(self.err(n, format!("{} should be a <string>", n.label()))),
-            None => Ok(None),
-        }
+        xml::string_prop(&self.file, p, name)
     }
 
     /// A colour element: `rgb`, `srgb`, `spectrum` (uniform or flat), or a plain `float`.

@@ -4,11 +4,9 @@
 use super::{Ctx, Obj, R};
 use crate::geometry::{Rgb, Transform, Vec2, Vec3};
 use crate::scene::MeshData;
-use crate::scene::import::common::{default_lambert, uniform_scale};
-use crate::scene::import::mesh::{read_obj, read_ply};
+use crate::scene::import::common::{default_lambert, mitsuba_mesh_file, uniform_scale};
+use crate::scene::import::mesh::{read_meshes, read_obj, read_ply};
 use crate::scene::import::xml::{Node, Props};
-use rayon::prelude::*;
-use std::path::PathBuf;
 
 /// Triangles of the fan a `disk` is tessellated into.
 const DISK_SEGMENTS: usize = 256;
@@ -18,13 +16,7 @@ impl Ctx {
     pub(super) fn preload_meshes(&mut self, root: &Node) -> R<()> {
         let mut paths = Vec::new();
         for c in &root.children {
-            if c.tag == "shape"
-                && matches!(c.attr("type"), Some("obj" | "ply"))
-                && let Some(f) = c
-                    .children
-                    .iter()
-                    .find(|k| k.attr("name") == Some("filename"))
-                    .and_then(|k| k.attr("value"))
+            if let Some(f) = mitsuba_mesh_file(c)
                 && let Ok(file) = self.b.resolver().resolve(f, "")
             {
                 paths.push(file);
@@ -32,17 +24,7 @@ impl Ctx {
         }
         paths.sort();
         paths.dedup();
-        let loaded: Vec<(PathBuf, Result<MeshData, String>)> = paths
-            .into_par_iter()
-            .map(|f| {
-                let ply = f
-                    .path()
-                    .extension()
-                    .is_some_and(|e| e.eq_ignore_ascii_case("ply"));
-                let m = if ply { read_ply(&f) } else { read_obj(&f) };
-                (f.path().to_path_buf(), m)
-            })
-            .collect();
+        let loaded = read_meshes(paths);
         self.meshes.extend(loaded);
         Ok(())
     }

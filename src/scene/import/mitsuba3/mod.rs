@@ -27,7 +27,8 @@ mod values;
 
 use super::common::{Bitmaps, Warnings};
 use super::resolve::Resolver;
-use super::xml::{MAX_XML_DEPTH, Node, parse_xml};
+use super::xml::{self, MAX_XML_DEPTH, Node, parse_xml};
+use crate::scene::import::mesh::MeshError;
 use crate::scene::{MeshData, SceneBuilder, SceneError, SceneParams};
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -163,7 +164,7 @@ struct Ctx {
     /// Builder materials of bsdfs with an id, made once.
     materials: HashMap<String, u32>,
     bitmaps: Bitmaps,
-    meshes: HashMap<PathBuf, Result<MeshData, String>>,
+    meshes: HashMap<PathBuf, Result<MeshData, MeshError>>,
     default_bsdf: Option<u32>,
     black_bsdf: Option<u32>,
     /// An environment emitter was read (a scene has at most one).
@@ -172,7 +173,7 @@ struct Ctx {
 
 impl Ctx {
     fn err(&self, n: &Node, m: impl Into<String>) -> SceneError {
-        SceneError::new(&self.file, format!("line {}", n.line), m)
+        xml::error_at(&self.file, n, m)
     }
 
     fn warn(&mut self, n: &Node, m: impl Into<String>) {

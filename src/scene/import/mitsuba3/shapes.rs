@@ -8,12 +8,10 @@ use super::{Ctx, R};
 use crate::geometry::{Mat4, Rgb, Transform, Vec2, Vec3};
 use crate::material::{Material, MaterialKind, Texture};
 use crate::scene::MeshData;
-use crate::scene::import::common::uniform_scale;
-use crate::scene::import::mesh::{read_obj, read_ply};
+use crate::scene::import::common::{mitsuba_mesh_file, uniform_scale};
+use crate::scene::import::mesh::{read_meshes, read_obj, read_ply};
 use crate::scene::import::xml::{Node, Props};
-use rayon::prelude::*;
 use std::io::Read;
-use std::path::PathBuf;
 
 /// Segments around the circle of a tessellated `disk` or `cylinder`.
 const SEGMENTS: usize = 256;
@@ -25,13 +23,7 @@ impl Ctx {
         let mut stack: Vec<&Node> = root.children.iter().collect();
         while let Some(n) = stack.pop() {
             stack.extend(n.children.iter());
-            if n.tag == "shape"
-                && matches!(n.attr("type"), Some("obj" | "ply"))
-                && let Some(f) = n
-                    .children
-                    .iter()
-                    .find(|k| k.attr("name") == Some("filename"))
-                    .and_then(|k| k.attr("value"))
+            if let Some(f) = mitsuba_mesh_file(n)
                 && let Ok(file) = self.b.resolver().resolve(f, "mesh")
             {
                 files.push(file);
@@ -39,17 +31,7 @@ impl Ctx {
         }
         files.sort();
         files.dedup();
-        let loaded: Vec<(PathBuf, Result<MeshData, String>)> = files
-            .into_par_iter()
-            .map(|f| {
-                let ply = f
-                    .path()
-                    .extension()
-                    .is_some_and(|e| e.eq_ignore_ascii_case("ply"));
-                let m = if ply { read_ply(&f) } else { read_obj(&f) };
-                (f.path().to_path_buf(), m)
-            })
-            .collect();
+        let loaded = read_meshes(files);
         self.meshes.extend(loaded);
     }
 

@@ -5,7 +5,7 @@
 
 use super::{Ctx, R};
 use crate::geometry::{Mat4, Rgb, Vec3};
-use crate::scene::import::xml::{Node, Props, split_numbers};
+use crate::scene::import::xml::{self, Node, Props, split_numbers};
 
 /// How a colour property is used: Mitsuba 3 turns the same XML into different colours for a
 /// reflectance, an unbounded quantity (an index of refraction) and an emission.
@@ -26,8 +26,7 @@ pub(super) const FLAT_EMISSION_RGB: [f32; 3] = [1.20479, 0.948291, 0.908916];
 
 impl Ctx {
     fn value_of<'a>(&self, n: &'a Node) -> R<&'a str> {
-        n.attr("value")
-            .ok_or_else(|| self.err(n, format!("{} has no value", n.label())))
+        xml::value_of(&self.file, n)
     }
 
     /// A `<float>` or `<integer>` element's number.
@@ -51,16 +50,7 @@ impl Ctx {
     }
 
     pub(super) fn int(&self, p: &Props, name: &str, default: i64) -> R<i64> {
-        match p.get(name) {
-            Some(n) if n.tag == "integer" => {
-                let v = self.value_of(n)?;
-                v.trim()
-                    .parse::<i64>()
-                    .map_err(|_| self.err(n, format!("{}: malformed integer '{v}'", n.label())))
-            }
-            Some(n) => Err(self.err(n, format!("{} should be an <integer>", n.label()))),
-            None => Ok(default),
-        }
+        xml::int_prop(&self.file, p, name, default)
     }
 
     pub(super) fn boolean(&self, p: &Props, name: &str, default: bool) -> R<bool> {
@@ -79,11 +69,7 @@ impl Ctx {
     }
 
     pub(super) fn string(&self, p: &Props, name: &str) -> R<Option<String>> {
-        match p.get(name) {
-            Some(n) if n.tag == "string" => Ok(Some(self.value_of(n)?.to_string())),
-            Some(n) => Err(self.err(n, format!("{} should be a <string>", n.label()))),
-            None => Ok(None),
-        }
+        xml::string_prop(&self.file, p, name)
     }
 
     /// A colour element as Mitsuba 3 reads it for `usage`.

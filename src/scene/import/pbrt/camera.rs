@@ -42,17 +42,7 @@ impl Parser {
                 if ty != "image" {
                     self.warn(loc, format!("Film \"{ty}\" treated as \"image\""));
                 }
-                let w = self.int(&ps, "xresolution", 640)?;
-                let h = self.int(&ps, "yresolution", 480)?;
-                if !(1..=65536).contains(&w) || !(1..=65536).contains(&h) {
-                    return Err(self.err(
-                        loc,
-                        format!("Film resolution must be 1..65536, got {w}x{h}"),
-                    ));
-                }
-                self.resolution = (w as u32, h as u32);
-                let _ = self.string(&ps, "filename")?; // output name: ours comes from the command line
-                let _ = self.opt_float(&ps, "diagonal")?; // physical film size: no effect on a pinhole
+                self.film_resolution(&ps, loc, (640, 480))?;
                 if let Some(s) = self.opt_float(&ps, "scale")?
                     && s != 1.0
                 {
@@ -147,6 +137,28 @@ impl Parser {
             _ => return Ok(false),
         }
         Ok(true)
+    }
+
+    /// The `Film`'s `xresolution` and `yresolution` (`default` where left out) as the scene's
+    /// resolution; its output name and physical size, which change no pixel, read and left.
+    pub(super) fn film_resolution(
+        &mut self,
+        ps: &ParamSet,
+        loc: Loc,
+        default: (i64, i64),
+    ) -> R<()> {
+        let w = self.int(ps, "xresolution", default.0)?;
+        let h = self.int(ps, "yresolution", default.1)?;
+        if !(1..=65536).contains(&w) || !(1..=65536).contains(&h) {
+            return Err(self.err(
+                loc,
+                format!("Film resolution must be 1..65536, got {w}x{h}"),
+            ));
+        }
+        self.resolution = (w as u32, h as u32);
+        let _ = self.string(ps, "filename")?; // output name: ours comes from the command line
+        let _ = self.opt_float(ps, "diagonal")?; // physical film size: no effect on a pinhole
+        Ok(())
     }
 
     /// Our camera from the `Camera` directive (or pbrt's default) and the film resolution.

@@ -73,6 +73,29 @@ impl Parser {
         what: &str,
         loc: Loc,
     ) -> R<(f32, f32)> {
+        self.microfacet_alphas(
+            ps,
+            default,
+            roughness_to_alpha,
+            |what| format!("{what}: roughness below {MIN_ALPHA} is traced as GGX alpha {MIN_ALPHA} (near-specular)"),
+            what,
+            loc,
+        )
+    }
+
+    /// (alpha_u, alpha_v) of a microfacet material, as pbrt's versions read it: `uroughness`
+    /// and `vroughness` override `roughness` (`default`), `remap` turns them into alphas unless
+    /// `remaproughness` is false; below our smallest alpha they are clamped with the warning
+    /// `clamped` words for `what`.
+    pub(super) fn microfacet_alphas(
+        &mut self,
+        ps: &ParamSet,
+        default: f32,
+        remap: fn(f32) -> f32,
+        clamped: fn(&str) -> String,
+        what: &str,
+        loc: Loc,
+    ) -> R<(f32, f32)> {
         let r = self.float_or_tex(ps, "roughness", default, what)?;
         let u = if ps.has("uroughness") {
             self.float_or_tex(ps, "uroughness", r, what)?
@@ -87,17 +110,13 @@ impl Parser {
         if !(u >= 0.0 && v >= 0.0) {
             return Err(self.err(loc, format!("{what}: roughness must be >= 0")));
         }
-        let remap = self.boolean(ps, "remaproughness", true)?;
-        let (mut au, mut av) = if remap {
-            (roughness_to_alpha(u), roughness_to_alpha(v))
+        let (mut au, mut av) = if self.boolean(ps, "remaproughness", true)? {
+            (remap(u), remap(v))
         } else {
             (u, v)
         };
         if au < MIN_ALPHA || av < MIN_ALPHA {
-            self.warn(
-                loc,
-                format!("{what}: roughness below {MIN_ALPHA} is traced as GGX alpha {MIN_ALPHA} (near-specular)"),
-            );
+            self.warn(loc, clamped(what));
             au = au.max(MIN_ALPHA);
             av = av.max(MIN_ALPHA);
         }

@@ -19,6 +19,17 @@ pub(super) struct ShapeCall {
     pub(super) loc: Loc,
 }
 
+/// A polygon mesh's vertex arrays as its parameters give them, checked (`Parser::polygon_mesh`).
+pub(super) struct PolygonMesh {
+    pub(super) positions: Vec<Vec3>,
+    /// `corners` vertex indices a polygon, each within `positions`.
+    pub(super) indices: Vec<i64>,
+    /// None, or one a position.
+    pub(super) normals: Vec<Vec3>,
+    /// None, or one a position.
+    pub(super) uvs: Vec<Vec2>,
+}
+
 impl Parser {
     /// Handles `ObjectBegin`, `ObjectEnd` and `ObjectInstance`; false for any other directive.
     pub(super) fn object_directive(&mut self, name: &str, loc: Loc) -> R<bool> {
@@ -70,6 +81,23 @@ impl Parser {
         if !self.in_world {
             return Err(self.err(loc, "Shape outside WorldBegin/WorldEnd"));
         }
+        let Some(call) = self.shape_call(ty, params, loc, "pbrt-v3") else {
+            return Ok(());
+        };
+        let emission = self.g.area;
+        self.emit_shape(&call, Mat4::IDENTITY, emission)
+    }
+
+    /// The call of shape `ty` with `params` at `loc` in the current graphics state, to be added
+    /// now; None where it is recorded for the object being defined instead (whose shapes do
+    /// not emit, as in `pbrt`, which the warning names).
+    pub(super) fn shape_call(
+        &mut self,
+        ty: String,
+        params: ParamSet,
+        loc: Loc,
+        pbrt: &str,
+    ) -> Option<ShapeCall> {
         let call = ShapeCall {
             ty,
             params,
@@ -78,15 +106,14 @@ impl Parser {
             reverse: self.g.reverse,
             loc,
         };
-        if let Some((_, calls)) = &mut self.defining {
-            calls.push(call);
-            if self.g.area.is_some() {
-                self.warn(loc, "area lights inside object instances are not supported (as in pbrt-v3); the shape does not emit");
-            }
-            return Ok(());
+        let Some((_, calls)) = &mut self.defining else {
+            return Some(call);
+        };
+        calls.push(call);
+        if self.g.area.is_some() {
+            self.warn(loc, format!("area lights inside object instances are not supported (as in {pbrt}); the shape does not emit"));
         }
-        let emission = self.g.area;
-        self.emit_shape(&call, Mat4::IDENTITY, emission)
+        None
     }
 
     /// Adds one shape, placed by `outer * call.ctm`.
@@ -105,7 +132,7 @@ impl Parser {
                 format!("{what}: the transform is singular or not finite"),
             )
         })?;
-        let place = self.shape_place(loc);
+        let place = self.place_of(loc);
         if call.ty == "sphere" {
             return self.emit_sphere(call, &m, &t, emission, &place);
         }
@@ -113,8 +140,8 @@ impl Parser {
         self.add_shape_mesh(call, mesh, &t, emission, &place)
     }
 
-    /// The place a shape's errors name: its line, and its file when included.
-    pub(super) fn shape_place(&self, loc: Loc) -> String {
+    /// The place a message names: the line of `loc`, and its file when included.
+    pub(super) fn place_of(&self, loc: Loc) -> String {
         if loc.file == 0 {
             format!("line {}", loc.line)
         } else {
@@ -171,6 +198,86 @@ impl Parser {
         )
     }
 
+    /// The vertex arrays of a polygon mesh (`trianglemesh`; pbrt-v4's `bilinearmesh`), checked:
+    /// `P` (errors name its type `point`), `indices` (`corners` a polygon, every one a vertex;
+    /// left out only for a single polygon), `N` (none or one a vertex) and the uvs of the first
+    /// of `uv_names` given (none or two numbers a vertex).
+    pub(super) fn polygon_mesh(
+        &mut self,
+        ps: &ParamSet,
+        loc: Loc,
+        shape: &str,
+        point: &str,
+        corners: usize,
+        uv_names: &[&str],
+    ) -> R<PolygonMesh> {
+        let p = self
+            .vec3s(ps, "P", &["point3"])?
+            .ok_or_else(|| self.err(loc, format!("{shape} has no \"{point} P\"")))?;
+        let idx = match self.ints(ps, "indices")? {
+            Some(i) => i,
+            None if p.len() == corners => (0..corners as i64).collect(),
+            None => {
+                return Err(self.err(
+                    loc,
+                    format!(
+                        "{shape} has no \"integer indices\" (only allowed for exactly {corners} vertices)"
+                    ),
+                ));
+            }
+        };
+        if idx.len() % corners != 0 {
+            return Err(self.err(
+                loc,
+                format!(
+                    "{shape}: {} indices, not a multiple of {corners}",
+                    idx.len()
+                ),
+            ));
+        }
+        if let Some(&bad) = idx.iter().find(|&&i| i < 0 || i as usize >= p.len()) {
+            return Err(self.err(
+                loc,
+                format!("{shape}: index {bad} out of range for {} vertices", p.len()),
+            ));
+        }
+        let normals = self.vec3s(ps, "N", &["normal3"])?.unwrap_or_default();
+        if !normals.is_empty() && normals.len() != p.len() {
+            return Err(self.err(
+                loc,
+                format!(
+                    "{shape}: {} normals for {} vertices",
+                    normals.len(),
+                    p.len()
+                ),
+            ));
+        }
+        let uv_param = uv_names
+            .iter()
+            .find_map(|n| ps.find(n, &["float", "point2"]));
+        let uvs: Vec<Vec2> = match uv_param {
+            Some(param) => {
+                let v = self.nums(param)?;
+                if v.len() != 2 * p.len() {
+                    return Err(self.err(
+                        param.loc,
+                        format!("{shape}: {} uv values for {} vertices", v.len(), p.len()),
+                    ));
+                }
+                v.chunks_exact(2)
+                    .map(|c| Vec2::new(c[0] as f32, c[1] as f32))
+                    .collect()
+            }
+            None => Vec::new(),
+        };
+        Ok(PolygonMesh {
+            positions: p,
+            indices: idx,
+            normals,
+            uvs,
+        })
+    }
+
     /// The triangles of a `trianglemesh` or `plymesh` (any other type is an error), and the
     /// place its errors name (`place`, with the mesh file's name for a `plymesh`).
     pub(super) fn mesh_of(&mut self, call: &ShapeCall, place: String) -> R<(MeshData, String)> {
@@ -179,69 +286,13 @@ impl Parser {
         let mut place = place;
         let mesh = match call.ty.as_str() {
             "trianglemesh" => {
-                let p = self
-                    .vec3s(ps, "P", &["point3"])?
-                    .ok_or_else(|| self.err(loc, "trianglemesh has no \"point P\""))?;
-                let idx = match self.ints(ps, "indices")? {
-                    Some(i) => i,
-                    None if p.len() == 3 => vec![0, 1, 2],
-                    None => {
-                        return Err(self.err(loc, "trianglemesh has no \"integer indices\" (only allowed for exactly 3 vertices)"));
-                    }
-                };
-                if idx.len() % 3 != 0 {
-                    return Err(self.err(
-                        loc,
-                        format!("trianglemesh: {} indices, not a multiple of 3", idx.len()),
-                    ));
-                }
-                if let Some(&bad) = idx.iter().find(|&&i| i < 0 || i as usize >= p.len()) {
-                    return Err(self.err(
-                        loc,
-                        format!(
-                            "trianglemesh: index {bad} out of range for {} vertices",
-                            p.len()
-                        ),
-                    ));
-                }
-                let normals = self.vec3s(ps, "N", &["normal3"])?.unwrap_or_default();
-                if !normals.is_empty() && normals.len() != p.len() {
-                    return Err(self.err(
-                        loc,
-                        format!(
-                            "trianglemesh: {} normals for {} vertices",
-                            normals.len(),
-                            p.len()
-                        ),
-                    ));
-                }
-                let uv_param = ["uv", "st"]
-                    .into_iter()
-                    .find_map(|n| ps.find(n, &["float", "point2"]));
-                let uvs: Vec<Vec2> = match uv_param {
-                    Some(param) => {
-                        let v = self.nums(param)?;
-                        if v.len() != 2 * p.len() {
-                            return Err(self.err(
-                                param.loc,
-                                format!(
-                                    "trianglemesh: {} uv values for {} vertices",
-                                    v.len(),
-                                    p.len()
-                                ),
-                            ));
-                        }
-                        v.chunks_exact(2)
-                            .map(|c| Vec2::new(c[0] as f32, c[1] as f32))
-                            .collect()
-                    }
-                    None => Vec::new(),
-                };
+                let m = self.polygon_mesh(ps, loc, "trianglemesh", "point", 3, &["uv", "st"])?;
                 MeshData {
-                    positions: p,
-                    normals,
-                    uvs,
-                    indices: idx
+                    positions: m.positions,
+                    normals: m.normals,
+                    uvs: m.uvs,
+                    indices: m
+                        .indices
                         .chunks_exact(3)
                         .map(|c| [c[0] as u32, c[1] as u32, c[2] as u32])
                         .collect(),

@@ -93,17 +93,7 @@ impl Parser {
                         format!("{what}: mapping \"{m}\" is not supported; uv mapping used"),
                     );
                 }
-                if let Some(w) = self.string(&ps, "wrap")?
-                    && w != "repeat"
-                {
-                    self.warn(
-                        loc,
-                        format!("{what}: wrap \"{w}\" is not supported; repeat used"),
-                    );
-                }
-                // Filtering does not change the expected value at a point.
-                let _ = self.string(&ps, "filter")?;
-                let _ = self.float(&ps, "maxanisotropy", 8.0)?;
+                self.image_wrap_and_filter(&ps, &what, loc)?;
                 let _ = self.boolean(&ps, "trilinear", false)?;
                 SpecTex::Ok(Texture::Bitmap {
                     image,
@@ -141,17 +131,46 @@ impl Parser {
             }
         };
         self.report_unused(&ps, &what);
+        self.define_texture(name, is_float, spec, &class, "float image");
+        Ok(())
+    }
+
+    /// An image texture's `wrap` (repeat alone; another is warned about) and its filter, which
+    /// does not change the expected value at a point.
+    pub(super) fn image_wrap_and_filter(&mut self, ps: &ParamSet, what: &str, loc: Loc) -> R<()> {
+        if let Some(w) = self.string(ps, "wrap")?
+            && w != "repeat"
+        {
+            self.warn(
+                loc,
+                format!("{what}: wrap \"{w}\" is not supported; repeat used"),
+            );
+        }
+        let _ = self.string(ps, "filter")?;
+        let _ = self.float(ps, "maxanisotropy", 8.0)?;
+        Ok(())
+    }
+
+    /// Names `spec` in the graphics state: as a float texture (`is_float`) it keeps a constant
+    /// alone, and a varying one of class `class` is unsupported as `"{class} ({varying})"`.
+    pub(super) fn define_texture(
+        &mut self,
+        name: String,
+        is_float: bool,
+        spec: SpecTex,
+        class: &str,
+        varying: &str,
+    ) {
         if is_float {
             let f = match spec {
                 SpecTex::Ok(Texture::Constant(c)) => FloatTex::Const(c.x),
-                SpecTex::Ok(_) => FloatTex::Unsupported(format!("{class} (float image)")),
+                SpecTex::Ok(_) => FloatTex::Unsupported(format!("{class} ({varying})")),
                 SpecTex::Unsupported(c) => FloatTex::Unsupported(c),
             };
             Rc::make_mut(&mut self.g.float_tex).insert(name, f);
         } else {
             Rc::make_mut(&mut self.g.spec_tex).insert(name, spec);
         }
-        Ok(())
     }
 
     /// An operand of a `scale` texture: a value or a named texture.

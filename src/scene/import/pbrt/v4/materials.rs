@@ -134,34 +134,14 @@ impl Parser {
     /// `vroughness` override `roughness` (default 0), remapped by sqrt unless
     /// `remaproughness` is false; below our smallest alpha, warned and clamped.
     fn v4_alphas(&mut self, ps: &ParamSet, what: &str, loc: Loc) -> R<(f32, f32)> {
-        let r = self.float_or_tex(ps, "roughness", 0.0, what)?;
-        let u = if ps.has("uroughness") {
-            self.float_or_tex(ps, "uroughness", r, what)?
-        } else {
-            r
-        };
-        let v = if ps.has("vroughness") {
-            self.float_or_tex(ps, "vroughness", r, what)?
-        } else {
-            r
-        };
-        if !(u >= 0.0 && v >= 0.0) {
-            return Err(self.err(loc, format!("{what}: roughness must be >= 0")));
-        }
-        let (mut au, mut av) = if self.boolean(ps, "remaproughness", true)? {
-            (roughness_to_alpha_v4(u), roughness_to_alpha_v4(v))
-        } else {
-            (u, v)
-        };
-        if au < MIN_ALPHA || av < MIN_ALPHA {
-            self.warn(
-                loc,
-                format!("{what}: roughness below GGX alpha {MIN_ALPHA} is traced as alpha {MIN_ALPHA} (near-specular)"),
-            );
-            au = au.max(MIN_ALPHA);
-            av = av.max(MIN_ALPHA);
-        }
-        Ok((au, av))
+        self.microfacet_alphas(
+            ps,
+            0.0,
+            roughness_to_alpha_v4,
+            |what| format!("{what}: roughness below GGX alpha {MIN_ALPHA} is traced as alpha {MIN_ALPHA} (near-specular)"),
+            what,
+            loc,
+        )
     }
 
     /// A conductor's (eta, k): `reflectance` (pbrt-v4's artist-friendly form) or `eta` and `k`

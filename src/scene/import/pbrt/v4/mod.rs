@@ -181,17 +181,7 @@ impl Parser {
         let list = self
             .refused
             .iter()
-            .map(|(loc, m)| {
-                if loc.file == 0 {
-                    format!("line {}: {m}", loc.line)
-                } else {
-                    format!(
-                        "{} line {}: {m}",
-                        self.files[loc.file as usize].display(),
-                        loc.line
-                    )
-                }
-            })
+            .map(|(loc, m)| format!("{}: {m}", self.place_of(*loc)))
             .collect::<Vec<_>>()
             .join("; ");
         Err(SceneError::new(
@@ -241,17 +231,7 @@ impl Parser {
                 self.refuse(loc, format!("Film \"{other}\" is not a pbrt-v4 film"));
             }
         }
-        let w = self.int(&ps, "xresolution", 1280)?;
-        let h = self.int(&ps, "yresolution", 720)?;
-        if !(1..=65536).contains(&w) || !(1..=65536).contains(&h) {
-            return Err(self.err(
-                loc,
-                format!("Film resolution must be 1..65536, got {w}x{h}"),
-            ));
-        }
-        self.resolution = (w as u32, h as u32);
-        let _ = self.string(&ps, "filename")?; // output name: ours comes from the command line
-        let _ = self.opt_float(&ps, "diagonal")?; // physical film size: no effect on a pinhole
+        self.film_resolution(&ps, loc, (1280, 720))?;
         let _ = self.boolean(&ps, "savefp16", true)?;
         for (param, what) in [
             ("cropwindow", "a crop window"),

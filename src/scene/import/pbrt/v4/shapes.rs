@@ -5,7 +5,7 @@
 
 use super::super::lexer::Loc;
 use super::super::params::ParamSet;
-use super::super::shapes::ShapeCall;
+use super::super::shapes::{PolygonMesh, ShapeCall};
 use super::super::{Parser, R};
 use crate::geometry::{Mat4, Transform, Vec2, Vec3};
 use crate::scene::MeshData;
@@ -83,21 +83,9 @@ impl Parser {
         if !self.in_world {
             return Err(self.err(loc, "Shape outside WorldBegin"));
         }
-        let call = ShapeCall {
-            ty,
-            params,
-            ctm: self.g.ctm,
-            material: self.current_material(),
-            reverse: self.g.reverse,
-            loc,
-        };
-        if let Some((_, calls)) = &mut self.defining {
-            calls.push(call);
-            if self.g.area.is_some() {
-                self.warn(loc, "area lights inside object instances are not supported (as in pbrt-v4); the shape does not emit");
-            }
+        let Some(call) = self.shape_call(ty, params, loc, "pbrt-v4") else {
             return Ok(());
-        }
+        };
         let emits = self.g.area.is_some();
         self.v4_emit_shape(&call, Mat4::IDENTITY, emits)
     }
@@ -151,7 +139,7 @@ impl Parser {
                 );
             }
         }
-        let place = self.shape_place(loc);
+        let place = self.place_of(loc);
         let mesh = match call.ty.as_str() {
             "sphere" => {
                 // pbrt-v3's sphere (v3's reader checks it); the area for `power` only.
@@ -243,64 +231,12 @@ impl Parser {
     /// dp/du x dp/dv. Without `uv` each patch gets pbrt-v4's default (u, v) in [0, 1]^2, its
     /// vertices unshared.
     fn bilinear_mesh(&mut self, ps: &ParamSet, loc: Loc) -> R<MeshData> {
-        let p = self
-            .vec3s(ps, "P", &["point3"])?
-            .ok_or_else(|| self.err(loc, "bilinearmesh has no \"point3 P\""))?;
-        let idx = match self.ints(ps, "indices")? {
-            Some(i) => i,
-            None if p.len() == 4 => vec![0, 1, 2, 3],
-            None => {
-                return Err(self.err(
-                    loc,
-                    "bilinearmesh has no \"integer indices\" (only allowed for exactly 4 vertices)",
-                ));
-            }
-        };
-        if idx.len() % 4 != 0 {
-            return Err(self.err(
-                loc,
-                format!("bilinearmesh: {} indices, not a multiple of 4", idx.len()),
-            ));
-        }
-        if let Some(&bad) = idx.iter().find(|&&i| i < 0 || i as usize >= p.len()) {
-            return Err(self.err(
-                loc,
-                format!(
-                    "bilinearmesh: index {bad} out of range for {} vertices",
-                    p.len()
-                ),
-            ));
-        }
-        let normals = self.vec3s(ps, "N", &["normal3"])?.unwrap_or_default();
-        if !normals.is_empty() && normals.len() != p.len() {
-            return Err(self.err(
-                loc,
-                format!(
-                    "bilinearmesh: {} normals for {} vertices",
-                    normals.len(),
-                    p.len()
-                ),
-            ));
-        }
-        let uvs: Vec<Vec2> = match ps.find("uv", &["point2", "float"]) {
-            Some(param) => {
-                let v = self.nums(param)?;
-                if v.len() != 2 * p.len() {
-                    return Err(self.err(
-                        param.loc,
-                        format!(
-                            "bilinearmesh: {} uv values for {} vertices",
-                            v.len(),
-                            p.len()
-                        ),
-                    ));
-                }
-                v.chunks_exact(2)
-                    .map(|c| Vec2::new(c[0] as f32, c[1] as f32))
-                    .collect()
-            }
-            None => Vec::new(),
-        };
+        let PolygonMesh {
+            positions: p,
+            indices: idx,
+            normals,
+            uvs,
+        } = self.polygon_mesh(ps, loc, "bilinearmesh", "point3", 4, &["uv"])?;
         let quads = idx
             .chunks_exact(4)
             .map(|q| [q[0] as u32, q[1] as u32, q[2] as u32, q[3] as u32]);

@@ -4,11 +4,10 @@
 
 use super::super::lexer::Loc;
 use super::super::params::ParamSet;
-use super::super::textures::{FloatTex, SpecTex};
+use super::super::textures::SpecTex;
 use super::super::{Parser, R};
 use crate::geometry::Rgb;
 use crate::material::Texture;
-use std::rc::Rc;
 
 /// pbrt-v4's `UVMapping` (s, t) = (su u + du, sv v + dv) as our `Texture::Mapped`, whose rows act
 /// on Mitsuba's coordinates (u, 1 - v) and give Mitsuba's (s, 1 - t). pbrt-v4 looks images up
@@ -136,17 +135,7 @@ impl Parser {
                     );
                 }
                 let mapping = self.v4_uv_mapping(&ps, &what, loc)?;
-                if let Some(w) = self.string(&ps, "wrap")?
-                    && w != "repeat"
-                {
-                    self.warn(
-                        loc,
-                        format!("{what}: wrap \"{w}\" is not supported; repeat used"),
-                    );
-                }
-                // Filtering does not change the expected value at a point.
-                let _ = self.string(&ps, "filter")?;
-                let _ = self.float(&ps, "maxanisotropy", 8.0)?;
+                self.image_wrap_and_filter(&ps, &what, loc)?;
                 SpecTex::Ok(uv_mapped(
                     Texture::Bitmap {
                         image,
@@ -194,16 +183,7 @@ impl Parser {
             }
         };
         self.report_unused(&ps, &what);
-        if is_float {
-            let f = match spec {
-                SpecTex::Ok(Texture::Constant(c)) => FloatTex::Const(c.x),
-                SpecTex::Ok(_) => FloatTex::Unsupported(format!("{class} (varying float)")),
-                SpecTex::Unsupported(c) => FloatTex::Unsupported(c),
-            };
-            Rc::make_mut(&mut self.g.float_tex).insert(name, f);
-        } else {
-            Rc::make_mut(&mut self.g.spec_tex).insert(name, spec);
-        }
+        self.define_texture(name, is_float, spec, &class, "varying float");
         Ok(())
     }
 }
