@@ -8,7 +8,7 @@ use super::child_coordinator::ChildCoordinator;
 use super::client::Client;
 use super::job_args::JobArgs;
 use super::service_cmds::{runtime, submit_job};
-use crate::film::exr_io;
+use crate::film::image::exr_io;
 use crate::job::Limits;
 use crate::scene::Scene;
 use crate::service::bundle;

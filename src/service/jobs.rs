@@ -9,8 +9,8 @@ use super::protocol::{
 use super::store::{self, JobRow, TaskRow, write_atomic};
 use super::{App, merge};
 use crate::film::Tile;
-use crate::film::merge as film_merge;
-use crate::film::{Image, exr_io, metrics, plot, png};
+use crate::film::format::merge_stream;
+use crate::film::image::{Image, exr_io, metrics, plot, png};
 use crate::job::Resolved;
 use std::ops::Range;
 use std::sync::atomic::Ordering;
@@ -338,7 +338,7 @@ pub(crate) enum Exr<'a> {
     Interim,
     /// The beauty and these layers, compressed here.
     Images(&'a [(String, Image)]),
-    /// Every block of the file, compressed by the last pass's merge tasks (`film::merge`).
+    /// Every block of the file, compressed by the last pass's merge tasks (`film::merge_task`).
     Blocks(Vec<Vec<u8>>),
 }
 
@@ -376,7 +376,7 @@ pub(crate) fn write_outputs(
             let lines = exr_io::block_lines(r.tile_size);
             exr_io::write_exr_in_blocks(&tmp, image, &named, &attrs, lines)?;
         }
-        Exr::Blocks(blocks) => film_merge::exr_layout(&r.grid(), &r.film_layout())
+        Exr::Blocks(blocks) => merge_stream::exr_layout(&r.grid(), &r.film_layout())
             .map_err(|e| e.to_string())?
             .write(&tmp, &attrs, blocks)?,
     }

@@ -3,7 +3,7 @@
 
 use super::errors::{ApiError, ApiResult, JsonBody, bad};
 use super::{AppState, is_safe_id, scenes};
-use crate::film::{Tile, wire};
+use crate::film::{Tile, format};
 use crate::service::buffers::{self, Pooled};
 use crate::service::protocol::{
     DeregisterAnswer, DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, JobEvent,
@@ -266,7 +266,7 @@ async fn read_upload(app: &AppState, body: Body) -> ApiResult<Pooled> {
     Ok(buffers::read_body(body, app.cfg.max_upload_bytes, &app.buffers).await?)
 }
 
-/// GET /v1/worker/tasks/{id}/input: a merge task's input (`film::merge`), streamed.
+/// GET /v1/worker/tasks/{id}/input: a merge task's input (`film::merge_task`), streamed.
 pub(crate) async fn merge_input(
     State(app): State<AppState>,
     Path(task_id): Path<i64>,
@@ -392,13 +392,13 @@ pub(crate) async fn upload_result(
         let r = jobs::resolved(&a, &job).map_err(ApiError::internal)?;
         let layout = r.film_layout();
         let tile = jobs::tile_rect(&r, t.tile);
-        // Uploaded laid out by band (`wire::encode_banded`), as the result log keeps it, so
+        // Uploaded laid out by band (`format::encode_banded`), as the result log keeps it, so
         // that a merge task reads each band's part alone: checked, then stored as it came.
-        let index = match wire::check_banded(&body[..], &r.grid(), &layout, a.cfg.max_upload_bytes)
-        {
-            Err(e) => return Ok(Err(e.to_string())),
-            Ok(x) => x,
-        };
+        let index =
+            match format::check_banded(&body[..], &r.grid(), &layout, a.cfg.max_upload_bytes) {
+                Err(e) => return Ok(Err(e.to_string())),
+                Ok(x) => x,
+            };
         if Some(index.tile) != tile || index.samples != (t.s0..t.s1) {
             return Ok(Err(format!(
                 "result is for tile {:?} samples {:?}, the task is tile {tile:?} samples {}..{}",
