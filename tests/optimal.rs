@@ -42,7 +42,7 @@ fn tasks_image(
             assert_eq!(back.encode(range.clone()), bytes, "encoding is canonical");
             film = back;
         }
-        frame.merge(&film);
+        frame.add_own_and_splats(&film);
         frame.apply_records(&film.records);
     }
     frame.image()
@@ -672,7 +672,7 @@ fn path_tracer_checkpoints_keep_no_splat_sums_and_its_results_no_splats() {
     let film = integrator::render_tile(&scene, &pt, tile, 0..4);
     let mut acc = TileAccum::new(tile, &pt_layout);
     assert!(acc.splat.is_empty());
-    acc.merge_own(&film);
+    acc.add_own(&film);
     acc.end_pass(16 * 16 * 4, pt_layout.kappa);
     let bytes = TileCheckpoint {
         tile: acc.clone(),
@@ -777,10 +777,10 @@ fn tile_by_tile_merge_case(mis: MisKind) {
             let dest = (k * 7 + 3) % tiles.len();
             for (u, r) in pass.iter().enumerate() {
                 if u == dest {
-                    acc[dest].merge_own(r);
+                    acc[dest].add_own(r);
                 }
                 if let Some((_, part)) = routed[u].iter().find(|(d, _)| *d == dest) {
-                    acc[dest].merge_routed(part, 24);
+                    acc[dest].add_routed(part, 24);
                 }
             }
             acc[dest].end_pass(24 * 20 * passes[p].end as u64, layout.kappa);

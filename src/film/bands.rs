@@ -88,7 +88,7 @@ impl BandGroup {
         {
             let k = task - self.first;
             if self.open[k] {
-                self.tiles[k].merge_own(own);
+                self.tiles[k].add_own(own);
             }
         }
         for (_, routed) in sections {
@@ -96,7 +96,7 @@ impl BandGroup {
                 if !self.holds(t) || !self.open[t - self.first] {
                     continue;
                 }
-                self.tiles[t - self.first].merge_routed(&part, grid.width);
+                self.tiles[t - self.first].add_routed(&part, grid.width);
             }
         }
     }

@@ -58,14 +58,14 @@ impl Film {
 
     /// Adds a tile's results: its own pixels and its light-tracing splats (order matters only
     /// for the last bits of the f64 sums).
-    pub fn merge(&mut self, t: &TaskFilm) {
-        self.acc.merge_own(t);
-        self.acc.merge_splats(&t.splats, self.width);
+    pub fn add_own_and_splats(&mut self, t: &TaskFilm) {
+        self.acc.add_own(t);
+        self.acc.add_splats(&t.splats, self.width);
     }
 
     /// Adds a task's whole result: its tile, its splats and its out-of-tile light-tracing records.
     pub fn add_task(&mut self, t: &TaskFilm) {
-        self.merge(t);
+        self.add_own_and_splats(t);
         self.apply_records(&t.records);
     }
 
@@ -78,7 +78,7 @@ impl Film {
 
     /// Adds out-of-tile light-tracing records (frame pixel indices).
     pub fn apply_records(&mut self, r: &LtRecords) {
-        self.acc.merge_records(r, self.width);
+        self.acc.add_records(r, self.width);
     }
 
     /// The EXR layers besides the beauty (see `TileAccum::extra_layers`).

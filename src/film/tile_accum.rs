@@ -255,7 +255,7 @@ impl TileAccum {
 
     /// Adds the camera-side part of a task's result: the sums, layers and optimal systems of its
     /// own pixels that lie in this tile (not its splats or records).
-    pub fn merge_own(&mut self, t: &TaskFilm) {
+    pub fn add_own(&mut self, t: &TaskFilm) {
         let nd = self.depth_layers();
         let y0 = t.tile.y0.max(self.tile.y0);
         let y1 = t.tile.y1.min(self.tile.y1);
@@ -298,7 +298,7 @@ impl TileAccum {
     }
 
     /// Adds the light-tracing splats that land in this tile, in their order.
-    pub fn merge_splats(&mut self, splats: &[Splat], frame_width: u32) {
+    pub fn add_splats(&mut self, splats: &[Splat], frame_width: u32) {
         let nd = self.depth_layers();
         for s in splats {
             let Some(p) = self.local(s.pixel, frame_width) else {
@@ -324,7 +324,7 @@ impl TileAccum {
     }
 
     /// Adds the optimal-MIS light-tracing records that land in this tile, in their order.
-    pub fn merge_records(&mut self, r: &LtRecords, frame_width: u32) {
+    pub fn add_records(&mut self, r: &LtRecords, frame_width: u32) {
         let tile = self.tile;
         let local = |p: u32| tile.index_of(p % frame_width, p / frame_width);
         match (self.optimal.as_mut(), self.progressive.as_mut()) {
@@ -348,9 +348,9 @@ impl TileAccum {
     }
 
     /// Adds what one task routed to this tile.
-    pub fn merge_routed(&mut self, r: &Routed, frame_width: u32) {
-        self.merge_splats(&r.splats, frame_width);
-        self.merge_records(&r.records, frame_width);
+    pub fn add_routed(&mut self, r: &Routed, frame_width: u32) {
+        self.add_splats(&r.splats, frame_width);
+        self.add_records(&r.records, frame_width);
     }
 
     /// Pixel samples taken in this tile (its part of the light-path count N_L).

@@ -5,7 +5,6 @@
 //! (`film::merge_task`) reads the input (`MergeInput`) and writes the output (`output_head`,
 //! `push_*`).
 //!
-//!
 //! ```text
 //! input (coordinator -> worker), streamed:
 //!   magic "OMISMRGI", version u32, bands b0 b1 u32, pass u32 (passes the tiles hold),
