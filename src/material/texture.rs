@@ -1,5 +1,6 @@
 //! Reflectance textures: a constant or a bitmap looked up by surface uv.
 
+pub use crate::geometry::colour::{linear_to_srgb, srgb_to_linear};
 use crate::geometry::{Rgb, Vec2};
 use std::sync::Arc;
 
@@ -172,8 +173,6 @@ impl Bitmap {
         s / (self.width * self.height) as f32
     }
 }
-
-pub use crate::geometry::colour::{linear_to_srgb, srgb_to_linear};
 
 /// A reflectance: constant, a bitmap looked up by uv, a checkerboard, or another texture seen
 /// through a transform of its coordinates.
