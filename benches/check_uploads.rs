@@ -1,7 +1,7 @@
-//! What the coordinator does to every byte it accepts: `wire::check_banded` on real results of
+//! What the coordinator does to every byte it accepts: `format::check_banded` on real results of
 //! a 1080p optimal-MIS job (Cornell box, BDPT, D_opt 1, first pass of 16 spp), rendered here
 //! from 24 tiles spread over the frame; and what a worker does to make them
-//! (`wire::encode_banded`, which packs every part). `cargo bench --bench check_uploads` prints
+//! (`format::encode_banded`, which packs every part). `cargo bench --bench check_uploads` prints
 //! both throughputs, in bytes uploaded (BENCHMARKS.md #12); then the check of a 1080p
 //! path-tracing job's results in pixels a second (formats of different sizes compare), and
 //! their size against their raw bytes.
@@ -11,7 +11,7 @@ use omis::job::{JobSettings, Limits};
 use omis::scene::Scene;
 
 type Results = (
-    Vec<omis::film::TileFilm>,
+    Vec<omis::film::TaskFilm>,
     Vec<Vec<u8>>,
     omis::film::TileGrid,
     omis::film::FilmLayout,
@@ -34,7 +34,7 @@ fn render_results(job: serde_json::Value) -> Results {
         .collect();
     let bytes = films
         .iter()
-        .map(|f| omis::film::wire::encode_banded(f.clone(), 0..16, &grid))
+        .map(|f| omis::film::format::encode_banded(f.clone(), 0..16, &grid))
         .collect();
     (films, bytes, grid, r.film_layout())
 }
@@ -42,7 +42,7 @@ fn render_results(job: serde_json::Value) -> Results {
 /// Every result of `r` checked as the coordinator checks an upload.
 fn check_all(r: &Results) {
     for bytes in &r.1 {
-        omis::film::wire::check_banded(bytes, &r.2, &r.3, u64::MAX).expect("valid");
+        omis::film::format::check_banded(bytes, &r.2, &r.3, u64::MAX).expect("valid");
     }
 }
 
@@ -62,7 +62,7 @@ fn check_uploads(c: &mut Criterion) {
     g.bench_function("encode_banded (a worker), the same 24 results", |b| {
         b.iter(|| {
             for f in films {
-                std::hint::black_box(omis::film::wire::encode_banded(f.clone(), 0..16, grid));
+                std::hint::black_box(omis::film::format::encode_banded(f.clone(), 0..16, grid));
             }
         })
     });

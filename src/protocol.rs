@@ -93,7 +93,7 @@ string_enum! {
 
 string_enum! {
     /// What a task does: render a tile's samples of a pass, or merge a finished pass into one
-    /// band group of tiles (the coordinator only moves the bytes; see `film::merge`).
+    /// band group of tiles (the coordinator only moves the bytes; see `film::merge_task`).
     TaskKind {
         /// Render samples [s0, s1) of every pixel of a tile; upload a tile result.
         Render = "render",

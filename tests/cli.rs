@@ -91,7 +91,7 @@ fn render_writes_exr_png_and_a_json_summary() {
     assert_eq!(mean.len(), 3);
     assert!(mean.iter().all(|v| v.as_f64().expect("number") > 0.0));
     assert!(j.get("relmse").is_none());
-    let img = omis::film::exr_io::read_exr(&exr).expect("EXR reads");
+    let img = omis::film::image::exr_io::read_exr(&exr).expect("EXR reads");
     assert_eq!((img.width, img.height), (32, 24));
     assert!(std::fs::metadata(&png).expect("png").len() > 0);
 
@@ -192,8 +192,8 @@ fn exr_opens_in_openexr_tools() {
             .output()
             .expect("exrmaketiled");
         assert!(t.status.success(), "{}", String::from_utf8_lossy(&t.stderr));
-        let a = omis::film::exr_io::read_exr_layers(&exr).expect("ours");
-        let b = omis::film::exr_io::read_exr_layers(&tiled).expect("OpenEXR's");
+        let a = omis::film::image::exr_io::read_exr_layers(&exr).expect("ours");
+        let b = omis::film::image::exr_io::read_exr_layers(&tiled).expect("OpenEXR's");
         assert_eq!(a, b);
     }
 }
@@ -312,8 +312,8 @@ fn render_through_the_service_equals_the_in_process_render() {
             .unwrap_or(0)
             > 1000
     );
-    let la = omis::film::exr_io::read_exr_layers(&svc).expect("service EXR");
-    let lb = omis::film::exr_io::read_exr_layers(&inp).expect("in-process EXR");
+    let la = omis::film::image::exr_io::read_exr_layers(&svc).expect("service EXR");
+    let lb = omis::film::image::exr_io::read_exr_layers(&inp).expect("in-process EXR");
     let names: Vec<&str> = la.iter().map(|(n, _)| n.as_str()).collect();
     assert!(
         names.contains(&"depth1") && names.contains(&""),
@@ -373,8 +373,8 @@ fn auto_optimal_depth_is_chosen_once_the_same_way_in_both_modes_and_reported() {
         String::from_utf8_lossy(&b.stderr)
     );
     assert_eq!(
-        omis::film::exr_io::read_exr_layers(&svc).expect("service EXR"),
-        omis::film::exr_io::read_exr_layers(&inp).expect("in-process EXR")
+        omis::film::image::exr_io::read_exr_layers(&svc).expect("service EXR"),
+        omis::film::image::exr_io::read_exr_layers(&inp).expect("in-process EXR")
     );
     for f in [&svc, &inp] {
         let meta = exr::meta::MetaData::read_from_file(f, false).expect("EXR header");
@@ -437,8 +437,8 @@ fn pbrt_and_mitsuba_scenes_render_through_the_service_with_their_files() {
             "32x24",
         ];
         both_modes(&common, &svc, &inp);
-        let ia = omis::film::exr_io::read_exr(&svc).expect("service EXR");
-        let ib = omis::film::exr_io::read_exr(&inp).expect("in-process EXR");
+        let ia = omis::film::image::exr_io::read_exr(&svc).expect("service EXR");
+        let ib = omis::film::image::exr_io::read_exr(&inp).expect("in-process EXR");
         assert_eq!(ia, ib, "{scene}");
         assert!(
             ia.mean().iter().sum::<f64>() > 0.0,
@@ -660,7 +660,7 @@ fn diff_and_compare_read_the_exr_header_before_the_pixels() {
     // A real 8x8 EXR whose header then claims a 20000x20000 data window.
     let small = d.join("small.exr");
     let img = omis::film::Image::new(8, 8);
-    omis::film::exr_io::write_exr(&small, &img, &[], &[]).expect("write EXR");
+    omis::film::image::exr_io::write_exr(&small, &img, &[], &[]).expect("write EXR");
     let mut bytes = std::fs::read(&small).expect("read");
     let key = b"dataWindow\0box2i\0";
     let at = bytes
@@ -695,7 +695,7 @@ fn an_image_diffed_with_itself_has_no_error_also_on_black_pixels() {
     for (k, p) in img.pixels.iter_mut().enumerate().skip(32) {
         *p = omis::geometry::Rgb::splat(k as f32 * 0.1);
     }
-    omis::film::exr_io::write_exr(&path, &img, &[], &[]).expect("write EXR");
+    omis::film::image::exr_io::write_exr(&path, &img, &[], &[]).expect("write EXR");
     let out = omis(&["diff", s(&path), s(&path), "--eps", "0", "--json"]);
     assert!(
         out.status.success(),

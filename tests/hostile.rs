@@ -773,7 +773,7 @@ fn a_reference_full_of_nan_is_refused_naming_the_count() {
         *p = omis::geometry::Rgb::new(f32::NAN, 0.5, f32::INFINITY);
     }
     let path = dir.join("nan.exr");
-    omis::film::exr_io::write_exr(&path, &img, &[], &[]).expect("write");
+    omis::film::image::exr_io::write_exr(&path, &img, &[], &[]).expect("write");
     let r = c
         .post(format!("{url}/v1/references"))
         .header("content-type", "image/x-exr")

@@ -903,8 +903,9 @@ fn staircase_relmse_against_tungsten() {
         scene.materials.len(),
         scene.stats.bvh_build_seconds,
     );
-    let reference = omis::film::exr_io::read_exr(&dir.join("staircase/mitsuba/TungstenRender.exr"))
-        .expect("reference EXR");
+    let reference =
+        omis::film::image::exr_io::read_exr(&dir.join("staircase/mitsuba/TungstenRender.exr"))
+            .expect("reference EXR");
     assert_eq!(
         (scene.camera.width as usize, scene.camera.height as usize),
         (reference.width, reference.height),
@@ -926,10 +927,10 @@ fn staircase_relmse_against_tungsten() {
         omis::job::Resolved::fixed(&scene, &settings, 16, 64).render_in_process(&scene, &|_| {});
     let img = out.image();
     let rate = out.stats.samples as f64 / out.seconds;
-    let stats = omis::film::metrics::compare(&img, &reference, 0.01).expect("same size");
+    let stats = omis::film::image::metrics::compare(&img, &reference, 0.01).expect("same size");
     // 8x8 block means: the noise of the render mostly averages out, model differences stay.
     let (bi, br) = (blocks(&img, 8), blocks(&reference, 8));
-    let bias = omis::film::metrics::compare(&bi, &br, 0.01).expect("same size");
+    let bias = omis::film::image::metrics::compare(&bi, &br, 0.01).expect("same size");
     eprintln!(
         "staircase {}x{} at {spp} spp, max depth {max_depth}: relMSE {:.5} (eps 0.01), MSE {:.5}; relMSE of 8x8 block means {:.5}; {:.1} s, {:.0} pixel samples/s ({} threads); peak memory (VmHWM) {:.0} MiB",
         img.width,
@@ -984,14 +985,16 @@ fn staircase_relmse_against_tungsten() {
         "omis-staircase-error-map-8x8.png",
     ]
     .map(|n| tmp.join(n));
-    omis::film::png::write_png(&paths[0], &img, 1.0).expect("write render");
-    omis::film::png::write_png(&paths[1], &reference, 1.0).expect("write reference");
-    let map = omis::film::metrics::error_map(&img, &reference, 0.01, 1.0).expect("error map");
-    omis::film::png::write_rgb8(&paths[2], img.width, img.height, &map).expect("write map");
+    omis::film::image::png::write_png(&paths[0], &img, 1.0).expect("write render");
+    omis::film::image::png::write_png(&paths[1], &reference, 1.0).expect("write reference");
+    let map =
+        omis::film::image::metrics::error_map(&img, &reference, 0.01, 1.0).expect("error map");
+    omis::film::image::png::write_rgb8(&paths[2], img.width, img.height, &map).expect("write map");
     // Block map at a finer scale (saturating at 25 %), shown at full size.
-    let bmap = omis::film::metrics::error_map(&bi, &br, 0.01, 0.25).expect("error map");
+    let bmap = omis::film::image::metrics::error_map(&bi, &br, 0.01, 0.25).expect("error map");
     let up = upscale(&bmap, bi.width, bi.height, 8);
-    omis::film::png::write_rgb8(&paths[3], bi.width * 8, bi.height * 8, &up).expect("write map");
+    omis::film::image::png::write_rgb8(&paths[3], bi.width * 8, bi.height * 8, &up)
+        .expect("write map");
     eprintln!(
         "render: {}\nreference (same tone mapping): {}\nerror map (red: brighter than Tungsten, green: darker; saturates at 100 %): {}\nerror map of 8x8 block means (saturates at 25 %): {}",
         paths[0].display(),

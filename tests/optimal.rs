@@ -4,7 +4,7 @@
 mod common;
 
 use common::load;
-use omis::film::{Film, Image, LtRecords, Tile, TileFilm};
+use omis::film::{Film, Image, LtRecords, TaskFilm, Tile};
 use omis::integrator::{self, IntegratorKind, RenderSettings};
 use omis::job::{Resolved, make_tiles};
 use omis::mis::MisKind;
@@ -37,12 +37,12 @@ fn tasks_image(
         let mut film = integrator::render_tile(scene, s, *tile, range.clone());
         if through_wire {
             let bytes = film.encode(range.clone());
-            let (back, r) = TileFilm::decode(&bytes, w, h, &s.film_layout()).expect("decodes");
+            let (back, r) = TaskFilm::decode(&bytes, w, h, &s.film_layout()).expect("decodes");
             assert_eq!(&r, range);
             assert_eq!(back.encode(range.clone()), bytes, "encoding is canonical");
             film = back;
         }
-        frame.merge(&film);
+        frame.add_own_and_splats(&film);
         frame.apply_records(&film.records);
     }
     frame.image()
@@ -151,9 +151,9 @@ fn light_tracing_values_travel_as_bfloat16_and_decode_to_the_same_bits() {
         }
         assert_eq!(at, film.records.values.len());
         assert_eq!(film.records.is_empty(), d_opt == 0);
-        let check = |film: &TileFilm| {
+        let check = |film: &TaskFilm| {
             let bytes = film.encode(0..4);
-            let (back, _) = TileFilm::decode(&bytes, 16, 16, &layout).expect("decodes");
+            let (back, _) = TaskFilm::decode(&bytes, 16, 16, &layout).expect("decodes");
             assert_eq!(back.splats, film.splats);
             assert_eq!(back.records, film.records);
             bytes.len()
@@ -190,28 +190,28 @@ fn wire_decoding_rejects_damaged_results() {
     let bytes = film.encode(0..2);
     let layout = s.film_layout();
     let shallower = optimal(2, 3, 2).film_layout();
-    assert!(TileFilm::decode(&bytes, 16, 16, &layout).is_ok());
-    assert!(TileFilm::decode(&bytes[..bytes.len() - 1], 16, 16, &layout).is_err());
+    assert!(TaskFilm::decode(&bytes, 16, 16, &layout).is_ok());
+    assert!(TaskFilm::decode(&bytes[..bytes.len() - 1], 16, 16, &layout).is_err());
     assert!(
-        TileFilm::decode(&bytes, 16, 16, &shallower).is_err(),
+        TaskFilm::decode(&bytes, 16, 16, &shallower).is_err(),
         "depth mismatch"
     );
     assert!(
-        TileFilm::decode(&bytes, 4, 4, &layout).is_err(),
+        TaskFilm::decode(&bytes, 4, 4, &layout).is_err(),
         "tile outside the frame"
     );
     let mut bad = bytes.clone();
     bad[0] = b'X';
-    assert!(TileFilm::decode(&bad, 16, 16, &layout).is_err());
+    assert!(TaskFilm::decode(&bad, 16, 16, &layout).is_err());
     let mut longer = bytes.clone();
     longer.push(0);
-    assert!(TileFilm::decode(&longer, 16, 16, &layout).is_err());
+    assert!(TaskFilm::decode(&longer, 16, 16, &layout).is_err());
     let with_depths = RenderSettings {
         depth_layers: true,
         ..s.clone()
     };
     assert!(
-        TileFilm::decode(&bytes, 16, 16, &with_depths.film_layout()).is_err(),
+        TaskFilm::decode(&bytes, 16, 16, &with_depths.film_layout()).is_err(),
         "depth layers missing"
     );
     // The records close the result: value width u8, count u32, then the bfloat16 values, which
@@ -221,7 +221,7 @@ fn wire_decoding_rejects_damaged_results() {
     let m = r.values.len() - r.len();
     let width_at = bytes.len() - 2 * m - 5;
     assert_eq!(bytes[width_at], 2);
-    let err = |b: &[u8]| match TileFilm::decode(b, 16, 16, &layout) {
+    let err = |b: &[u8]| match TaskFilm::decode(b, 16, 16, &layout) {
         Ok(_) => panic!("a damaged record list was accepted"),
         Err(e) => e.to_string(),
     };
@@ -236,7 +236,7 @@ fn wire_decoding_rejects_damaged_results() {
     assert!(err(&bad).contains("expected"), "{}", err(&bad));
 }
 
-/// The coordinator's check of a result (`TileFilm::check`, which skips the values) refuses
+/// The coordinator's check of a result (`TaskFilm::check`, which skips the values) refuses
 /// exactly what decoding refuses, and reports what decoding reads: for results with every kind
 /// of content (splats, records, strategy and depth layers, optimal systems, and none of them),
 /// whole, cut anywhere, with a byte changed anywhere, checked against another layout.
@@ -280,8 +280,8 @@ fn checking_a_result_refuses_exactly_what_decoding_refuses() {
             let mut refused = 0;
             for v in &variants {
                 for layout in &layouts {
-                    let checked = TileFilm::check(v, 16, 16, layout);
-                    match TileFilm::decode(v, 16, 16, layout) {
+                    let checked = TaskFilm::check(v, 16, 16, layout);
+                    match TaskFilm::decode(v, 16, 16, layout) {
                         Ok((f, samples)) => {
                             let c = checked.expect("decoded, so it checks");
                             assert_eq!(c.tile, f.tile);
@@ -317,7 +317,7 @@ fn banded_result_of(s: &RenderSettings) -> (omis::film::TileGrid, omis::film::Fi
     let scene = load("cornell-box.json", 16, 16);
     let grid = omis::film::TileGrid::new(16, 16, 8);
     let film = integrator::render_tile(&scene, s, grid.tile(0), 0..2);
-    let bytes = omis::film::wire::encode_banded(film, 0..2, &grid);
+    let bytes = omis::film::format::encode_banded(film, 0..2, &grid);
     (grid, s.film_layout(), bytes)
 }
 
@@ -328,7 +328,7 @@ fn banded_result_of(s: &RenderSettings) -> (omis::film::TileGrid, omis::film::Fi
 #[test]
 fn banded_uploads_are_checked_before_they_are_stored() {
     use omis::film::TileGrid;
-    use omis::film::wire::{BandedIndex, check_banded, relabel_banded};
+    use omis::film::format::{BandedIndex, check_banded, relabel_banded};
     let (grid, layout, bytes) = banded_result();
     let tile = grid.tile(0);
     let index = check_banded(&bytes, &grid, &layout, ANY).expect("a worker's upload passes");
@@ -374,7 +374,10 @@ fn banded_uploads_are_checked_before_they_are_stored() {
     // inflated (a small upload must not become a large allocation).
     let raw: usize = std::iter::once(&index.own)
         .chain(index.sections.iter().map(|(_, r)| r))
-        .map(|r| omis::film::pack::raw_len(&bytes[r.start as usize..r.end as usize]).expect("head"))
+        .map(|r| {
+            omis::film::format::pack::raw_len(&bytes[r.start as usize..r.end as usize])
+                .expect("head")
+        })
         .sum();
     assert!(
         raw > bytes.len(),
@@ -409,7 +412,7 @@ fn checking_a_section_agrees_with_decoding_it() {
 fn check_and_decode_agree(
     (grid, layout, bytes): (omis::film::TileGrid, omis::film::FilmLayout, Vec<u8>),
 ) {
-    use omis::film::wire::{BandedIndex, check_section, decode_section};
+    use omis::film::format::{BandedIndex, check_section, decode_section};
     let index = BandedIndex::read(&mut &bytes[..], bytes.len() as u64).expect("index");
     let mut rng = 0x9e37_79b9_7f4a_7c15u64;
     let mut next = move || {
@@ -421,7 +424,8 @@ fn check_and_decode_agree(
     let (mut refused, mut tried) = (0, 0);
     for (band, r) in &index.sections {
         let packed = &bytes[r.start as usize..r.end as usize];
-        let section = &omis::film::pack::unpack_vec(packed, usize::MAX).expect("unpacks")[..];
+        let section =
+            &omis::film::format::pack::unpack_vec(packed, usize::MAX).expect("unpacks")[..];
         assert!(check_section(section, *band as usize, &grid, &layout).is_ok());
         for _ in 0..1500 {
             let mut bad = section.to_vec();
@@ -578,7 +582,7 @@ fn optimal_beats_balance_at_equal_spp_and_is_never_worse_at_low_spp() {
                 let mut s = optimal(spp, 5, 5);
                 s.mis = mis;
                 for img in seeds(&scene, &s, 5) {
-                    rel[k] += omis::film::metrics::compare(&img, &reference, 0.01)
+                    rel[k] += omis::film::image::metrics::compare(&img, &reference, 0.01)
                         .expect("same size")
                         .relmse
                         / 5.0;
@@ -644,8 +648,8 @@ fn camera_techniques_survive_a_light_tracing_count_1e13_times_larger() {
 /// upload that carries splats is refused for it rather than merged into sums it does not keep.
 #[test]
 fn path_tracer_checkpoints_keep_no_splat_sums_and_its_results_no_splats() {
-    use omis::film::wire::{self, TileCheckpoint};
-    use omis::film::{FilmTile, TileGrid};
+    use omis::film::format::{self, TileCheckpoint};
+    use omis::film::{TileAccum, TileGrid};
     let scene = load("cornell-box.json", 16, 16);
     let pt = RenderSettings {
         integrator: IntegratorKind::Pt,
@@ -666,9 +670,9 @@ fn path_tracer_checkpoints_keep_no_splat_sums_and_its_results_no_splats() {
     );
     // A path-traced tile through its checkpoint: exact, and the image of the frame's pixels.
     let film = integrator::render_tile(&scene, &pt, tile, 0..4);
-    let mut acc = FilmTile::new(tile, &pt_layout);
+    let mut acc = TileAccum::new(tile, &pt_layout);
     assert!(acc.splat.is_empty());
-    acc.merge_own(&film);
+    acc.add_own(&film);
     acc.end_pass(16 * 16 * 4, pt_layout.kappa);
     let bytes = TileCheckpoint {
         tile: acc.clone(),
@@ -690,7 +694,7 @@ fn path_tracer_checkpoints_keep_no_splat_sums_and_its_results_no_splats() {
     // Each layout refuses the other's checkpoints (their lengths differ), never misreads them.
     assert!(TileCheckpoint::check(&bytes, tile, &bdpt_layout).is_err());
     let b = TileCheckpoint {
-        tile: FilmTile::new(tile, &bdpt_layout),
+        tile: TileAccum::new(tile, &bdpt_layout),
         passes: 1,
     }
     .encode();
@@ -707,17 +711,17 @@ fn path_tracer_checkpoints_keep_no_splat_sums_and_its_results_no_splats() {
     let with_splats = integrator::render_tile(&scene, &bdpt, tile, 0..4);
     assert!(!with_splats.splats.is_empty());
     let whole = with_splats.encode(0..4);
-    let e = TileFilm::check(&whole, 16, 16, &pt_layout).expect_err("refused");
+    let e = TaskFilm::check(&whole, 16, 16, &pt_layout).expect_err("refused");
     assert!(e.to_string().contains("splats"), "{e}");
-    assert!(TileFilm::decode(&whole, 16, 16, &pt_layout).is_err());
-    assert!(TileFilm::check(&whole, 16, 16, &bdpt_layout).is_ok());
-    let banded = wire::encode_banded(with_splats, 0..4, &grid);
-    let e = wire::check_banded(&banded, &grid, &pt_layout, 1 << 30).expect_err("refused");
+    assert!(TaskFilm::decode(&whole, 16, 16, &pt_layout).is_err());
+    assert!(TaskFilm::check(&whole, 16, 16, &bdpt_layout).is_ok());
+    let banded = format::encode_banded(with_splats, 0..4, &grid);
+    let e = format::check_banded(&banded, &grid, &pt_layout, 1 << 30).expect_err("refused");
     assert!(e.to_string().contains("splats"), "{e}");
-    assert!(wire::check_banded(&banded, &grid, &bdpt_layout, 1 << 30).is_ok());
+    assert!(format::check_banded(&banded, &grid, &bdpt_layout, 1 << 30).is_ok());
     // The path tracer's own result passes.
-    let banded = wire::encode_banded(film, 0..4, &grid);
-    assert!(wire::check_banded(&banded, &grid, &pt_layout, 1 << 30).is_ok());
+    let banded = format::encode_banded(film, 0..4, &grid);
+    assert!(format::check_banded(&banded, &grid, &pt_layout, 1 << 30).is_ok());
 }
 
 /// A frame merged tile by tile — each tile's accumulators receiving, pass by pass, its own
@@ -731,8 +735,8 @@ fn tile_by_tile_merge_has_the_bits_of_the_task_order_merge() {
 }
 
 fn tile_by_tile_merge_case(mis: MisKind) {
-    use omis::film::wire::TileCheckpoint;
-    use omis::film::{FilmTile, TileGrid};
+    use omis::film::format::TileCheckpoint;
+    use omis::film::{TileAccum, TileGrid};
     let scene = load("cornell-box-small-light.json", 24, 20);
     let mut s = optimal(6, 5, 3);
     s.mis = mis;
@@ -748,7 +752,7 @@ fn tile_by_tile_merge_case(mis: MisKind) {
     );
     // Three passes: the progressive estimator weights the last two with solved weights.
     let passes = [0..2, 2..4, 4..6];
-    let results: Vec<Vec<TileFilm>> = passes
+    let results: Vec<Vec<TaskFilm>> = passes
         .iter()
         .map(|r| {
             tiles
@@ -761,29 +765,29 @@ fn tile_by_tile_merge_case(mis: MisKind) {
     let mut film = Film::new(24, 20, &layout);
     for pass in &results {
         for r in pass {
-            film.merge_task(r);
+            film.add_task(r);
         }
         film.end_pass();
     }
     // Tile by tile, tiles in a scrambled order.
-    let mut acc: Vec<FilmTile> = tiles.iter().map(|t| FilmTile::new(*t, &layout)).collect();
+    let mut acc: Vec<TileAccum> = tiles.iter().map(|t| TileAccum::new(*t, &layout)).collect();
     for (p, pass) in results.iter().enumerate() {
         let routed: Vec<_> = pass.iter().map(|r| r.route(&grid)).collect();
         for k in 0..tiles.len() {
             let dest = (k * 7 + 3) % tiles.len();
             for (u, r) in pass.iter().enumerate() {
                 if u == dest {
-                    acc[dest].merge_own(r);
+                    acc[dest].add_own(r);
                 }
                 if let Some((_, part)) = routed[u].iter().find(|(d, _)| *d == dest) {
-                    acc[dest].merge_routed(part, 24);
+                    acc[dest].add_routed(part, 24);
                 }
             }
             acc[dest].end_pass(24 * 20 * passes[p].end as u64, layout.kappa);
         }
     }
     // Through the per-tile checkpoint encoding, which must be exact and validated.
-    let acc: Vec<FilmTile> = acc
+    let acc: Vec<TileAccum> = acc
         .into_iter()
         .map(|t| {
             let bytes = TileCheckpoint {
@@ -896,8 +900,8 @@ fn band_group_merge_of_banded_results_has_the_bits_of_the_task_order_merge() {
 }
 
 fn band_group_merge_case(mis: MisKind) {
-    use omis::film::wire::{self, BandedIndex};
-    use omis::film::{BandGroup, FilmTile, TileGrid, band_groups};
+    use omis::film::format::{self, BandedIndex};
+    use omis::film::{BandGroup, TileAccum, TileGrid, band_groups};
     let (w, h) = (24, 20);
     let scene = load("cornell-box-small-light.json", w, h);
     let mut s = optimal(6, 5, 3);
@@ -914,11 +918,11 @@ fn band_group_merge_case(mis: MisKind) {
         let mut pass = Vec::new();
         for t in &tiles {
             let r = integrator::render_tile(&scene, &s, *t, range.clone());
-            film.merge_task(&r);
+            film.add_task(&r);
             // What the coordinator stores: the upload, decoded, laid out by band.
             let (back, got) =
-                TileFilm::decode(&r.encode(range.clone()), w, h, &layout).expect("decodes");
-            pass.push(wire::encode_banded(back, got, &grid));
+                TaskFilm::decode(&r.encode(range.clone()), w, h, &layout).expect("decodes");
+            pass.push(format::encode_banded(back, got, &grid));
         }
         film.end_pass();
         stored.push(pass);
@@ -929,7 +933,7 @@ fn band_group_merge_case(mis: MisKind) {
         let groups = band_groups(&grid, &layout, budget);
         assert_eq!(groups.first().map(|g| g.start), Some(0));
         assert_eq!(groups.last().map(|g| g.end), Some(grid.rows() as usize));
-        let mut acc: Vec<FilmTile> = tiles.iter().map(|t| FilmTile::new(*t, &layout)).collect();
+        let mut acc: Vec<TileAccum> = tiles.iter().map(|t| TileAccum::new(*t, &layout)).collect();
         let mut done = vec![0u32; tiles.len()];
         for (p, pass) in stored.iter().enumerate() {
             // Pass 1 restarted after its first group: that group's tiles hold it already.
@@ -947,7 +951,7 @@ fn band_group_merge_case(mis: MisKind) {
                         assert_eq!(index.tile, tiles[u]);
                         let own = group.holds(u).then(|| {
                             let part = &bytes[index.own.start as usize..index.own.end as usize];
-                            wire::unpack_own(part, usize::MAX, w, h, &layout)
+                            format::unpack_own(part, usize::MAX, w, h, &layout)
                                 .expect("own")
                                 .0
                         });
@@ -960,7 +964,7 @@ fn band_group_merge_case(mis: MisKind) {
                                 let b = *b as usize;
                                 (
                                     b,
-                                    wire::unpack_section(part, usize::MAX, b, &grid, &layout)
+                                    format::unpack_section(part, usize::MAX, b, &grid, &layout)
                                         .expect("section"),
                                 )
                             })
@@ -1005,7 +1009,7 @@ fn damaged_results_are_refused(
     grid: &omis::film::TileGrid,
     layout: &omis::film::FilmLayout,
 ) {
-    use omis::film::wire::{self, BandedIndex};
+    use omis::film::format::{self, BandedIndex};
     // Damage is refused: truncation, a wrong length, a section read as another band's.
     let bytes = &stored[0][3];
     let len = bytes.len() as u64;
@@ -1023,8 +1027,8 @@ fn damaged_results_are_refused(
         .clone();
     let part = &bytes[r.start as usize..r.end as usize];
     let other = (b as usize + 1) % grid.rows() as usize;
-    assert!(wire::decode_section(part, other, grid, layout).is_err());
-    assert!(wire::decode_section(&part[..part.len() - 1], b as usize, grid, layout).is_err());
+    assert!(format::decode_section(part, other, grid, layout).is_err());
+    assert!(format::decode_section(&part[..part.len() - 1], b as usize, grid, layout).is_err());
     // Every part has its checksum; the header and table have theirs.
     assert!(index.check_section(0, part).is_ok());
     let mut flipped = part.to_vec();
@@ -1043,7 +1047,7 @@ fn damaged_results_are_refused(
     assert_eq!(moved.own, index.own.start + 1000..index.own.end + 1000);
 }
 
-/// A merge task as a worker runs it (`film::merge::run`): fed the pass's banded results and the
+/// A merge task as a worker runs it (`film::merge_task::run`): fed the pass's banded results and the
 /// previous pass's checkpoints, pass after pass and group by group, its outputs have the bits of
 /// the in-process merge (beauties and checkpoints that the next pass continues from; on the
 /// last pass the final EXR's blocks, every layer, in ZIP blocks of 16 lines or of one where
@@ -1051,8 +1055,9 @@ fn damaged_results_are_refused(
 /// a partial output, and so is an output with a damaged block.
 #[test]
 fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input() {
-    use omis::film::merge::{self, MergeHead, MergeOut, MergeOutput};
-    use omis::film::wire::{self, BandedIndex};
+    use omis::film::format::merge_stream::{self, MergeHead, MergeOut, MergeOutput};
+    use omis::film::format::{self, BandedIndex};
+    use omis::film::merge_task;
     use omis::film::{TileGrid, band_groups};
     let (w, h) = (24, 20);
     let scene = load("cornell-box-small-light.json", w, h);
@@ -1062,7 +1067,7 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
     let layout = s.film_layout();
     for tile_size in [8, 16] {
         let grid = TileGrid::new(w, h, tile_size);
-        let exr = merge::exr_layout(&grid, &layout).expect("layout");
+        let exr = merge_stream::exr_layout(&grid, &layout).expect("layout");
         let tiles = grid.tiles();
         let groups = band_groups(&grid, &layout, 1);
         let mut film = Film::new(w, h, &layout);
@@ -1073,8 +1078,8 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
                 .iter()
                 .map(|t| {
                     let r = integrator::render_tile(&scene, &s, *t, range.clone());
-                    film.merge_task(&r);
-                    wire::encode_banded(r, range.clone(), &grid)
+                    film.add_task(&r);
+                    format::encode_banded(r, range.clone(), &grid)
                 })
                 .collect();
             film.end_pass();
@@ -1103,7 +1108,7 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
                 .encode();
                 for t in group_tiles.clone() {
                     let ck = checkpoints[t].as_ref();
-                    input.extend(merge::tile_entry(ck.map(|c| c.len() as u64)));
+                    input.extend(merge_stream::tile_entry(ck.map(|c| c.len() as u64)));
                     input.extend(ck.into_iter().flatten());
                 }
                 for (u, bytes) in stored.iter().enumerate() {
@@ -1121,13 +1126,17 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
                         .collect();
                     let heads: Vec<(u32, u64)> =
                         inside.iter().map(|(b, r)| (*b, r.end - r.start)).collect();
-                    input.extend(merge::result_entry(u as u32, own.len() as u64, &heads));
+                    input.extend(merge_stream::result_entry(
+                        u as u32,
+                        own.len() as u64,
+                        &heads,
+                    ));
                     input.extend_from_slice(own);
                     for (_, r) in inside {
                         input.extend_from_slice(&bytes[r.start as usize..r.end as usize]);
                     }
                 }
-                let out = merge::run(&input[..], &grid, &layout).expect("merge");
+                let out = merge_task::run(&input[..], &grid, &layout).expect("merge");
                 let decode = |bytes: &[u8], b: std::ops::Range<u32>, passes: u32, k: MergeOut| {
                     MergeOutput::decode(bytes, &grid, &layout, b, passes, k).is_ok()
                 };
@@ -1186,7 +1195,7 @@ fn merge_tasks_chained_over_passes_have_the_in_process_bits_and_refuse_cut_input
                 assert!(!decode(&out, b.clone(), p as u32, kind));
                 for cut in (0..input.len()).step_by(input.len() / 40 + 1) {
                     assert!(
-                        merge::run(&input[..cut], &grid, &layout).is_err(),
+                        merge_task::run(&input[..cut], &grid, &layout).is_err(),
                         "cut at {cut}"
                     );
                 }

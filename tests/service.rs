@@ -7,7 +7,7 @@ mod common;
 
 use common::repo;
 use common::service::{EXE, get_json, http, post, register, serve, worker};
-use omis::film::{Image, exr_io};
+use omis::film::{Image, image::exr_io};
 use omis::job::{JobSettings, Limits};
 use omis::scene::Scene;
 use reqwest::blocking::Client;
@@ -340,7 +340,7 @@ fn tile_result_of(settings: &Value, task: &Value, seed: u64) -> Vec<u8> {
     let range = task["samples"][0].as_u64().expect("s0") as u32
         ..task["samples"][1].as_u64().expect("s1") as u32;
     let film = omis::integrator::render_tile(&scene, &r.render, rect, range.clone());
-    omis::film::wire::encode_banded(film, range, &r.grid())
+    omis::film::format::encode_banded(film, range, &r.grid())
 }
 
 fn lease(c: &Client, url: &str, worker: &str) -> Value {
@@ -370,7 +370,7 @@ fn upload(c: &Client, url: &str, task: &Value, worker: &str, body: Vec<u8>) -> u
 }
 
 /// Runs the merge task of `lease` as a worker does: its input streamed from the coordinator
-/// into `film::merge::run` in this process, its output uploaded; the upload's status.
+/// into `film::merge_task::run` in this process, its output uploaded; the upload's status.
 fn merge_task(c: &Client, url: &str, lease: &Value, worker: &str) -> u16 {
     let t = &lease["task"];
     assert_eq!(t["kind"], "merge", "{lease}");
@@ -385,7 +385,7 @@ fn merge_task(c: &Client, url: &str, lease: &Value, worker: &str) -> u16 {
         .send()
         .expect("GET input");
     assert_eq!(input.status().as_u16(), 200);
-    let out = omis::film::merge::run(input, &r.grid(), &r.film_layout()).expect("merge");
+    let out = omis::film::merge_task::run(input, &r.grid(), &r.film_layout()).expect("merge");
     upload(c, url, lease, worker, out)
 }
 
@@ -522,7 +522,7 @@ fn a_recorded_result_damaged_on_disk_is_rendered_again() {
 fn first_pass_merged(c: &Client, url: &str, data: &Path) -> (String, PathBuf, Vec<u8>, usize) {
     let id = merge_first_pass(c, url, &settings(8));
     let layout = synthetic_layout(&settings(8));
-    let len = omis::film::wire::TileCheckpoint::encoded_len(16 * 16, &layout) as usize;
+    let len = omis::film::format::TileCheckpoint::encoded_len(16 * 16, &layout) as usize;
     let band = data.join(format!("jobs/{id}/tiles/band-000000.acc"));
     let bytes = std::fs::read(&band).expect("the band's checkpoints");
     (id, band, bytes, len)
@@ -1046,7 +1046,7 @@ fn openapi_enum(name: &str) -> Vec<String> {
 
 #[test]
 fn the_protocol_enums_are_the_openapi_enums() {
-    use omis::service::protocol::{EventKind, JobState, TaskKind, TaskState, WorkerState};
+    use omis::protocol::{EventKind, JobState, TaskKind, TaskState, WorkerState};
     fn names<T: serde::Serialize>(all: &[T], as_str: impl Fn(&T) -> &'static str) -> Vec<String> {
         all.iter()
             .map(|v| {
@@ -1080,7 +1080,7 @@ fn the_protocol_enums_are_the_openapi_enums() {
 
 #[test]
 fn protocol_names_and_events_round_trip() {
-    use omis::service::protocol::{
+    use omis::protocol::{
         CancelledEvent, EventKind, JobEvent, JobState, PassDoneEvent, TaskState, WorkerState,
     };
     for s in JobState::ALL {
@@ -1273,7 +1273,7 @@ fn cli_clients_submit_wait_download_status_and_cancel() {
     let image = exr_io::read_exr(&second).expect("the second EXR opens");
     let reference = exr_io::read_exr(&exr).expect("the reference opens");
     let eps = st["settings"]["eps"].as_f64().expect("eps");
-    let measured = omis::film::metrics::compare(&image, &reference, eps)
+    let measured = omis::film::image::metrics::compare(&image, &reference, eps)
         .expect("same size")
         .relmse;
     assert_eq!(
@@ -1857,8 +1857,8 @@ fn synthetic_result(
     w: u32,
     h: u32,
     layout: &omis::film::FilmLayout,
-) -> omis::film::TileFilm {
-    let mut f = omis::film::TileFilm::new(tile, layout);
+) -> omis::film::TaskFilm {
+    let mut f = omis::film::TaskFilm::new(tile, layout);
     let mut m = Mix((tile.y0 as u64) << 40 ^ (tile.x0 as u64) << 20 ^ range.start as u64);
     let n = range.end - range.start;
     let d_opt = layout.d_opt().unwrap_or(0);
@@ -1962,7 +1962,7 @@ fn feed(
         let size = lease["job"]["resolved"]["tile_size"]
             .as_u64()
             .expect("tile size") as u32;
-        let body = omis::film::wire::encode_banded(
+        let body = omis::film::format::encode_banded(
             synthetic_result(rect, range.clone(), w, h, layout),
             range,
             &omis::film::TileGrid::new(w, h, size),
@@ -2049,7 +2049,7 @@ fn a_coordinator_killed_mid_stream_resumes_and_its_image_has_the_in_process_bits
     let mut film = omis::film::Film::new(w, h, &layout);
     for p in 0..spp / pass {
         for t in grid.tiles() {
-            film.merge_task(&synthetic_result(
+            film.add_task(&synthetic_result(
                 t,
                 p * pass..(p + 1) * pass,
                 w,

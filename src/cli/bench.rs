@@ -5,7 +5,7 @@
 //! an integer multiple of it).
 
 use crate::accel::{Accel, SphereGeom};
-use crate::film::{Image, exr_io, metrics, png};
+use crate::film::image::{Image, exr_io, metrics, png};
 use crate::geometry::warp::uniform_sphere;
 use crate::geometry::{Ray, Vec2, Vec3};
 use crate::integrator::{IntegratorKind, RenderSettings};

@@ -106,7 +106,7 @@ fn record(scene: &Scene, r: &Resolved, per: usize) -> Recorded {
             for t in &picked {
                 let c0 = super::procstat::cpu_seconds(None);
                 let film = crate::integrator::render_tile(scene, &r.render, *t, 0..len);
-                let bytes = crate::film::wire::encode_banded(film, 0..len, &grid);
+                let bytes = crate::film::format::encode_banded(film, 0..len, &grid);
                 let cpu = super::procstat::cpu_seconds(None) - c0;
                 out.entry((w, h, len)).or_default().push((bytes, cpu));
             }
@@ -211,8 +211,9 @@ async fn simulated_worker(
                 .with_context(|| format!("no recorded result for tile shape / pass {key:?}"))?;
             turn += 1;
             let (bytes, cpu) = &list[turn % list.len()];
-            let body = crate::film::wire::relabel_banded(bytes, t.rect, t.samples[0]..t.samples[1])
-                .map_err(anyhow::Error::msg)?;
+            let body =
+                crate::film::format::relabel_banded(bytes, t.rect, t.samples[0]..t.samples[1])
+                    .map_err(anyhow::Error::msg)?;
             (body, Some(*cpu))
         };
         let n = body.len() as u64;

@@ -9,7 +9,7 @@ use super::client::Client;
 use super::job_args::JobArgs;
 use super::service_cmds::{runtime, submit_job};
 use crate::bundle;
-use crate::film::exr_io;
+use crate::film::image::exr_io;
 use crate::job::Limits;
 use crate::protocol::{JobEvent, JobState, SceneSource, WorkerList};
 use crate::scene::Scene;

@@ -4,7 +4,7 @@
 //! Bidirectional Path Tracing", Figs. 5, 7, 8, 9, 10).
 
 use super::choices::{MisArg, OptimalDepthArg, SamplerArg};
-use crate::film::{Image, exr_io, metrics, plot};
+use crate::film::image::{Image, exr_io, metrics, plot};
 use crate::integrator::{IntegratorKind, RenderSettings};
 use crate::job::optimal_depth::{self, DepthChoice};
 use crate::job::{RenderOutput, Resolved};

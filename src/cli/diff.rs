@@ -1,7 +1,7 @@
 //! `omis diff`: relMSE (all pixels, and without the 0.1% worst) and MSE of an image against a
 //! reference, the signed error map, and with `--layers` every EXR layer the two files share.
 
-use crate::film::{exr_io, metrics, png};
+use crate::film::image::{exr_io, metrics, png};
 use crate::service::exr_header;
 use anyhow::{Result, bail};
 use clap::Args;

@@ -7,7 +7,7 @@ use super::client::Client;
 use super::job_args::JobArgs;
 use super::service_cmds::{init_logging, runtime, submit_job, wait_job};
 use crate::film::RayStats;
-use crate::film::{Image, exr_io, metrics, png};
+use crate::film::image::{Image, exr_io, metrics, png};
 use crate::job::optimal_depth::DepthChoice;
 use crate::job::{JobSettings, Limits, Resolved};
 use crate::protocol::{JobState, SceneSource};

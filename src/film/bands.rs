@@ -1,12 +1,12 @@
 //! A pass merged band by band: a coordinator holds the accumulators of a few bands (rows of
 //! tiles) at a time, never the whole frame, and adds every task of the pass to them in task
-//! order. Each tile sees the additions of `Film::merge_task` restricted to its pixels (a task's
+//! order. Each tile sees the additions of `Film::add_task` restricted to its pixels (a task's
 //! own pixels, then its splats, then its records), so the merged tiles have the bits of a frame
 //! merged in one piece.
 
-use super::film_tile::{FilmTile, Routed, TileGrid};
 use super::layers::FilmLayout;
-use super::tile_film::TileFilm;
+use super::task_film::TaskFilm;
+use super::tile_accum::{Routed, TileAccum, TileGrid};
 
 /// Bytes of accumulators of one full band (row of tiles) of `grid` (at least 1).
 pub fn band_bytes(grid: &TileGrid, layout: &FilmLayout) -> u64 {
@@ -36,7 +36,7 @@ pub struct BandGroup {
     /// Index of the first tile (row-major).
     pub first: usize,
     /// The tiles' accumulators, in tile order.
-    pub tiles: Vec<FilmTile>,
+    pub tiles: Vec<TileAccum>,
     /// Per tile: whether this pass is still to be added (false: it was, before a restart).
     pub open: Vec<bool>,
 }
@@ -47,7 +47,7 @@ impl BandGroup {
     pub fn new(
         grid: &TileGrid,
         bands: std::ops::Range<usize>,
-        tiles: Vec<FilmTile>,
+        tiles: Vec<TileAccum>,
         open: Vec<bool>,
     ) -> BandGroup {
         let first = grid.tiles_of_bands(bands.clone()).start;
@@ -64,7 +64,7 @@ impl BandGroup {
         (self.first..self.first + self.tiles.len()).contains(&t)
     }
 
-    /// Closes the pass in the tiles that took it, once every task is added (`FilmTile::end_pass`,
+    /// Closes the pass in the tiles that took it, once every task is added (`TileAccum::end_pass`,
     /// `light_paths` light paths traced for the frame so far).
     pub fn end_pass(&mut self, light_paths: u64, kappa: f64) {
         for (tile, open) in self.tiles.iter_mut().zip(&self.open) {
@@ -80,7 +80,7 @@ impl BandGroup {
         &mut self,
         grid: &TileGrid,
         task: usize,
-        own: Option<&TileFilm>,
+        own: Option<&TaskFilm>,
         sections: &[(usize, Routed)],
     ) {
         if let Some(own) = own
@@ -88,7 +88,7 @@ impl BandGroup {
         {
             let k = task - self.first;
             if self.open[k] {
-                self.tiles[k].merge_own(own);
+                self.tiles[k].add_own(own);
             }
         }
         for (_, routed) in sections {
@@ -96,7 +96,7 @@ impl BandGroup {
                 if !self.holds(t) || !self.open[t - self.first] {
                     continue;
                 }
-                self.tiles[t - self.first].merge_routed(&part, grid.width);
+                self.tiles[t - self.first].add_routed(&part, grid.width);
             }
         }
     }

@@ -1,20 +1,21 @@
-//! The whole frame's accumulators (pbrt-v4's `Film`): the frame as one `FilmTile`, with the merge
+//! The whole frame's accumulators (pbrt-v4's `Film`): the frame as one `TileAccum`, with the merge
 //! of task results in task order, the solve of the optimal-MIS systems, the images and the EXR.
 
-use super::film_tile::FilmTile;
+use super::image::exr_io;
 use super::layers::FilmLayout;
-use super::tile_film::{LtRecords, TileFilm};
+use super::task_film::{LtRecords, TaskFilm};
+use super::tile_accum::TileAccum;
 use super::{Image, PixelSums, Tile};
 
 /// Whole-frame accumulators: camera-side sums, light-tracing splats, strategy and depth layers,
-/// optimal-MIS systems. Tasks' `TileFilm`s merge into it by addition; it solves and writes images.
+/// optimal-MIS systems. Tasks' `TaskFilm`s merge into it by addition; it solves and writes images.
 pub struct Film {
     /// Frame width in pixels.
     pub width: u32,
     /// Frame height in pixels.
     pub height: u32,
     /// The accumulators of every pixel.
-    pub acc: FilmTile,
+    pub acc: TileAccum,
     /// What is accumulated (and the kappa the optimal systems are solved with).
     pub layout: FilmLayout,
 }
@@ -31,7 +32,7 @@ impl Film {
         Film {
             width,
             height,
-            acc: FilmTile::new(tile, layout),
+            acc: TileAccum::new(tile, layout),
             layout: layout.clone(),
         }
     }
@@ -57,18 +58,18 @@ impl Film {
 
     /// Adds a tile's results: its own pixels and its light-tracing splats (order matters only
     /// for the last bits of the f64 sums).
-    pub fn merge(&mut self, t: &TileFilm) {
-        self.acc.merge_own(t);
-        self.acc.merge_splats(&t.splats, self.width);
+    pub fn add_own_and_splats(&mut self, t: &TaskFilm) {
+        self.acc.add_own(t);
+        self.acc.add_splats(&t.splats, self.width);
     }
 
     /// Adds a task's whole result: its tile, its splats and its out-of-tile light-tracing records.
-    pub fn merge_task(&mut self, t: &TileFilm) {
-        self.merge(t);
+    pub fn add_task(&mut self, t: &TaskFilm) {
+        self.add_own_and_splats(t);
         self.apply_records(&t.records);
     }
 
-    /// Closes a pass once all its tasks are merged (see `FilmTile::end_pass`): the progressive
+    /// Closes a pass once all its tasks are merged (see `TileAccum::end_pass`): the progressive
     /// estimator's next weights.
     pub fn end_pass(&mut self) {
         let light_paths = self.light_paths();
@@ -77,10 +78,10 @@ impl Film {
 
     /// Adds out-of-tile light-tracing records (frame pixel indices).
     pub fn apply_records(&mut self, r: &LtRecords) {
-        self.acc.merge_records(r, self.width);
+        self.acc.add_records(r, self.width);
     }
 
-    /// The EXR layers besides the beauty (see `FilmTile::extra_layers`).
+    /// The EXR layers besides the beauty (see `TileAccum::extra_layers`).
     pub fn extra_layers(&self) -> Vec<(String, Image)> {
         self.acc.extra_layers(&self.layout, self.light_paths())
     }
@@ -92,17 +93,17 @@ impl Film {
         path: &std::path::Path,
         attributes: &[(&str, String)],
         lines: usize,
-    ) -> Result<Image, String> {
+    ) -> Result<Image, exr_io::ExrError> {
         let image = self.image();
         let layers = self.extra_layers();
-        let named: Vec<super::exr_io::NamedLayer> = layers
+        let named: Vec<exr_io::NamedLayer> = layers
             .iter()
-            .map(|(name, image)| super::exr_io::NamedLayer {
+            .map(|(name, image)| exr_io::NamedLayer {
                 name: name.clone(),
                 image,
             })
             .collect();
-        super::exr_io::write_exr_in_blocks(path, &image, &named, attributes, lines)?;
+        exr_io::write_exr_in_blocks(path, &image, &named, attributes, lines)?;
         Ok(image)
     }
 

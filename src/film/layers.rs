@@ -38,7 +38,7 @@ pub struct FilmLayout {
     pub optimal: Option<Layout>,
     /// With `optimal`: merged films keep the progressive estimator's state (`mis::Progressive`),
     /// and their images are its unbiased estimate instead of the direct estimator's. Task
-    /// results (`TileFilm`) are the same either way.
+    /// results (`TaskFilm`) are the same either way.
     pub progressive: bool,
     /// Optimal MIS: regularisation strength used when solving.
     pub kappa: f64,

@@ -5,6 +5,7 @@
 //! The bottom of the dependency graph: every other module uses these types, and this one
 //! uses none of the crate's.
 
+pub mod colour;
 pub mod warp;
 
 pub use glam::{Mat4, Vec2, Vec3, Vec3A};

@@ -1,12 +1,12 @@
 //! The tile loop: every pixel sample of a task, through the path tracer, BDPT or VCM, into the
-//! task's `TileFilm` (BDPT samples weighted by the MIS rule, or into optimal-MIS systems).
+//! task's `TaskFilm` (BDPT samples weighted by the MIS rule, or into optimal-MIS systems).
 
 use super::bpm::{self, BpmWeights};
 use super::vcm::{self, PhotonCache};
 use super::{IntegratorKind, RenderSettings, Techniques, bdpt, path};
 use crate::film::bf16;
 use crate::film::{
-    FilmLayout, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, Tile, TileFilm,
+    FilmLayout, LtRecords, PixelSums, RayStats, STRATEGY_LAYERS, Splat, TaskFilm, Tile,
     strategy_layer,
 };
 use crate::geometry::{Rgb, Vec2};
@@ -247,7 +247,7 @@ pub fn render_tile(
     settings: &RenderSettings,
     tile: Tile,
     samples: Range<u32>,
-) -> TileFilm {
+) -> TaskFilm {
     render_tile_cached(scene, settings, tile, samples, &PhotonCache::new(1))
 }
 
@@ -259,14 +259,14 @@ pub fn render_tile_cached(
     tile: Tile,
     samples: Range<u32>,
     cache: &PhotonCache,
-) -> TileFilm {
+) -> TaskFilm {
     if matches!(
         settings.integrator,
         IntegratorKind::Vcm | IntegratorKind::Bpm
     ) {
         return render_tile_vcm(scene, settings, tile, samples, cache);
     }
-    let mut film = TileFilm::new(tile, &settings.film_layout());
+    let mut film = TaskFilm::new(tile, &settings.film_layout());
     let mut ws = bdpt::Workspace::default();
     ws.set_roulette(settings.roulette_start());
     let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);
@@ -390,7 +390,7 @@ fn add_sample(stats: &mut RayStats, sums: &mut PixelSums, idx: usize, l: Rgb) {
 }
 
 /// The end of every tile loop: non-finite splats are dropped (and counted), the film compacted.
-fn finish(mut film: TileFilm, layout: &FilmLayout) -> TileFilm {
+fn finish(mut film: TaskFilm, layout: &FilmLayout) -> TaskFilm {
     let stats = &mut film.stats;
     film.splats.retain(|s| {
         let ok = s.value.iter().all(|v| v.is_finite());
@@ -411,9 +411,9 @@ fn render_tile_vcm(
     tile: Tile,
     samples: Range<u32>,
     cache: &PhotonCache,
-) -> TileFilm {
+) -> TaskFilm {
     let layout = settings.film_layout();
-    let mut film = TileFilm::new(tile, &layout);
+    let mut film = TaskFilm::new(tile, &layout);
     let mut ws = bdpt::Workspace::default();
     ws.set_roulette(settings.roulette_start());
     let max_depth = settings.max_depth.min(bdpt::MAX_DEPTH);

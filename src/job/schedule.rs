@@ -7,7 +7,7 @@
 //! `omis bench`, the tests and the coordinator all take their tasks from here.
 
 use super::Resolved;
-use crate::film::{Film, Image, PixelSums, RayStats, Tile, TileFilm, TileGrid};
+use crate::film::{Film, Image, PixelSums, RayStats, TaskFilm, Tile, TileGrid};
 use crate::integrator::vcm::PhotonCache;
 use crate::integrator::{self, IntegratorKind, RenderSettings};
 use crate::scene::Scene;
@@ -313,7 +313,7 @@ fn run_tasks(
 ) {
     let wave = (rayon::current_num_threads() * 4).max(1);
     for chunk in tasks.chunks(wave) {
-        let results: Vec<TileFilm> = chunk
+        let results: Vec<TaskFilm> = chunk
             .par_iter()
             .map(|(tile, range)| {
                 let f =
@@ -324,7 +324,7 @@ fn run_tasks(
             .collect();
         for r in &results {
             stats.add(&r.stats);
-            film.merge_task(r);
+            film.add_task(r);
         }
     }
 }

@@ -7,8 +7,8 @@ use super::error::{ServiceError, ServiceResult};
 use super::runtime::{PassImages, resolved, runtime};
 use super::store::{JobRow, TaskRow};
 use super::{App, Metrics, buffers::Pooled, jobs, merge};
-use crate::film::merge::MergeOutput;
-use crate::film::wire;
+use crate::film::format;
+use crate::film::format::merge_stream::MergeOutput;
 use crate::protocol::{JobEvent, TaskKind, TileDoneEvent};
 use std::ops::Range;
 use std::sync::Arc;
@@ -186,14 +186,14 @@ async fn render_result(
     Ok(Accepted::Yes)
 }
 
-/// Checks render task `task`'s result `body` (laid out by band, `wire::encode_banded`, as the
+/// Checks render task `task`'s result `body` (laid out by band, `format::encode_banded`, as the
 /// result log keeps it, so that a merge task reads each band's part alone) against its task,
 /// and stores it in its pass's result log as it came.
 fn check_and_store(app: &App, job: &JobRow, task: &TaskRow, body: &[u8]) -> ServiceResult<Checked> {
     let r = resolved(app, job)?;
     let layout = r.film_layout();
     let tile = jobs::tile_rect(&r, task.tile);
-    let index = match wire::check_banded(body, &r.grid(), &layout, app.cfg.max_upload_bytes) {
+    let index = match format::check_banded(body, &r.grid(), &layout, app.cfg.max_upload_bytes) {
         Err(e) => return Ok(Checked::Invalid(e.to_string())),
         Ok(x) => x,
     };

@@ -7,7 +7,8 @@ use super::error::{ServiceError, ServiceResult};
 use super::runtime::{Runtime, drop_runtime, resolved_of, runtime};
 use super::store::{self, JobRow, TaskRow};
 use super::{App, merge};
-use crate::film::{Tile, plot};
+use crate::film::Tile;
+use crate::film::image::plot;
 use crate::job::Resolved;
 use crate::protocol::{
     CancelledEvent, DoneEvent, FailedEvent, JobEvent, JobState, SeriesPoint, TaskFailedEvent,

@@ -2,7 +2,7 @@
 //! coordinator cuts the frame into band groups (rows of tiles) and queues one merge task per
 //! group. A worker leases it, downloads its input (the group's tile checkpoints and, pass by
 //! pass in task order, the parts of the results since them that land in the group, streamed
-//! from the result logs), merges with `film::merge::run` and uploads the group's new
+//! from the result logs), merges with `film::merge_task::run` and uploads the group's new
 //! checkpoints and beauty (on the job's last pass: the final EXR's compressed blocks of its scan
 //! lines; on a pass after which a path-traced job writes no checkpoints, `output_of`: the beauty
 //! alone); the coordinator checks them and writes the checkpoints into the tiles' slots. Once
@@ -12,7 +12,7 @@
 //!
 //! So the coordinator's work per pass is moving bytes: decoding results, adding light-tracing
 //! records into optimal systems and solving pixels (what grows with the samples) run on the
-//! workers and scale with them. Tiles get exactly `Film::merge_task`'s additions in task order
+//! workers and scale with them. Tiles get exactly `Film::add_task`'s additions in task order
 //! whoever merges them, so the image keeps the in-process bits.
 //!
 //! Durability: a tile's checkpoint has two slots; merging pass p reads the one holding p passes
@@ -30,9 +30,11 @@ use super::outputs::{Exr, write_outputs};
 use super::runtime::{PassImages, PassInputs, PassResult, Runtime};
 use super::store::log_file::LogFile;
 use super::store::{self, JobRow, TaskRow};
-use crate::film::merge::{self as film_merge, LayerImages, MergeHead, MergeOut};
-use crate::film::wire::{BandedIndex, TileCheckpoint};
-use crate::film::{FilmTile, Image, RayStats, band_bytes, band_groups, metrics};
+use crate::film::format::merge_stream::{self, MergeHead, MergeOut};
+use crate::film::format::{BandedIndex, TileCheckpoint};
+use crate::film::image::metrics;
+use crate::film::merge_task::{self, LayerImages};
+use crate::film::{Image, RayStats, TileAccum, band_bytes, band_groups};
 use crate::job::Resolved;
 use crate::protocol::{JobEvent, PassDoneEvent, PreviewEvent, SeriesPoint};
 use std::sync::{Arc, Mutex};
@@ -377,11 +379,11 @@ fn load_tile(
     r: &Resolved,
     t: usize,
     n: u32,
-) -> Result<Option<FilmTile>, String> {
+) -> Result<Option<TileAccum>, String> {
     let tile = r.grid().tile(t);
     let layout = r.film_layout();
     if n == 0 {
-        return Ok(Some(FilmTile::new(tile, &layout)));
+        return Ok(Some(TileAccum::new(tile, &layout)));
     }
     match read_slot(app, job, r, t, n)? {
         None => Ok(None),
@@ -424,13 +426,13 @@ pub(crate) fn stream_input(
     };
     for t in tiles.clone() {
         if held == 0 {
-            buf.extend(film_merge::tile_entry(None));
+            buf.extend(merge_stream::tile_entry(None));
             continue;
         }
         // The entry's head, then the checkpoint read in after it; the length is known
         // beforehand (the slot's), so the head is written first and checked after.
         let slot = checkpoint_slot(app, job, r, t, held);
-        buf.extend(film_merge::tile_entry(Some(slot.2)));
+        buf.extend(merge_stream::tile_entry(Some(slot.2)));
         read_slot_into(&slot, r, t, held, &mut buf)
             .map_err(MergeError::Job)?
             .ok_or_else(|| {
@@ -469,7 +471,7 @@ pub(crate) fn stream_input(
             .iter()
             .map(|(_, (b, r))| (*b, r.end - r.start))
             .collect();
-        buf.extend(film_merge::result_entry(
+        buf.extend(merge_stream::result_entry(
             p.tile as u32,
             own.end - own.start,
             &heads,
@@ -633,7 +635,7 @@ fn images_of(
         }
     }
     let n_l = light_paths(r, spp_after(r, n.saturating_sub(1)));
-    Ok(Some(film_merge::tile_images(
+    Ok(Some(merge_task::tile_images(
         &held,
         &r.film_layout(),
         n_l,

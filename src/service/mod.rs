@@ -17,9 +17,6 @@ pub(crate) mod store;
 pub(crate) mod upload;
 pub(crate) mod web;
 
-/// The wire types, at their home `crate::protocol`, under the path they had here.
-pub use crate::protocol;
-
 use crate::job::Limits;
 use crate::protocol::JobEvent;
 use std::collections::{HashMap, HashSet};

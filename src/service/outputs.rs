@@ -5,8 +5,9 @@ use super::App;
 use super::error::{ServiceError, ServiceResult};
 use super::runtime::Runtime;
 use super::store::{JobRow, write_atomic};
-use crate::film::merge as film_merge;
-use crate::film::{Image, exr_io, metrics, png};
+use crate::film::Image;
+use crate::film::format::merge_stream;
+use crate::film::image::{exr_io, metrics, png};
 
 /// What a job's outputs write of its image.exr.
 pub(crate) enum Exr<'a> {
@@ -17,7 +18,7 @@ pub(crate) enum Exr<'a> {
     Interim,
     /// The beauty and these layers, compressed here.
     Images(&'a [(String, Image)]),
-    /// Every block of the file, compressed by the last pass's merge tasks (`film::merge`).
+    /// Every block of the file, compressed by the last pass's merge tasks (`film::merge_task`).
     Blocks(Vec<Vec<u8>>),
 }
 
@@ -59,7 +60,7 @@ pub(crate) fn write_outputs(
             exr_io::write_exr_in_blocks(&tmp, image, &named, &attrs, lines)
                 .map_err(ServiceError::job)?;
         }
-        Exr::Blocks(blocks) => film_merge::exr_layout(&r.grid(), &r.film_layout())
+        Exr::Blocks(blocks) => merge_stream::exr_layout(&r.grid(), &r.film_layout())
             .map_err(ServiceError::job)?
             .write(&tmp, &attrs, blocks)
             .map_err(ServiceError::job)?,

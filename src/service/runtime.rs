@@ -8,8 +8,9 @@
 use super::App;
 use super::error::{ServiceError, ServiceResult};
 use super::store::JobRow;
-use crate::film::wire::BandedIndex;
-use crate::film::{Image, RayStats, Tile, exr_io};
+use crate::film::format::BandedIndex;
+use crate::film::image::exr_io;
+use crate::film::{Image, RayStats, Tile};
 use crate::job::Resolved;
 use std::collections::HashSet;
 use std::sync::{Arc, Mutex};

@@ -5,8 +5,8 @@
 //!
 //! In the flow film -> worker -> service: the worker takes its tasks and sends its results
 //! in the types of [`crate::protocol`], renders with [`crate::integrator`] into a
-//! [`TileFilm`](crate::film::TileFilm), and ships it laid out by band
-//! ([`crate::film::wire::encode_banded`]); merge tasks run [`crate::film::merge`].
+//! [`TaskFilm`](crate::film::TaskFilm), and ships it laid out by band
+//! ([`crate::film::format::encode_banded`]); merge tasks run [`crate::film::merge_task`].
 
 use crate::bundle;
 use crate::film;
@@ -59,7 +59,7 @@ impl std::io::Read for ChannelReader {
     }
 }
 
-/// Runs a merge task (`film::merge`) of a job resolved as `resolved`: its input, fetched with
+/// Runs a merge task (`film::merge_task`) of a job resolved as `resolved`: its input, fetched with
 /// `input` (GET /v1/worker/tasks/{id}/input), is merged as it streams in; returns the output to
 /// upload.
 pub(crate) async fn run_merge(
@@ -81,7 +81,7 @@ pub(crate) async fn run_merge(
     let (tx, rx) = tokio::sync::mpsc::channel(4);
     let (grid, layout) = (resolved.grid(), resolved.film_layout());
     let merging = tokio::task::spawn_blocking(move || {
-        film::merge::run(ChannelReader::new(rx), &grid, &layout).map_err(|e| e.to_string())
+        film::merge_task::run(ChannelReader::new(rx), &grid, &layout).map_err(|e| e.to_string())
     });
     loop {
         let next = match r.chunk().await {
@@ -413,7 +413,7 @@ impl Worker {
                         range.clone(),
                         &cache,
                     );
-                    film::wire::encode_banded(film, range, &grid)
+                    film::format::encode_banded(film, range, &grid)
                 })
                 .await;
                 match rendered {

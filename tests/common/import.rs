@@ -108,5 +108,5 @@ pub fn write_obj(d: &Path) {
 /// A 2x2 PNG: top row red, bottom row green.
 pub fn write_png(d: &Path) {
     let data = [255u8, 0, 0, 255, 0, 0, 0, 255, 0, 0, 255, 0];
-    omis::film::png::write_rgb8(&d.join("tex.png"), 2, 2, &data).expect("png");
+    omis::film::image::png::write_rgb8(&d.join("tex.png"), 2, 2, &data).expect("png");
 }

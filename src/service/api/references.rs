@@ -3,7 +3,7 @@
 
 use super::errors::{ApiError, ApiResult, bad};
 use super::{AppState, is_safe_id};
-use crate::film::exr_io;
+use crate::film::image::exr_io;
 use crate::protocol::{JobState, ReferenceInfo, ReferenceSource};
 use crate::service::{App, exr_header, upload};
 use axum::Json;
@@ -75,7 +75,10 @@ fn check_reference(path: &Path, max_resolution: usize) -> ApiResult<(usize, usiz
     .map_err(|e| {
         bad(
             "body",
-            format!("the reference must be an OpenEXR image: {}", hide(e)),
+            format!(
+                "the reference must be an OpenEXR image: {}",
+                hide(e.to_string())
+            ),
         )
     })?;
     if non_finite > 0 {

@@ -267,7 +267,7 @@ async fn read_upload(app: &AppState, body: Body) -> ApiResult<Pooled> {
     Ok(buffers::read_body(body, app.cfg.max_upload_bytes, &app.buffers).await?)
 }
 
-/// GET /v1/worker/tasks/{id}/input: a merge task's input (`film::merge`), streamed.
+/// GET /v1/worker/tasks/{id}/input: a merge task's input (`film::merge_task`), streamed.
 pub(crate) async fn merge_input(
     State(app): State<AppState>,
     Path(task_id): Path<i64>,

@@ -1,15 +1,9 @@
-//! A pass merged by a worker instead of the coordinator: a merge task takes one band group (a few
-//! rows of tiles), reads the group's tile checkpoints and, pass by pass in task order, every
-//! part of the results since them that lands in the group, adds them with [`BandGroup`] (so the
-//! tiles get exactly the additions `Film::merge_task` makes: the in-process bits), and returns
-//! what the task asks for ([`MergeOut`]): the tiles' new checkpoints and their beauty, or their
-//! beauty alone (the next merge takes this pass's results again), or, on a job's last pass,
-//! from which nothing continues, the group's scan lines of the final EXR, every layer, in
-//! compressed blocks (`exr_io::ExrLayout`). The coordinator only moves bytes: it streams the
-//! input from its result logs and checkpoint slots, checks the output (inflating the EXR
-//! blocks) and writes the checkpoints in place, or the EXR from the blocks; the work that grows
-//! with the records (decoding, applying light-tracing records to the optimal systems, solving)
-//! and the EXR's compression run on the workers and scale with them.
+//! The banded merge stream: what a coordinator streams to a merge task (its input) and what the
+//! task uploads (its output), written and read here alone. The coordinator builds the input
+//! (`MergeHead::encode`, `tile_entry`, `result_entry`, copying checkpoints and result parts
+//! straight from its files) and checks the output (`MergeOutput::decode`); the merge task
+//! (`film::merge_task`) reads the input (`MergeInput`) and writes the output (`output_head`,
+//! `push_*`).
 //!
 //! ```text
 //! input (coordinator -> worker), streamed:
@@ -17,11 +11,11 @@
 //!   merged u32 (passes whose results follow), light paths after them u64, output u8
 //!   (`MergeOut`: 0 checkpoints, 1 beauty, 2 the final EXR's blocks), results n u32
 //!   per tile of the bands, in tile order: present u8 (0: no checkpoint yet, pass 0),
-//!     [length u64, the tile checkpoint (wire::TileCheckpoint) holding `pass` passes]
+//!     [length u64, the tile checkpoint (`TileCheckpoint`) holding `pass` passes]
 //!   per result, pass by pass, in task order: tile u32, own length u64, sections m u32,
 //!     m x (band u32, length u64), then the own part (the result without its splats and records; empty
-//!     unless its tile is in the group), then the m sections (wire::decode_section) back to
-//!     back, each part packed (film::pack), as the result log keeps them: the coordinator
+//!     unless its tile is in the group), then the m sections (`decode_section`) back to
+//!     back, each part packed (`pack`), as the result log keeps them: the coordinator
 //!     copies both straight from it
 //! output (worker -> coordinator):
 //!   magic "OMISMRGO", version u32, bands b0 b1 u32, passes u32 (pass + merged), then
@@ -32,12 +26,10 @@
 //!     per block: length u32, the block as the EXR stores it (ZIP-compressed, or stored)
 //! ```
 
-use super::bands::BandGroup;
-use super::exr_io::ExrLayout;
-use super::film_tile::TileGrid;
-use super::layers::FilmLayout;
-use super::wire::{TileCheckpoint, WireError, unpack_own, unpack_section};
-use super::{FilmTile, Image, Tile};
+use super::checkpoint::TileCheckpoint;
+use super::error::FormatError;
+use crate::film::image::exr_io::{self, ExrLayout};
+use crate::film::{FilmLayout, Image, Tile, TileGrid};
 use crate::geometry::Rgb;
 use std::io::Read;
 
@@ -48,7 +40,7 @@ const OUT_MAGIC: &[u8; 8] = b"OMISMRGO";
 /// merges the results of one pass or more and says what it returns (`MergeOut`).
 const VERSION: u32 = 6;
 /// No part of a merge input (a checkpoint, a result's part) is longer.
-const MAX_PART: u64 = 1 << 31;
+pub const MAX_PART: u64 = 1 << 31;
 
 /// What a merge task merges: the header of its input.
 #[derive(Clone, Debug, PartialEq)]
@@ -138,59 +130,89 @@ pub fn result_entry(tile: u32, own_len: u64, sections: &[(u32, u64)]) -> Vec<u8>
     out
 }
 
-/// Reads a merge input from a stream, naming what was truncated or malformed.
-struct Input<R> {
-    r: R,
+/// A merge input read from a stream, naming what was truncated or malformed.
+pub struct MergeInput<R> {
+    r: std::io::BufReader<R>,
 }
 
-impl<R: Read> Input<R> {
-    fn bytes<const N: usize>(&mut self, what: &str) -> Result<[u8; N], WireError> {
+/// The head of one result in a merge input: its tile, the length of its own part (0 when its
+/// tile is not in the group) and the band and length of each section that follows.
+pub struct ResultHead {
+    /// The result's tile (its index in the grid).
+    pub tile: usize,
+    /// Bytes of its own part.
+    pub own_len: u64,
+    /// Band and byte length of each section, in band order.
+    pub sections: Vec<(usize, u64)>,
+}
+
+impl<R: Read> MergeInput<R> {
+    /// A reader of the merge input `input`, buffered.
+    pub fn new(input: R) -> Self {
+        MergeInput {
+            r: std::io::BufReader::with_capacity(1 << 20, input),
+        }
+    }
+    fn bytes<const N: usize>(&mut self, what: &str) -> Result<[u8; N], FormatError> {
         let mut b = [0u8; N];
         self.r
             .read_exact(&mut b)
-            .map_err(|e| WireError(format!("merge input: {what}: {e}")))?;
+            .map_err(|source| FormatError::Read {
+                part: format!("merge input: {what}"),
+                source,
+            })?;
         Ok(b)
     }
-    fn u8(&mut self, what: &str) -> Result<u8, WireError> {
+    fn u8(&mut self, what: &str) -> Result<u8, FormatError> {
         Ok(self.bytes::<1>(what)?[0])
     }
-    fn u32(&mut self, what: &str) -> Result<u32, WireError> {
+    fn u32(&mut self, what: &str) -> Result<u32, FormatError> {
         Ok(u32::from_le_bytes(self.bytes(what)?))
     }
-    fn u64(&mut self, what: &str) -> Result<u64, WireError> {
+    fn u64(&mut self, what: &str) -> Result<u64, FormatError> {
         Ok(u64::from_le_bytes(self.bytes(what)?))
     }
-    /// A part of `len` bytes (at most `MAX_PART`).
-    fn part(&mut self, len: u64, what: &str) -> Result<Vec<u8>, WireError> {
+    /// A part of `len` bytes (at most `MAX_PART`), `what` naming it.
+    pub fn part(&mut self, len: u64, what: &str) -> Result<Vec<u8>, FormatError> {
         if len > MAX_PART {
-            return Err(WireError(format!("merge input: {what} of {len} bytes")));
+            return Err(FormatError::invalid(format!(
+                "merge input: {what} of {len} bytes"
+            )));
         }
         let mut b = Vec::new();
         (&mut self.r)
             .take(len)
             .read_to_end(&mut b)
-            .map_err(|e| WireError(format!("merge input: {what}: {e}")))?;
+            .map_err(|source| FormatError::Read {
+                part: format!("merge input: {what}"),
+                source,
+            })?;
         if b.len() as u64 != len {
-            return Err(WireError(format!(
+            return Err(FormatError::invalid(format!(
                 "merge input: {what} truncated ({} of {len} bytes)",
                 b.len()
             )));
         }
         Ok(b)
     }
-    fn head(&mut self, grid: &TileGrid) -> Result<MergeHead, WireError> {
+    /// The input's head, for a frame tiled by `grid`.
+    pub fn head(&mut self, grid: &TileGrid) -> Result<MergeHead, FormatError> {
         if &self.bytes::<8>("magic")? != IN_MAGIC {
-            return Err(WireError("not a merge input (bad magic)".into()));
+            return Err(FormatError::Magic {
+                format: "merge input",
+            });
         }
-        let v = self.u32("version")?;
-        if v != VERSION {
-            return Err(WireError(format!(
-                "merge input version {v}, expected {VERSION}"
-            )));
+        let got = self.u32("version")?;
+        if got != VERSION {
+            return Err(FormatError::Version {
+                format: "merge input",
+                got,
+                expected: &[VERSION],
+            });
         }
         let bands = self.u32("bands")?..self.u32("bands")?;
         if bands.start >= bands.end || bands.end > grid.rows() {
-            return Err(WireError(format!(
+            return Err(FormatError::invalid(format!(
                 "merge input: bands {bands:?} of a frame of {} bands",
                 grid.rows()
             )));
@@ -198,7 +220,7 @@ impl<R: Read> Input<R> {
         let pass = self.u32("pass")?;
         let merged = self.u32("merged passes")?;
         if merged == 0 || pass.checked_add(merged).is_none() {
-            return Err(WireError(format!(
+            return Err(FormatError::invalid(format!(
                 "merge input: {merged} passes merged after {pass}"
             )));
         }
@@ -207,7 +229,11 @@ impl<R: Read> Input<R> {
             0 => MergeOut::Checkpoints,
             1 => MergeOut::Beauty,
             2 => MergeOut::Exr,
-            k => return Err(WireError(format!("merge input: output kind {k}"))),
+            k => {
+                return Err(FormatError::invalid(format!(
+                    "merge input: output kind {k}"
+                )));
+            }
         };
         Ok(MergeHead {
             bands,
@@ -220,205 +246,100 @@ impl<R: Read> Input<R> {
     }
 }
 
-/// Images per layer (beauty first), each a list of (tile, image).
-pub type LayerImages = Vec<Vec<(Tile, Image)>>;
-
-/// The beauty of each tile and, with `all_layers`, every other layer the job keeps (in
-/// `FilmLayout::extra_layer_names` order): one list of (tile, image) per layer.
-pub fn tile_images(
-    tiles: &[FilmTile],
-    layout: &FilmLayout,
-    light_paths: u64,
-    all_layers: bool,
-) -> LayerImages {
-    let mut layers: LayerImages = Vec::new();
-    for tile in tiles {
-        let mut images = vec![tile.image(light_paths, layout.kappa)];
-        if all_layers {
-            images.extend(tile.extra_images(layout, light_paths));
+impl<R: Read> MergeInput<R> {
+    /// The next tile's checkpoint (None: the tile has none yet).
+    pub fn tile_checkpoint(&mut self) -> Result<Option<Vec<u8>>, FormatError> {
+        if self.u8("tile entry")? == 0 {
+            return Ok(None);
         }
-        layers.resize_with(images.len(), Vec::new);
-        for (l, img) in layers.iter_mut().zip(images) {
-            l.push((tile.tile, img));
-        }
+        let len = self.u64("checkpoint length")?;
+        self.part(len, "tile checkpoint").map(Some)
     }
-    layers
-}
 
-/// Runs a merge task: reads its input from `input` (for a frame tiled by `grid` whose films have
-/// `layout`), merges, and returns the output to upload.
-pub fn run(input: impl Read, grid: &TileGrid, layout: &FilmLayout) -> Result<Vec<u8>, WireError> {
-    let mut r = Input {
-        r: std::io::BufReader::with_capacity(1 << 20, input),
-    };
-    let head = r.head(grid)?;
-    if head.merged > 1 && layout.progressive_layout().is_some() {
-        return Err(WireError(format!(
-            "merge input: {} passes at once for the progressive estimator, which ends each",
-            head.merged
-        )));
-    }
-    let bands = head.bands.start as usize..head.bands.end as usize;
-    let tiles = grid.tiles_of_bands(bands.clone());
-    let mut held = Vec::with_capacity(tiles.len());
-    for t in tiles.clone() {
-        let tile = grid.tile(t);
-        held.push(match r.u8("tile entry")? {
-            0 if head.pass == 0 => FilmTile::new(tile, layout),
-            0 => {
-                return Err(WireError(format!(
-                    "merge input: tile {t} has no checkpoint after {} passes",
-                    head.pass
-                )));
-            }
-            _ => {
-                let len = r.u64("checkpoint length")?;
-                let bytes = r.part(len, "tile checkpoint")?;
-                let ck = TileCheckpoint::decode(&bytes, tile, layout)?;
-                if ck.passes != head.pass {
-                    return Err(WireError(format!(
-                        "merge input: checkpoint of tile {t} holds {} passes, not {}",
-                        ck.passes, head.pass
-                    )));
-                }
-                ck.tile
-            }
-        });
-    }
-    let open = vec![true; held.len()];
-    let mut group = BandGroup::new(grid, bands.clone(), held, open);
-    for _ in 0..head.results {
-        let t = r.u32("result tile")? as usize;
+    /// The next result's head, for a frame tiled by `grid` of which the task merges `bands`.
+    pub fn result_head(
+        &mut self,
+        grid: &TileGrid,
+        bands: &std::ops::Range<usize>,
+    ) -> Result<ResultHead, FormatError> {
+        let t = self.u32("result tile")? as usize;
         if t >= grid.len() {
-            return Err(WireError(format!("merge input: result of tile {t}")));
+            return Err(FormatError::invalid(format!(
+                "merge input: result of tile {t}"
+            )));
         }
-        let own_len = r.u64("own length")?;
-        let m = r.u32("section count")? as usize;
+        let own_len = self.u64("own length")?;
+        let m = self.u32("section count")? as usize;
         if m > bands.len() {
-            return Err(WireError(format!(
+            return Err(FormatError::invalid(format!(
                 "merge input: {m} sections for {} bands",
                 bands.len()
             )));
         }
-        let mut heads: Vec<(usize, u64)> = Vec::with_capacity(m);
+        let mut sections: Vec<(usize, u64)> = Vec::with_capacity(m);
         for _ in 0..m {
-            let b = r.u32("section band")? as usize;
-            if !bands.contains(&b) || heads.last().is_some_and(|(l, _)| *l >= b) {
-                return Err(WireError(format!(
+            let b = self.u32("section band")? as usize;
+            if !bands.contains(&b) || sections.last().is_some_and(|(l, _)| *l >= b) {
+                return Err(FormatError::invalid(format!(
                     "merge input: section of band {b} (bands {bands:?})"
                 )));
             }
-            heads.push((b, r.u64("section length")?));
+            sections.push((b, self.u64("section length")?));
         }
-        let own = if own_len > 0 {
-            if !group.holds(t) {
-                return Err(WireError(format!(
-                    "merge input: own part of tile {t}, outside bands {bands:?}"
-                )));
-            }
-            let bytes = r.part(own_len, "own part")?;
-            let (film, _) = unpack_own(&bytes, MAX_PART as usize, grid.width, grid.height, layout)?;
-            if film.tile != grid.tile(t) {
-                return Err(WireError(format!(
-                    "merge input: own part of tile {:?} for tile {t}",
-                    film.tile
-                )));
-            }
-            Some(film)
-        } else {
-            None
-        };
-        let mut sections = Vec::with_capacity(m);
-        for (b, len) in heads {
-            let bytes = r.part(len, "section")?;
-            let routed = unpack_section(&bytes, MAX_PART as usize, b, grid, layout)?;
-            sections.push((b, routed));
-        }
-        group.add_task(grid, t, own.as_ref(), &sections);
+        Ok(ResultHead {
+            tile: t,
+            own_len,
+            sections,
+        })
     }
-    group.end_pass(head.light_paths, layout.kappa);
-    let passes = head.pass + head.merged;
+}
+
+/// The first bytes of a merge output: the merge of `bands` into tiles holding `passes` passes.
+pub fn output_head(bands: &std::ops::Range<u32>, passes: u32) -> Vec<u8> {
     let mut out = Vec::new();
     out.extend_from_slice(OUT_MAGIC);
-    for v in [VERSION, head.bands.start, head.bands.end, passes] {
+    for v in [VERSION, bands.start, bands.end, passes] {
         out.extend_from_slice(&v.to_le_bytes());
     }
-    if head.out == MergeOut::Exr {
-        exr_blocks(
-            &mut out,
-            grid,
-            layout,
-            bands,
-            &group.tiles,
-            head.light_paths,
-        )?;
-        return Ok(out);
-    }
-    out.extend_from_slice(&(group.tiles.len() as u32).to_le_bytes());
-    if head.out == MergeOut::Checkpoints {
-        for tile in &group.tiles {
-            let ck = TileCheckpoint::encode_parts(tile, passes);
-            out.extend_from_slice(&(ck.len() as u64).to_le_bytes());
-            out.extend_from_slice(&ck);
+    out
+}
+
+/// Appends the count of what follows (tiles, or EXR blocks).
+pub fn push_count(out: &mut Vec<u8>, n: usize) {
+    out.extend_from_slice(&(n as u32).to_le_bytes());
+}
+
+/// Appends a tile's encoded checkpoint.
+pub fn push_checkpoint(out: &mut Vec<u8>, checkpoint: &[u8]) {
+    out.extend_from_slice(&(checkpoint.len() as u64).to_le_bytes());
+    out.extend_from_slice(checkpoint);
+}
+
+/// Appends a tile's beauty.
+pub fn push_beauty(out: &mut Vec<u8>, img: &Image) {
+    for p in &img.pixels {
+        for v in p.to_array() {
+            out.extend_from_slice(&v.to_le_bytes());
         }
     }
-    for (_, img) in tile_images(&group.tiles, layout, head.light_paths, false)
-        .iter()
-        .flatten()
-    {
-        for p in &img.pixels {
-            for v in p.to_array() {
-                out.extend_from_slice(&v.to_le_bytes());
-            }
-        }
-    }
-    Ok(out)
+}
+
+/// Appends an EXR block as the EXR stores it.
+pub fn push_block(out: &mut Vec<u8>, block: &[u8]) {
+    out.extend_from_slice(&(block.len() as u32).to_le_bytes());
+    out.extend_from_slice(block);
 }
 
 /// The EXR layout of a frame tiled by `grid` whose films have `layout`: the beauty and every
 /// extra layer, in blocks that rows of tiles never split (`exr_io::block_lines`).
-pub fn exr_layout(grid: &TileGrid, layout: &FilmLayout) -> Result<ExrLayout, WireError> {
+pub fn exr_layout(grid: &TileGrid, layout: &FilmLayout) -> Result<ExrLayout, FormatError> {
     ExrLayout::new(
         grid.width as usize,
         grid.height as usize,
         &layout.extra_layer_names(),
-        super::exr_io::block_lines(grid.size),
+        exr_io::block_lines(grid.size),
     )
-    .map_err(WireError)
-}
-
-/// Appends the EXR blocks of the scan lines of `bands` (block count, then each block's length
-/// and bytes), made from the images of `tiles` (the bands' tiles, merged).
-fn exr_blocks(
-    out: &mut Vec<u8>,
-    grid: &TileGrid,
-    layout: &FilmLayout,
-    bands: std::ops::Range<usize>,
-    tiles: &[FilmTile],
-    light_paths: u64,
-) -> Result<(), WireError> {
-    let exr = exr_layout(grid, layout)?;
-    let rows = grid.band_rows(bands);
-    let blocks = exr.blocks_of(rows.clone()).map_err(WireError)?;
-    let w = grid.width as usize;
-    let mut frames: Vec<Image> = Vec::new();
-    for (l, list) in tile_images(tiles, layout, light_paths, true)
-        .iter()
-        .enumerate()
-    {
-        frames.push(Image::new(w, rows.len()));
-        for (t, img) in list {
-            frames[l].blit(img, t.x0 as usize, t.y0 as usize - rows.start);
-        }
-    }
-    out.extend_from_slice(&(blocks.len() as u32).to_le_bytes());
-    for b in blocks {
-        let line = |l: usize, y: usize| &frames[l].pixels[(y - rows.start) * w..][..w];
-        let bytes = exr.compress_block(b, line).map_err(WireError)?;
-        out.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
-        out.extend_from_slice(&bytes);
-    }
-    Ok(())
+    .map_err(FormatError::from)
 }
 
 /// A merge task's output, checked against what the task asked for.
@@ -449,22 +370,22 @@ impl<'a> MergeOutput<'a> {
         bands: std::ops::Range<u32>,
         passes: u32,
         kind: MergeOut,
-    ) -> Result<MergeOutput<'a>, WireError> {
+    ) -> Result<MergeOutput<'a>, FormatError> {
         let mut at = 0usize;
-        let mut take = |n: usize| -> Result<&'a [u8], WireError> {
+        let mut take = |n: usize| -> Result<&'a [u8], FormatError> {
             if bytes.len() - at < n {
-                return Err(WireError(format!(
+                return Err(FormatError::invalid(format!(
                     "merge output truncated at byte {at} (wanted {n} more)"
                 )));
             }
             at += n;
             Ok(&bytes[at - n..at])
         };
-        let u32_at = |take: &mut dyn FnMut(usize) -> Result<&'a [u8], WireError>| {
+        let u32_at = |take: &mut dyn FnMut(usize) -> Result<&'a [u8], FormatError>| {
             take(4).map(|b| u32::from_le_bytes(b.try_into().expect("4 bytes")))
         };
         if take(8)? != OUT_MAGIC {
-            return Err(WireError("not a merge output (bad magic)".into()));
+            return Err(FormatError::invalid("not a merge output (bad magic)"));
         }
         let mut u32s = [0u32; 5];
         for v in &mut u32s {
@@ -472,7 +393,7 @@ impl<'a> MergeOutput<'a> {
         }
         let [version, b0, b1, got_passes, n] = u32s;
         if version != VERSION {
-            return Err(WireError(format!(
+            return Err(FormatError::invalid(format!(
                 "merge output version {version}, expected {VERSION}"
             )));
         }
@@ -484,14 +405,11 @@ impl<'a> MergeOutput<'a> {
             _ => None,
         };
         let (what, want) = match &exr {
-            Some(exr) => (
-                "EXR blocks",
-                exr.blocks_of(rows.clone()).map_err(WireError)?.len(),
-            ),
+            Some(exr) => ("EXR blocks", exr.blocks_of(rows.clone())?.len()),
             None => ("tiles", tiles.len()),
         };
         if (b0..b1) != bands || got_passes != passes || n as usize != want {
-            return Err(WireError(format!(
+            return Err(FormatError::invalid(format!(
                 "merge output of bands {b0}..{b1} holding {got_passes} passes with {n} {what}; \
                  the task is bands {bands:?}, {passes} passes, {want} {what}"
             )));
@@ -503,14 +421,14 @@ impl<'a> MergeOutput<'a> {
             first_block: 0,
         };
         if let Some(exr) = exr {
-            let blocks = exr.blocks_of(rows.clone()).map_err(WireError)?;
+            let blocks = exr.blocks_of(rows.clone())?;
             let w = grid.width as usize;
             let mut beauty = Image::new(w, rows.len());
             out.first_block = blocks.start;
             for b in blocks {
                 let len = u32_at(&mut take)? as usize;
                 if len > exr.max_block_bytes() {
-                    return Err(WireError(format!(
+                    return Err(FormatError::invalid(format!(
                         "merge output: EXR block {b} of {len} bytes (at most {})",
                         exr.max_block_bytes()
                     )));
@@ -518,7 +436,7 @@ impl<'a> MergeOutput<'a> {
                 let block = take(len)?;
                 let samples = exr
                     .decompress_block(b, block)
-                    .map_err(|e| WireError(format!("merge output: {e}")))?;
+                    .map_err(|e| FormatError::invalid(format!("merge output: {e}")))?;
                 for y in exr.block_rows(b) {
                     let line = &mut beauty.pixels[(y - rows.start) * w..][..w];
                     exr.read_row(&samples, 0, y, line);
@@ -542,14 +460,14 @@ impl<'a> MergeOutput<'a> {
                 let len = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
                 let want = TileCheckpoint::encoded_len(grid.tile(t).pixels(), layout);
                 if len != want {
-                    return Err(WireError(format!(
+                    return Err(FormatError::invalid(format!(
                         "merge output: checkpoint of tile {t} has {len} bytes, expected {want}"
                     )));
                 }
                 let ck = take(len as usize)?;
                 let held = TileCheckpoint::check(ck, grid.tile(t), layout)?;
                 if held != passes {
-                    return Err(WireError(format!(
+                    return Err(FormatError::invalid(format!(
                         "merge output: checkpoint of tile {t} holds {held} passes"
                     )));
                 }
@@ -567,7 +485,7 @@ impl<'a> MergeOutput<'a> {
             }
         }
         if at != bytes.len() {
-            return Err(WireError(format!(
+            return Err(FormatError::invalid(format!(
                 "merge output: {} trailing bytes",
                 bytes.len() - at
             )));

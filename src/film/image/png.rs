@@ -1,8 +1,32 @@
 //! 8-bit sRGB PNG previews.
 
 use super::Image;
-use crate::material::texture::linear_to_srgb;
-use std::path::Path;
+use crate::geometry::colour::linear_to_srgb;
+use std::path::{Path, PathBuf};
+
+/// Why a PNG could not be encoded or written.
+#[derive(Debug, thiserror::Error)]
+pub enum PngError {
+    /// Writing the file failed.
+    #[error("{}: cannot write PNG: {source}", path.display())]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// The image crate's error.
+        #[source]
+        source: image::ImageError,
+    },
+    /// Encoding in memory failed.
+    #[error("cannot encode PNG: {0}")]
+    Encode(#[source] image::ImageError),
+}
+
+/// For callers whose errors are messages.
+impl From<PngError> for String {
+    fn from(e: PngError) -> String {
+        e.to_string()
+    }
+}
 
 /// Tone maps linear radiance to 8-bit sRGB: scale by 2^exposure, clamp to [0, 1], sRGB encode.
 pub fn to_srgb8(img: &Image, exposure: f32) -> Vec<u8> {
@@ -79,7 +103,7 @@ impl Srgb8 {
 }
 
 /// Writes already-encoded 8-bit RGB data.
-pub fn write_rgb8(path: &Path, width: usize, height: usize, data: &[u8]) -> Result<(), String> {
+pub fn write_rgb8(path: &Path, width: usize, height: usize, data: &[u8]) -> Result<(), PngError> {
     image::save_buffer(
         path,
         data,
@@ -87,11 +111,14 @@ pub fn write_rgb8(path: &Path, width: usize, height: usize, data: &[u8]) -> Resu
         height as u32,
         image::ExtendedColorType::Rgb8,
     )
-    .map_err(|e| format!("{}: cannot write PNG: {e}", path.display()))
+    .map_err(|source| PngError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 /// PNG bytes in memory (for previews served over HTTP).
-pub fn encode_rgb8(width: usize, height: usize, data: &[u8]) -> Result<Vec<u8>, String> {
+pub fn encode_rgb8(width: usize, height: usize, data: &[u8]) -> Result<Vec<u8>, PngError> {
     let mut buf = std::io::Cursor::new(Vec::new());
     image::write_buffer_with_format(
         &mut buf,
@@ -101,12 +128,12 @@ pub fn encode_rgb8(width: usize, height: usize, data: &[u8]) -> Result<Vec<u8>, 
         image::ExtendedColorType::Rgb8,
         image::ImageFormat::Png,
     )
-    .map_err(|e| format!("cannot encode PNG: {e}"))?;
+    .map_err(PngError::Encode)?;
     Ok(buf.into_inner())
 }
 
 /// Tone maps `img` with `exposure` (see [`to_srgb8`]) and writes it as a PNG.
-pub fn write_png(path: &Path, img: &Image, exposure: f32) -> Result<(), String> {
+pub fn write_png(path: &Path, img: &Image, exposure: f32) -> Result<(), PngError> {
     write_rgb8(path, img.width, img.height, &to_srgb8(img, exposure))
 }
 

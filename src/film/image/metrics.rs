@@ -2,6 +2,42 @@
 
 use super::Image;
 
+/// An image compared with a reference of another size.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "size mismatch: image is {}x{}, reference is {}x{}",
+    image.0,
+    image.1,
+    reference.0,
+    reference.1
+)]
+pub struct SizeMismatch {
+    /// The image's width and height.
+    pub image: (usize, usize),
+    /// The reference's.
+    pub reference: (usize, usize),
+}
+
+impl SizeMismatch {
+    /// Ok when `img` and `reference` have the same size.
+    fn check(img: &Image, reference: &Image) -> Result<(), SizeMismatch> {
+        if img.width != reference.width || img.height != reference.height {
+            return Err(SizeMismatch {
+                image: (img.width, img.height),
+                reference: (reference.width, reference.height),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// For callers whose errors are messages.
+impl From<SizeMismatch> for String {
+    fn from(e: SizeMismatch) -> String {
+        e.to_string()
+    }
+}
+
 /// relMSE (the MRSE of Cailleau et al.) = mean over pixels and channels of (I - R)^2 / (R^2 +
 /// eps), and MSE; also relMSE without the `TRIM` fraction of pixels with the largest error, where
 /// fireflies show as the difference between the two.
@@ -27,13 +63,8 @@ pub struct ErrorStats {
 pub const TRIM: f64 = 0.001;
 
 /// Compares `img` against `reference` (same size).
-pub fn compare(img: &Image, reference: &Image, eps: f64) -> Result<ErrorStats, String> {
-    if img.width != reference.width || img.height != reference.height {
-        return Err(format!(
-            "size mismatch: image is {}x{}, reference is {}x{}",
-            img.width, img.height, reference.width, reference.height
-        ));
-    }
+pub fn compare(img: &Image, reference: &Image, eps: f64) -> Result<ErrorStats, SizeMismatch> {
+    SizeMismatch::check(img, reference)?;
     let mut per_pixel = Vec::with_capacity(img.pixels.len());
     let mut mse = 0.0f64;
     let mut max_abs = 0.0f64;
@@ -87,10 +118,13 @@ pub fn compare(img: &Image, reference: &Image, eps: f64) -> Result<ErrorStats, S
 /// Signed relative error picture (as in Cailleau et al.'s figures): red where the image is brighter than the
 /// reference, green where it is darker; intensity |I - R| / (R + sqrt(eps)) on luminance,
 /// saturating at `scale`.
-pub fn error_map(img: &Image, reference: &Image, eps: f64, scale: f64) -> Result<Vec<u8>, String> {
-    if img.width != reference.width || img.height != reference.height {
-        return Err("size mismatch".into());
-    }
+pub fn error_map(
+    img: &Image,
+    reference: &Image,
+    eps: f64,
+    scale: f64,
+) -> Result<Vec<u8>, SizeMismatch> {
+    SizeMismatch::check(img, reference)?;
     let mut out = Vec::with_capacity(img.pixels.len() * 3);
     for (a, r) in img.pixels.iter().zip(&reference.pixels) {
         let la = crate::geometry::luminance(*a) as f64;

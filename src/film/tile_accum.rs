@@ -1,15 +1,15 @@
 //! The merged accumulators of one tile of the frame, and how a task's results reach them.
 //!
-//! A task's `TileFilm` holds its tile's own camera-side sums, and light-tracing splats and
-//! optimal-MIS records that may land in any pixel. `TileFilm::route` splits the latter by the
+//! A task's `TaskFilm` holds its tile's own camera-side sums, and light-tracing splats and
+//! optimal-MIS records that may land in any pixel. `TaskFilm::route` splits the latter by the
 //! tile they land in. A tile's accumulators receive, pass by pass, the contributions of every
 //! task of the pass in task order (tile order within the pass): for source tile U, first U's own
 //! sums when U is this tile, then what U routed here, in U's order. That is the order in which
-//! `Film::merge_task` adds a whole frame, so a frame merged tile by tile, on another machine, in
+//! `Film::add_task` adds a whole frame, so a frame merged tile by tile, on another machine, in
 //! any interleaving of tiles, has the same bits.
 
 use super::layers::{FilmLayout, STRATEGY_LAYERS, strategy_layer_name};
-use super::{Image, LtRecords, PixelSums, Splat, Tile, TileFilm};
+use super::{Image, LtRecords, PixelSums, Splat, TaskFilm, Tile};
 use crate::geometry::Rgb;
 use crate::mis::{OptimalAccum, Progressive, SolveScratch};
 
@@ -147,7 +147,7 @@ impl Routed {
     ) -> Vec<(usize, Routed)> {
         let mut out: Vec<(usize, Routed)> = Vec::new();
         let mut slot = std::collections::HashMap::new();
-        // Lists sorted by pixel (`TileFilm::compact`) come in runs of one key: look up once a run.
+        // Lists sorted by pixel (`TaskFilm::compact`) come in runs of one key: look up once a run.
         let mut last = (usize::MAX, 0);
         let mut at = |dest: usize, out: &mut Vec<(usize, Routed)>| -> usize {
             if last.0 == dest {
@@ -184,7 +184,7 @@ impl Routed {
     }
 }
 
-impl TileFilm {
+impl TaskFilm {
     /// Splits the task's splats and records by the tile of `grid` they land in, keeping their
     /// order; tiles that receive nothing are left out. Sorted by destination tile.
     pub fn route(&self, grid: &TileGrid) -> Vec<(usize, Routed)> {
@@ -200,7 +200,7 @@ impl TileFilm {
 /// The merged accumulators of one tile's pixels: camera-side sums, light-tracing splat sums,
 /// strategy and depth layers, optimal-MIS systems.
 #[derive(Clone, Debug)]
-pub struct FilmTile {
+pub struct TileAccum {
     /// Which pixels.
     pub tile: Tile,
     /// Camera-side sums (the whole estimate for the path tracer).
@@ -217,11 +217,11 @@ pub struct FilmTile {
     pub progressive: Option<Progressive>,
 }
 
-impl FilmTile {
+impl TileAccum {
     /// Empty accumulators of `tile` with the layers `layout` asks for.
-    pub fn new(tile: Tile, layout: &FilmLayout) -> FilmTile {
+    pub fn new(tile: Tile, layout: &FilmLayout) -> TileAccum {
         let n = tile.pixels();
-        FilmTile {
+        TileAccum {
             tile,
             sums: PixelSums::new(tile.width(), tile.height()),
             splat: if layout.splats {
@@ -255,7 +255,7 @@ impl FilmTile {
 
     /// Adds the camera-side part of a task's result: the sums, layers and optimal systems of its
     /// own pixels that lie in this tile (not its splats or records).
-    pub fn merge_own(&mut self, t: &TileFilm) {
+    pub fn add_own(&mut self, t: &TaskFilm) {
         let nd = self.depth_layers();
         let y0 = t.tile.y0.max(self.tile.y0);
         let y1 = t.tile.y1.min(self.tile.y1);
@@ -298,7 +298,7 @@ impl FilmTile {
     }
 
     /// Adds the light-tracing splats that land in this tile, in their order.
-    pub fn merge_splats(&mut self, splats: &[Splat], frame_width: u32) {
+    pub fn add_splats(&mut self, splats: &[Splat], frame_width: u32) {
         let nd = self.depth_layers();
         for s in splats {
             let Some(p) = self.local(s.pixel, frame_width) else {
@@ -324,7 +324,7 @@ impl FilmTile {
     }
 
     /// Adds the optimal-MIS light-tracing records that land in this tile, in their order.
-    pub fn merge_records(&mut self, r: &LtRecords, frame_width: u32) {
+    pub fn add_records(&mut self, r: &LtRecords, frame_width: u32) {
         let tile = self.tile;
         let local = |p: u32| tile.index_of(p % frame_width, p / frame_width);
         match (self.optimal.as_mut(), self.progressive.as_mut()) {
@@ -348,9 +348,9 @@ impl FilmTile {
     }
 
     /// Adds what one task routed to this tile.
-    pub fn merge_routed(&mut self, r: &Routed, frame_width: u32) {
-        self.merge_splats(&r.splats, frame_width);
-        self.merge_records(&r.records, frame_width);
+    pub fn add_routed(&mut self, r: &Routed, frame_width: u32) {
+        self.add_splats(&r.splats, frame_width);
+        self.add_records(&r.records, frame_width);
     }
 
     /// Pixel samples taken in this tile (its part of the light-path count N_L).
@@ -458,17 +458,6 @@ impl FilmTile {
             *p = Rgb::new((v[0] / n) as f32, (v[1] / n) as f32, (v[2] / n) as f32);
         }
         img
-    }
-}
-
-impl Image {
-    /// Copies `src` into this image with its top-left corner at (x0, y0).
-    pub fn blit(&mut self, src: &Image, x0: usize, y0: usize) {
-        for y in 0..src.height {
-            let row = &src.pixels[y * src.width..(y + 1) * src.width];
-            let at = (y0 + y) * self.width + x0;
-            self.pixels[at..at + src.width].copy_from_slice(row);
-        }
     }
 }
 

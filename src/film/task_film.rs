@@ -51,7 +51,7 @@ pub struct Splat {
 
 /// What a tile task produces: camera-side sums of its own pixels, splats anywhere.
 #[derive(Clone)]
-pub struct TileFilm {
+pub struct TaskFilm {
     /// The tile's pixel rectangle in the frame.
     pub tile: Tile,
     /// Per pixel of the tile, the sum over its samples of the camera-side estimate (for the path
@@ -72,10 +72,10 @@ pub struct TileFilm {
     pub stats: RayStats,
 }
 
-impl TileFilm {
+impl TaskFilm {
     /// Empty accumulators of `tile` with the layers `layout` asks for.
-    pub fn new(tile: Tile, layout: &FilmLayout) -> TileFilm {
-        TileFilm {
+    pub fn new(tile: Tile, layout: &FilmLayout) -> TaskFilm {
+        TaskFilm {
             tile,
             sums: PixelSums::new(tile.width(), tile.height()),
             splats: Vec::new(),
@@ -95,7 +95,7 @@ impl TileFilm {
     }
 }
 
-impl TileFilm {
+impl TaskFilm {
     /// Puts a finished task's splats and records in canonical form: splats summed per
     /// destination (pixel, and the strategy / depth layer when `layout` keeps it) in their order,
     /// sorted by pixel; records sorted by pixel, each pixel's records in their order. What a pixel

@@ -1,4 +1,4 @@
-//! The parts of a banded task result (`wire::encode_banded`) travel and rest compressed.
+//! The parts of a banded task result (`format::encode_banded`) travel and rest compressed.
 //!
 //! A part is `method u8, raw length u64, payload`. Method 0: the payload is the raw bytes (where
 //! compression would not make them shorter); 1: one zstd frame of them (level 1: Collet and
@@ -11,7 +11,7 @@
 //!
 //! Measured on a 1080p Cornell box (BENCHMARKS.md #12, stops 31, 32 and 37): the camera-side
 //! f64 sums shrink the most (sums of a few f32 values leave the low mantissa bits zero). A
-//! section of light-tracing splats and records is cut into pieces along its planes (`wire`):
+//! section of light-tracing splats and records is cut into pieces along its planes (`lists`):
 //! pixel steps, the high bytes of the bfloat16 values (sign and exponent: 0.11-0.31 of their
 //! size), their low bytes (mantissa noise: stored, never inflated) and the f32 values: an
 //! optimal-MIS job ships 14.6 bytes per pixel sample in pieces against 17.1 as one frame per
@@ -20,7 +20,7 @@
 //! from 0.41 to 0.34 of their raw size and are checked 3.1 times as fast (`cargo bench --bench
 //! check_uploads`, stop 37).
 
-use super::wire::WireError;
+use super::error::FormatError;
 use std::cell::RefCell;
 
 /// zstd's level: on a pass's result log (`zstd -b1 -e3`, 2-core machine) level 1 compresses
@@ -149,7 +149,7 @@ fn transpose(src: &[u8], stride: usize, out: &mut Vec<u8>, into_planes: bool) {
 
 /// The offsets into its raw bytes where the pieces of `part` end but the last (none for a part
 /// packed whole): the cuts that `pack_pieces` would make again.
-pub fn piece_cuts(part: &[u8]) -> Result<Vec<usize>, WireError> {
+pub fn piece_cuts(part: &[u8]) -> Result<Vec<usize>, FormatError> {
     if part.first() != Some(&PIECES) {
         return Ok(Vec::new());
     }
@@ -166,15 +166,15 @@ pub fn piece_cuts(part: &[u8]) -> Result<Vec<usize>, WireError> {
 }
 
 /// The raw length a part says it holds (checked when it is unpacked).
-pub fn raw_len(part: &[u8]) -> Result<usize, WireError> {
+pub fn raw_len(part: &[u8]) -> Result<usize, FormatError> {
     let head: [u8; HEAD] = part
         .get(..HEAD)
         .and_then(|h| h.try_into().ok())
-        .ok_or_else(|| WireError(format!("packed part of {} bytes", part.len())))?;
+        .ok_or_else(|| FormatError::invalid(format!("packed part of {} bytes", part.len())))?;
     let mut n = [0u8; 8];
     n.copy_from_slice(&head[1..]);
     usize::try_from(u64::from_le_bytes(n))
-        .map_err(|_| WireError("packed part longer than this machine's memory".into()))
+        .map_err(|_| FormatError::invalid("packed part longer than this machine's memory"))
 }
 
 /// Calls `f` with the raw bytes of `part`, which may say it holds at most `max_raw` bytes.
@@ -183,18 +183,18 @@ pub fn raw_len(part: &[u8]) -> Result<usize, WireError> {
 pub fn unpack<R>(
     part: &[u8],
     max_raw: usize,
-    f: impl FnOnce(&[u8]) -> Result<R, WireError>,
-) -> Result<R, WireError> {
+    f: impl FnOnce(&[u8]) -> Result<R, FormatError>,
+) -> Result<R, FormatError> {
     let n = raw_len(part)?;
     if n > max_raw {
-        return Err(WireError(format!(
+        return Err(FormatError::invalid(format!(
             "packed part of {n} bytes, more than the {max_raw} allowed"
         )));
     }
     let payload = &part[HEAD..];
     match part[0] {
         STORED if payload.len() == n => f(payload),
-        STORED => Err(WireError(format!(
+        STORED => Err(FormatError::invalid(format!(
             "stored part of {} bytes says it holds {n}",
             payload.len()
         ))),
@@ -209,7 +209,7 @@ pub fn unpack<R>(
             };
             let out = match filled {
                 Ok(()) if raw.len() == n => f(&raw),
-                Ok(()) => Err(WireError(format!(
+                Ok(()) => Err(FormatError::invalid(format!(
                     "packed part inflates to {} bytes, says {n}",
                     raw.len()
                 ))),
@@ -220,16 +220,16 @@ pub fn unpack<R>(
             }
             out
         }
-        m => Err(WireError(format!("packed part of method {m}"))),
+        m => Err(FormatError::invalid(format!("packed part of method {m}"))),
     }
 }
 
 /// Appends the zstd frame `frame`, which must hold exactly `n` bytes, to `raw` (whose spare
 /// capacity is at least `n`).
-fn inflate(frame: &[u8], n: usize, raw: &mut Vec<u8>) -> Result<(), WireError> {
+fn inflate(frame: &[u8], n: usize, raw: &mut Vec<u8>) -> Result<(), FormatError> {
     let start = raw.len();
     if raw.capacity() - start < n {
-        return Err(WireError(format!(
+        return Err(FormatError::invalid(format!(
             "packed piece of {n} bytes overflows its part"
         )));
     }
@@ -248,16 +248,18 @@ fn inflate(frame: &[u8], n: usize, raw: &mut Vec<u8>) -> Result<(), WireError> {
     });
     match got {
         Ok(k) if k == n && raw.len() == start + n => Ok(()),
-        Ok(k) => Err(WireError(format!(
+        Ok(k) => Err(FormatError::invalid(format!(
             "packed part inflates to {k} bytes, says {n}"
         ))),
-        Err(e) => Err(WireError(format!("packed part does not inflate: {e}"))),
+        Err(e) => Err(FormatError::invalid(format!(
+            "packed part does not inflate: {e}"
+        ))),
     }
 }
 
 /// Appends the pieces of `payload` (a PIECES part that says it holds `n` bytes) to `raw`,
 /// checking every piece's head against the part and against what it inflates to.
-fn unpieces(payload: &[u8], n: usize, raw: &mut Vec<u8>) -> Result<(), WireError> {
+fn unpieces(payload: &[u8], n: usize, raw: &mut Vec<u8>) -> Result<(), FormatError> {
     for_pieces(payload, |k, method, len, body| {
         if len > n - raw.len() {
             return Err(piece_error(format!(
@@ -282,8 +284,8 @@ fn unpieces(payload: &[u8], n: usize, raw: &mut Vec<u8>) -> Result<(), WireError
 /// in order, checking that the heads and payloads lie within it and fill it.
 fn for_pieces<'a>(
     payload: &'a [u8],
-    mut f: impl FnMut(usize, u8, usize, &'a [u8]) -> Result<(), WireError>,
-) -> Result<(), WireError> {
+    mut f: impl FnMut(usize, u8, usize, &'a [u8]) -> Result<(), FormatError>,
+) -> Result<(), FormatError> {
     let Some(count) = payload.get(..4) else {
         return Err(piece_error("no piece count".into()));
     };
@@ -313,12 +315,12 @@ fn for_pieces<'a>(
     Ok(())
 }
 
-fn piece_error(what: String) -> WireError {
-    WireError(format!("packed part in pieces: {what}"))
+fn piece_error(what: String) -> FormatError {
+    FormatError::invalid(format!("packed part in pieces: {what}"))
 }
 
 /// The raw bytes of `part` as a vector (tests, tools).
-pub fn unpack_vec(part: &[u8], max_raw: usize) -> Result<Vec<u8>, WireError> {
+pub fn unpack_vec(part: &[u8], max_raw: usize) -> Result<Vec<u8>, FormatError> {
     unpack(part, max_raw, |raw| Ok(raw.to_vec()))
 }
 
