@@ -24,7 +24,7 @@
 //! enters. w1 is clamped to [0, 1] (any deterministic weight is unbiased).
 
 use super::bdpt::{self, Workspace};
-use super::vcm::{Photon, PhotonMap, luminance};
+use super::photon_map::{Photon, PhotonMap, luminance};
 use crate::film::RayStats;
 use crate::geometry::{Rgb, Vec2, Vec3};
 use crate::material::{Bsdf, Mode};

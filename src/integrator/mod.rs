@@ -7,6 +7,7 @@
 pub mod bdpt;
 pub mod bpm;
 pub mod path;
+pub mod photon_map;
 mod tile;
 pub mod vcm;
 
