@@ -410,7 +410,7 @@ fn furnace_ratios(roulette: Option<u32>) -> Vec<(u32, u32, f64)> {
 const FURNACE_DEPTH: u32 = 6;
 
 /// Catches Russian roulette (or any other random throughput factor) in the BDPT subpaths, the
-/// cause of the fireflies of issue 13. Inside the furnace (a sphere of albedo a = 0.5 and
+/// cause of fireflies on glass and mirrors. Inside the furnace (a sphere of albedo a = 0.5 and
 /// emission 1, seen from inside) every camera-side technique (s, t >= 2) has an unweighted
 /// contribution f / p_s of exactly a^d for a path of depth d, whatever its vertices: cosine
 /// sampling gives f cos / p = a at each bounce, and between two points of a sphere
@@ -448,7 +448,7 @@ fn bdpt_subpath_throughputs_have_zero_variance_in_the_furnace() {
 /// BDPT's default roulette starts at vertex `bdpt::ROULETTE_FROM`, no earlier: in the furnace
 /// (see above) a technique's contribution / a^d is 2^n exactly, n the number of subpath vertices
 /// at or past the start that the sample continued from (light vertices y_1 .. y_{s-2}, camera
-/// vertices z_1 .. z_{t-2}). A start one vertex earlier (the fireflies of issue 13 on short
+/// vertices z_1 .. z_{t-2}). A start one vertex earlier (fireflies on short
 /// caustic paths) or later (the time of long paths) fails it, and so does roulette that never
 /// happens.
 #[test]

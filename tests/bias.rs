@@ -83,7 +83,7 @@ fn reference(scene: &Scene, renders: u64) -> ([f64; 3], [f64; 3]) {
 }
 
 /// Progressive: unbiased (within 4 standard errors, about 0.3% of the frame mean). The direct
-/// estimator is biased, and the test asserts what was measured (BENCHMARKS.md #14), with margin:
+/// estimator is biased, and the test asserts what was measured (BENCHMARKS.md, "Optimal against balance MIS"), with margin:
 /// with kappa 0 the bias is detectable and shrinks with spp (+67%, +4.9%, +1.2% at 1, 2, 4 spp);
 /// the default kappa keeps it under 2% (-0.7% at 1 spp, undetectable at 2 and 4).
 #[test]
@@ -123,7 +123,7 @@ fn progressive_optimal_is_unbiased_at_1_to_4_spp_and_the_direct_bias_is_bounded(
     );
 }
 
-/// The measurement of BENCHMARKS.md #14 (1-8 spp, 2048 spp of renders per point): progressive
+/// The measurement of BENCHMARKS.md, "Optimal against balance MIS" (1-8 spp, 2048 spp of renders per point): progressive
 /// within 4 standard errors; the direct estimator's relative bias printed
 /// (`cargo test --profile ci --test bias -- --ignored --nocapture`).
 #[test]

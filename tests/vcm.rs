@@ -381,8 +381,7 @@ fn vcm_merge_bias_is_the_disc_average_and_shrinks_with_the_radius() {
 }
 
 /// `--depth-layers` splits every integrator's image by path depth: the layers add up to the
-/// image, and a scene lit by caustics and interreflections fills several of them (BPM's stayed
-/// empty before stop 23).
+/// image, and a scene lit by caustics and interreflections fills several of them (BPM's too).
 #[test]
 fn every_integrators_depth_layers_add_up_to_its_image() {
     use omis::integrator::bpm::BpmWeights;
@@ -457,7 +456,7 @@ fn bpm_agrees_with_bdpt_on_the_cornell_box() {
     }
 }
 
-/// Measurement for BENCHMARKS.md #15, not a check: the photons one pass (iteration) of SmallVCM's
+/// Measurement for BENCHMARKS.md ("BDPT and VCM against SmallVCM"), not a check: the photons one pass (iteration) of SmallVCM's
 /// scene 2 at 512 x 512 holds, and what shipping them would cost.
 #[test]
 #[ignore]

@@ -280,7 +280,7 @@ fn cwbvh_depth(bvh: &CwBvh) -> usize {
 /// Scenes of at most this many primitives answer closest-hit and occlusion queries by testing
 /// every primitive, eight triangles at a time, instead of traversing the BVH: on 10-36 triangles
 /// 1.1-1.5x the closest-hit rate and 1.3-2.1x the occlusion rate; at 52 triangles and 4 spheres
-/// the BVH is faster (BENCHMARKS.md, issue 13).
+/// the BVH is faster (BENCHMARKS.md, "Rendering speed").
 pub const FLAT_MAX: usize = 40;
 
 /// The BVH over a scene's triangles and spheres, answering closest-hit and occlusion queries.

@@ -47,8 +47,8 @@ struct FilmSink<'a> {
 /// sample per s), so a value's rounding depends on that sample alone: not on the tile, the
 /// thread, whether the value lands in its own tile, or which other samples were kept (optimal
 /// MIS keeps zero-contribution ones). The rounding adds at most 2^-16 of a value's square to its
-/// variance, against the O(1) relative variance of a light-tracing sample (BENCHMARKS.md #12,
-/// stop 30).
+/// variance, against the O(1) relative variance of a light-tracing sample (BENCHMARKS.md,
+/// "The render service").
 struct LtRounding {
     key: u64,
 }

@@ -107,8 +107,8 @@ pub struct JobSettings {
     /// al.'s optimal weight.
     pub vcm_weights: integrator::vcm::VcmWeights,
     /// BDPT, VCM, BPM: subpaths also end by Russian roulette. None (the default): on for VCM,
-    /// where it pays at equal time (BENCHMARKS.md #15, stop 28), and for BDPT from its
-    /// `bdpt::ROULETTE_FROM`-th vertex (#13, stop 46); off for BPM; on when `roulette_from` is
+    /// where it pays at equal time (BENCHMARKS.md, "BDPT and VCM against SmallVCM"), and for BDPT from its
+    /// `bdpt::ROULETTE_FROM`-th vertex (BENCHMARKS.md, "BDPT against pbrt-v3"); off for BPM; on when `roulette_from` is
     /// set.
     pub roulette: Option<bool>,
     /// BDPT, VCM, BPM: the first subpath vertex (1 = the first surface hit) roulette may end a

@@ -1,4 +1,4 @@
-//! The automatic choice of D_opt, the largest depth weighted optimally (issue #14): a pilot
+//! The automatic choice of D_opt, the largest depth weighted optimally: a pilot
 //! render measures, per candidate D, the error of the estimate and what its systems cost, and
 //! the job keeps optimal weights only up to the depth where they pay at equal time.
 //!
@@ -10,7 +10,7 @@
 //! samples of at most `PILOT_PIXELS` pixels (about 37k pixel samples), and at most `PILOT_SHARE`
 //! of the job (its cost is the job's, and at equal time a pilot larger than the gain it finds
 //! makes optimal MIS lose to balance: Veach MIS at 64x64 and 128 spp took 1.118x balance's time
-//! with the full pilot, 1.032x without, for 0.92-0.94x its error; BENCHMARKS.md #14, stop 41),
+//! with the full pilot, 1.032x without, for 0.92-0.94x its error; BENCHMARKS.md, "Optimal against balance MIS"),
 //! but never under `MIN_PILOT_PIXELS`.
 //!
 //! A job of known spp bounds the pilot by its pixel samples. A time budget bounds it by time,
@@ -39,7 +39,7 @@
 //! samples it took: the pilot counts those technique samples exactly. Relative to the render's
 //! rays, time(D) / time(balance) = 1 + `COST_PER_TECHNIQUE_SAMPLE` x (technique samples at
 //! depths <= D per pixel sample) / (rays per pixel sample), with the constant measured
-//! (BENCHMARKS.md #14). At equal time the
+//! (BENCHMARKS.md, "Optimal against balance MIS"). At equal time the
 //! error is V(D) x time(D); D = 0 (balance) is a candidate, and a deeper D is kept only when it
 //! beats the best shallower one by `MARGIN`.
 
@@ -50,7 +50,7 @@ use crate::mis::progressive::Progressive;
 use crate::scene::Scene;
 use serde::{Deserialize, Serialize};
 
-/// Deepest candidate D: the measured gains lie at depths 1-2 (BENCHMARKS.md #14), and a depth-5
+/// Deepest candidate D: the measured gains lie at depths 1-2 (BENCHMARKS.md, "Optimal against balance MIS"), and a depth-5
 /// system already costs 49 values per technique sample.
 pub const AUTO_MAX_DEPTH: u32 = 5;
 /// Pixels of the pilot frame (at most; the job's frame when smaller).
@@ -64,7 +64,7 @@ pub const PILOT_REPLICAS: u32 = 4;
 /// Samples per pixel of each pilot render.
 pub const PILOT_SPP: u32 = 4;
 /// Cost of one technique sample at an optimal depth (its balance vector and its system
-/// update), in rays traced. Fitted in BENCHMARKS.md #14 to instruction counts (callgrind) of
+/// update), in rays traced. Fitted (BENCHMARKS.md, "Optimal against balance MIS") to instruction counts (callgrind) of
 /// release renders at D_opt 0, 1 and 2 on ten scenes (0.17-0.19): the D_opt 1 overheads within
 /// 1.2 points, D_opt 2 within 2.4 but for Veach's two scenes (overestimated by up to 3.6).
 /// Instructions, not seconds: a count is exact where this machine's timings of a few per cent

@@ -10,7 +10,7 @@ pub const DEFAULT_PASS_SIZE: u32 = 16;
 pub const DEFAULT_MAX_PASS_SIZE: u32 = 256;
 /// VCM and BPM: every process that renders a pass holds the photon map of each of its
 /// iterations at once (a map keeps the iteration's light subpaths and photons: 591 bytes per
-/// pixel on SmallVCM's scene 2 at depth 9, BENCHMARKS.md #15), so their passes are kept short
+/// pixel on SmallVCM's scene 2 at depth 9, BENCHMARKS.md, "BDPT and VCM against SmallVCM"), so their passes are kept short
 /// enough that a pass's maps fit in this many bytes, at `PHOTON_MAP_BYTES_PER_PIXEL` a map.
 pub const PHOTON_PASS_BYTES: u64 = 4 << 30;
 /// What a photon map is assumed to take per pixel when passes are limited (about twice what
@@ -31,7 +31,7 @@ pub fn photon_passes(width: u32, height: u32, pass_size: u32, max_pass_size: u32
 pub const DEFAULT_TILE_SIZE: u32 = 32;
 /// Tile edge of large frames: a task of 4x the pixels costs the coordinator about what a small
 /// one does (1080p path tracing: 26 % less coordinator CPU, BDPT: 10-18 % fewer bytes per
-/// sample; BENCHMARKS.md #12, stops 28 and 29).
+/// sample; BENCHMARKS.md, "The render service").
 pub const LARGE_TILE_SIZE: u32 = 64;
 /// Tasks per pass a frame must have in tiles of `LARGE_TILE_SIZE` to get them (1024x1024 and
 /// up), so that a pass still keeps dozens of workers busy.
@@ -40,7 +40,7 @@ pub const LARGE_TILE_MIN_TASKS: u64 = 256;
 /// tracer, BDPT with the balance or power heuristic): their tasks are short and light, so a task
 /// of 4x the pixels cuts what the coordinator spends per pixel sample by a quarter to a third
 /// (1080p: PT 2.8 -> 1.8 %, BDPT balance 1.8 -> 1.4 % of the workers' CPU; BDPT's light-tracing
-/// splats aggregate per pixel, 10.7 -> 8.6 bytes per pixel sample; BENCHMARKS.md #12, stop 33). Optimal-MIS
+/// splats aggregate per pixel, 10.7 -> 8.6 bytes per pixel sample; BENCHMARKS.md, "The render service"). Optimal-MIS
 /// tasks keep `LARGE_TILE_SIZE`: their systems (up to 1.3 kB a pixel) and records make a task
 /// of this size heavy for the workers, and the coordinator gains less.
 pub const HUGE_TILE_SIZE: u32 = 128;

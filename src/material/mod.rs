@@ -463,7 +463,7 @@ impl Bsdf {
     /// [`Bsdf::pdfs`] gives `pdf(wo, wi)` and `pdf(wi, wo)` later without a second change of
     /// frame: for a BDPT connection, whose densities are needed only once its shadow ray finds
     /// it unoccluded (computing them for occluded ones too cost 0.8 % more instructions on
-    /// Veach's scene, BENCHMARKS.md #13 stop 24).
+    /// Veach's scene, BENCHMARKS.md, "BDPT against pbrt-v3").
     #[inline]
     pub fn eval_local(&self, wo: &Outgoing, wi: Vec3, mode: Mode) -> (Rgb, Option<LocalPair>) {
         let Some((lo, li)) = self.localize(wo, wi) else {

@@ -38,8 +38,8 @@ use super::solve::solve_psd;
 pub const DEFAULT_KAPPA: f64 = 1.0;
 
 /// Largest depth weighted optimally where no pilot chooses it (`RenderSettings` built directly;
-/// jobs default to the pilot, `job::optimal_depth`). Measured on four scenes (BENCHMARKS.md
-/// #14): the equal-spp gain is at depth 1, and depths 2-5 stay within 2 % of balance at equal
+/// jobs default to the pilot, `job::optimal_depth`). Measured on four scenes (BENCHMARKS.md,
+/// "Optimal against balance MIS"): the equal-spp gain is at depth 1, and depths 2-5 stay within 2 % of balance at equal
 /// spp while their systems cost 10-30 % of the samples at equal time.
 pub const DEFAULT_OPTIMAL_MAX_DEPTH: u32 = 1;
 

@@ -3,7 +3,7 @@
 //!
 //! Buffers of a megabyte or more come from mmap (see `service::start`), so each fresh one was
 //! faulted in page by page and zeroed by the kernel, then unmapped when freed: on a 1080p
-//! optimal-MIS job that was about a quarter of the coordinator's CPU (BENCHMARKS.md #12). A
+//! optimal-MIS job that was about a quarter of the coordinator's CPU (BENCHMARKS.md, "The render service"). A
 //! buffer given back keeps its pages; the pool holds at most `keep` bytes of them, so the
 //! memory it adds to the coordinator is bounded.
 

@@ -208,8 +208,8 @@ fn is_last(r: &Resolved, pass: u32) -> bool {
 /// tile checkpoints after every second pass only: a pass's results, packed, take a third of a
 /// checkpoint's bytes, so merging pass p + 1 from the checkpoints before pass p and the results
 /// of both moves fewer bytes through the coordinator than writing the checkpoints of pass p,
-/// storing them and serving them back (1080p: a quarter less coordinator CPU; BENCHMARKS.md
-/// #12). BDPT's results carry splats routed across the frame, more bytes per pass than
+/// storing them and serving them back (1080p: a quarter less coordinator CPU; BENCHMARKS.md,
+/// "The render service"). BDPT's results carry splats routed across the frame, more bytes per pass than
 /// a checkpoint: reading them twice cost more than it saved. The in-process bits stay: the
 /// tiles get the same additions in the same order.
 pub(crate) fn output_of(r: &Resolved, pass: u32) -> MergeOut {
@@ -337,7 +337,7 @@ fn read_slot_into(
 /// Tells the kernel that `f` is read at random: a slot is read whole, and the pages after it
 /// are the next tile's other slot, which this pass does not read (and which, in a job's first
 /// passes, is a hole the read-ahead zeroed page by page: 5 % of an optimal-MIS job's
-/// coordinator CPU, BENCHMARKS.md #12).
+/// coordinator CPU, BENCHMARKS.md, "The render service").
 fn no_readahead(f: &std::fs::File) {
     #[cfg(target_os = "linux")]
     {

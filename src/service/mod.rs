@@ -70,7 +70,7 @@ pub(crate) struct Config {
     /// Shortest time between two rewrites of a running job's image.exr after a pass, in
     /// seconds (the last pass's is always written; 0: after every pass). A 1080p beauty EXR
     /// costs its ZIP compression, ~0.4 CPU-seconds: a third of what a path-traced job's
-    /// coordinator spent when it was written after every pass (BENCHMARKS.md #12).
+    /// coordinator spent when it was written after every pass (BENCHMARKS.md, "The render service").
     pub exr_interval_s: f64,
 }
 
@@ -257,7 +257,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
     // with them and leave the coordinator's peak memory to arena fragmentation. Setting it fixes
     // the trim threshold at 128 KB, so every free at the top of a heap gave its pages back and
     // the next request faulted them in again; a 64 MB one keeps them (a 1080p PT job: a third
-    // fewer page faults, 9 % less coordinator CPU; BENCHMARKS.md #12).
+    // fewer page faults, 9 % less coordinator CPU; BENCHMARKS.md, "The render service").
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets an allocator parameter.
     unsafe {

@@ -9,16 +9,16 @@
 //! refuses a part that inflates to anything else. Compression is lossless, so the merged image
 //! does not change by a bit.
 //!
-//! Measured on a 1080p Cornell box (BENCHMARKS.md #12, stops 31, 32 and 37): the camera-side
+//! Measured on a 1080p Cornell box (BENCHMARKS.md, "The render service"): the camera-side
 //! f64 sums shrink the most (sums of a few f32 values leave the low mantissa bits zero). A
 //! section of light-tracing splats and records is cut into pieces along its planes (`lists`):
 //! pixel steps, the high bytes of the bfloat16 values (sign and exponent: 0.11-0.31 of their
 //! size), their low bytes (mantissa noise: stored, never inflated) and the f32 values: an
 //! optimal-MIS job ships 14.6 bytes per pixel sample in pieces against 17.1 as one frame per
-//! section (`omis bench-coordinator`, BENCHMARKS.md #12 stop 32). A result's own part is cut
+//! section (`omis bench-coordinator`, BENCHMARKS.md, "The render service"). A result's own part is cut
 //! into the byte planes of its fixed-size records (`to_planes`): path-tracing results shrink
 //! from 0.41 to 0.34 of their raw size and are checked 3.1 times as fast (`cargo bench --bench
-//! check_uploads`, stop 37).
+//! check_uploads`).
 
 use super::error::FormatError;
 use std::cell::RefCell;

@@ -27,7 +27,7 @@
 //! whose width goes to 0 and the cosine Georgiev et al.'s dVC keeps at specular vertices.
 //! pbrt-v3 uses 1 for the area density itself; its weights still sum to 1 (unbiased), but they
 //! are not balance's, and they gave 1.07-1.14x the variance behind SmallVCM's mirror and glass
-//! spheres (BENCHMARKS.md, issue 15).
+//! spheres (BENCHMARKS.md, "BDPT and VCM against SmallVCM").
 //!
 //! Subpaths end where a BSDF is black or fails to sample, at an escape, at the max depth, and
 //! with [`Workspace::set_roulette`] by Russian roulette: from its start vertex R on, a walk
@@ -36,8 +36,8 @@
 //! Roulette multiplies a surviving subpath's throughput by 1/q, and on paths that only one
 //! technique can make (caustics seen through glass or in a mirror) MIS cannot take that back:
 //! from the first vertex it made the glass-and-mirror Cornell box 1.3x noisier per sample, most
-//! of it in fireflies, while it saves 20-50 % of the time on long paths (BENCHMARKS.md, issue
-//! 13). BDPT's default start ([`ROULETTE_FROM`]) leaves those short paths alone.
+//! of it in fireflies, while it saves 20-50 % of the time on long paths (BENCHMARKS.md,
+//! "BDPT against pbrt-v3"). BDPT's default start ([`ROULETTE_FROM`]) leaves those short paths alone.
 //!
 //! q is a factor of every density sampled from a vertex, in both directions, so the weights
 //! stay exact; with R > 1 it depends on the technique: x_j of a path of k vertices is light
@@ -74,8 +74,8 @@ pub const MAX_DEPTH: u32 = 64;
 /// surface vertices, where paths that one technique alone makes (caustics seen directly or in
 /// a mirror) get their fireflies from 1/q, and end by roulette from the third on (as the path
 /// tracer's from its third bounce), where most of a long path's time goes: pbrt-v3's per-sample
-/// error on the glass-and-mirror box, 1.5x SmallVCM per CPU second on its scene 1 (BENCHMARKS.md
-/// #13, stop 46).
+/// error on the glass-and-mirror box, 1.5x SmallVCM per CPU second on its scene 1 (BENCHMARKS.md,
+/// "BDPT against pbrt-v3").
 pub const ROULETTE_FROM: u32 = 3;
 
 /// One BDPT sample as the sinks see it.

@@ -6,7 +6,7 @@
 //! it was the coordinator's largest kernel cost. On the benchmark VM, whose free memory goes
 //! back to its host, 850 MB written through the page cache into a new file took 1.4-2.8 s of
 //! system time and read back uncached 0.8 s, against 0.08 s and 0.05 s with `O_DIRECT`
-//! (BENCHMARKS.md #12). Direct I/O needs offsets, lengths and memory aligned to the
+//! (BENCHMARKS.md, "The render service"). Direct I/O needs offsets, lengths and memory aligned to the
 //! device's logical block: records start at multiples of [`ALIGN`], a write is padded with
 //! zeros to one, and bytes go through a per-thread aligned buffer of [`CHUNK`] bytes. Where the
 //! file system refuses `O_DIRECT` or an aligned transfer, the file is read and written through

@@ -267,7 +267,7 @@ impl SqliteStore {
         conn.set_prepared_statement_cache_capacity(64);
         // And kept: without the query planner stability guarantee, SQLite (built with STAT4)
         // re-prepares a statement whenever a value bound to it could change its plan, which
-        // the lease query's did on every lease (BENCHMARKS.md #12). Every query here
+        // the lease query's did on every lease (BENCHMARKS.md, "The render service"). Every query here
         // is written for its index.
         conn.set_db_config(
             rusqlite::config::DbConfig::SQLITE_DBCONFIG_ENABLE_QPSG,

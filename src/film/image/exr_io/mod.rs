@@ -134,7 +134,7 @@ impl ExrLayout {
 
     /// The same frame stored uncompressed, one scan line per block: what the coordinator
     /// writes between passes (deflating that beauty was 17.5 % of a 1080p BDPT balance job's
-    /// coordinator CPU, BENCHMARKS.md #12 stop 34).
+    /// coordinator CPU, BENCHMARKS.md, "The render service").
     pub fn uncompressed(
         width: usize,
         height: usize,
