@@ -33,6 +33,26 @@ pub struct Camera {
     plane_area: f32,
 }
 
+/// Why a camera cannot be made.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CameraError {
+    /// A position, target or up vector with a NaN or infinite coordinate.
+    #[error("camera position, look_at and up must be finite")]
+    NotFinite,
+    /// The target is the eye point.
+    #[error("camera look_at equals its position")]
+    LookAtIsPosition,
+    /// The up hint is parallel to the viewing direction.
+    #[error("camera up is parallel to the viewing direction")]
+    UpAlongView,
+    /// A vertical field of view outside (0, 179) degrees.
+    #[error("camera fov must be in (0, 179) degrees, got {0}")]
+    Fov(f32),
+    /// A width or height of zero.
+    #[error("resolution must be positive, got {0}x{1}")]
+    EmptyResolution(u32, u32),
+}
+
 impl Camera {
     /// A camera from its eye point, target, up hint and vertical field of view; an error when
     /// they are not finite, `look_at` equals `position`, `up` is parallel to the view, the field
@@ -44,25 +64,23 @@ impl Camera {
         vfov_deg: f32,
         width: u32,
         height: u32,
-    ) -> Result<Camera, String> {
+    ) -> Result<Camera, CameraError> {
         if !(position.is_finite() && look_at.is_finite() && up.is_finite()) {
-            return Err("camera position, look_at and up must be finite".into());
+            return Err(CameraError::NotFinite);
         }
         let forward = (look_at - position).normalize_or_zero();
         if forward == Vec3::ZERO {
-            return Err("camera look_at equals its position".into());
+            return Err(CameraError::LookAtIsPosition);
         }
         let right = forward.cross(up).normalize_or_zero();
         if right == Vec3::ZERO {
-            return Err("camera up is parallel to the viewing direction".into());
+            return Err(CameraError::UpAlongView);
         }
         if !(vfov_deg > 0.0 && vfov_deg < 179.0) {
-            return Err(format!(
-                "camera fov must be in (0, 179) degrees, got {vfov_deg}"
-            ));
+            return Err(CameraError::Fov(vfov_deg));
         }
         if width == 0 || height == 0 {
-            return Err(format!("resolution must be positive, got {width}x{height}"));
+            return Err(CameraError::EmptyResolution(width, height));
         }
         let up = right.cross(forward);
         let tan_y = (vfov_deg.to_radians() * 0.5).tan();
@@ -86,7 +104,7 @@ impl Camera {
 
     /// The same camera at another resolution, keeping the vertical field of view (and the
     /// mirroring).
-    pub fn with_resolution(&self, width: u32, height: u32) -> Result<Camera, String> {
+    pub fn with_resolution(&self, width: u32, height: u32) -> Result<Camera, CameraError> {
         Ok(Camera::new(
             self.position,
             self.look_at,

@@ -111,7 +111,7 @@ impl JobSettings {
             scene.camera = scene
                 .camera
                 .with_resolution(w, h)
-                .map_err(|e| FieldError::new("resolution", e))?;
+                .map_err(|e| FieldError::new("resolution", e.to_string()))?;
         }
         let (width, height) = (scene.camera.width, scene.camera.height);
         if width == 0

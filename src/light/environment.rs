@@ -47,6 +47,20 @@ enum EnvImage {
 /// black texels.
 const MIN_WEIGHT: f32 = 1e-3;
 
+/// Why an environment map cannot be made.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum EnvironmentError {
+    /// Texels that do not fill width x height, or fewer than two rows.
+    #[error("an environment map of {0}x{1} texels")]
+    Size(usize, usize),
+    /// A texel below zero or not finite.
+    #[error("an environment map with negative or non-finite texels")]
+    Texels,
+    /// A transform that is not a rotation.
+    #[error("an environment map's to_world must be a rotation")]
+    NotARotation,
+}
+
 impl Environment {
     /// The same radiance from every direction.
     pub fn constant(radiance: Rgb) -> Environment {
@@ -69,15 +83,15 @@ impl Environment {
         texels: Vec<Rgb>,
         scale: f32,
         to_world: &Mat4,
-    ) -> Result<Environment, String> {
+    ) -> Result<Environment, EnvironmentError> {
         if width == 0 || height < 2 || texels.len() != width * height {
-            return Err(format!("an environment map of {width}x{height} texels"));
+            return Err(EnvironmentError::Size(width, height));
         }
         if texels
             .iter()
             .any(|t| !(t.is_finite() && t.min_element() >= 0.0))
         {
-            return Err("an environment map with negative or non-finite texels".into());
+            return Err(EnvironmentError::Texels);
         }
         let m = glam::Mat3::from_mat4(*to_world);
         let to_world = glam::Mat3::from_cols(
@@ -86,7 +100,7 @@ impl Environment {
             m.z_axis.normalize_or_zero(),
         );
         if !(to_world.determinant().abs() > 0.5) {
-            return Err("an environment map's to_world must be a rotation".into());
+            return Err(EnvironmentError::NotARotation);
         }
         let mut env = Environment {
             image: EnvImage::Image {

@@ -29,15 +29,34 @@ enum Texels {
     F32(Vec<Rgb>),
 }
 
+/// Why an image file cannot be read as a texture: the file and the reason.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error("{}: {reason}", path.display())]
+pub struct TextureError {
+    /// The image file.
+    pub path: std::path::PathBuf,
+    /// What is wrong with it (the decoder's message, or a limit).
+    pub reason: String,
+}
+
+impl TextureError {
+    fn new(path: &std::path::Path, reason: impl std::fmt::Display) -> TextureError {
+        TextureError {
+            path: path.to_path_buf(),
+            reason: reason.to_string(),
+        }
+    }
+}
+
 impl Bitmap {
     /// Decodes an image file (PNG, JPEG, TGA, BMP) whose values are sRGB-encoded, to linear.
-    pub fn load(path: &std::path::Path) -> Result<Bitmap, String> {
+    pub fn load(path: &std::path::Path) -> Result<Bitmap, TextureError> {
         Bitmap::load_with(path, true)
     }
 
     /// Decodes an image file; `srgb` says whether its values are sRGB-encoded (converted to
     /// linear) or already linear (taken as stored, e.g. roughness or bump data).
-    pub fn load_with(path: &std::path::Path, srgb: bool) -> Result<Bitmap, String> {
+    pub fn load_with(path: &std::path::Path, srgb: bool) -> Result<Bitmap, TextureError> {
         use image::ColorType;
         let exr = path
             .extension()
@@ -45,10 +64,10 @@ impl Bitmap {
         if exr {
             return Self::load_exr(path);
         }
-        let img = image::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let img = image::open(path).map_err(|e| TextureError::new(path, e))?;
         let (w, h) = (img.width() as usize, img.height() as usize);
         if w == 0 || h == 0 {
-            return Err(format!("{}: empty image", path.display()));
+            return Err(TextureError::new(path, "empty image"));
         }
         let decode = |v: f32| if srgb { srgb_to_linear(v) } else { v };
         let texels = match img.color() {
@@ -76,16 +95,19 @@ impl Bitmap {
 
     /// An OpenEXR image's first RGB(A) layer, linear, its data window checked against the
     /// image limits first (a small file may claim a huge frame).
-    fn load_exr(path: &std::path::Path) -> Result<Bitmap, String> {
+    fn load_exr(path: &std::path::Path) -> Result<Bitmap, TextureError> {
         use exr::prelude::*;
-        let bad = |e: exr::error::Error| format!("{}: {e}", path.display());
+        let bad = |e: exr::error::Error| TextureError::new(path, e);
         let meta = exr::meta::MetaData::read_from_file(path, false).map_err(bad)?;
         let too_large = meta
             .headers
             .iter()
             .any(|h| h.layer_size.width().saturating_mul(h.layer_size.height()) > MAX_TEXELS);
         if too_large {
-            return Err(format!("{}: more than {MAX_TEXELS} texels", path.display()));
+            return Err(TextureError::new(
+                path,
+                format!("more than {MAX_TEXELS} texels"),
+            ));
         }
         let img = read_first_rgba_layer_from_file(
             path,
@@ -98,7 +120,7 @@ impl Bitmap {
         let size = img.layer_data.size;
         let (w, h) = (size.width(), size.height());
         if w == 0 || h == 0 {
-            return Err(format!("{}: empty image", path.display()));
+            return Err(TextureError::new(path, "empty image"));
         }
         Ok(Bitmap {
             width: w,

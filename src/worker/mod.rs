@@ -246,7 +246,10 @@ impl Worker {
             tokio::task::spawn_blocking(move || {
                 let mut scene = Scene::load_with(&main, &params).map_err(|e| e.to_string())?;
                 if (scene.camera.width, scene.camera.height) != (w, h) {
-                    scene.camera = scene.camera.with_resolution(w, h)?;
+                    scene.camera = scene
+                        .camera
+                        .with_resolution(w, h)
+                        .map_err(|e| e.to_string())?;
                 }
                 Ok(Arc::new(scene))
             })

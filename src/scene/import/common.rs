@@ -57,7 +57,11 @@ pub(crate) struct Bitmaps {
 
 impl Bitmaps {
     /// The image of `file`, decoded as sRGB (`srgb`) or linear.
-    pub(crate) fn load(&mut self, file: &SceneFile, srgb: bool) -> Result<Arc<Bitmap>, String> {
+    pub(crate) fn load(
+        &mut self,
+        file: &SceneFile,
+        srgb: bool,
+    ) -> Result<Arc<Bitmap>, crate::material::texture::TextureError> {
         let key = (file.path().to_path_buf(), srgb);
         if let Some(b) = self.cache.get(&key) {
             return Ok(b.clone());
@@ -111,7 +115,7 @@ pub(crate) fn camera_from(
     raster_x: Vec3,
     vfov: f32,
     (w, h): (u32, u32),
-) -> Result<Camera, String> {
+) -> Result<Camera, crate::camera::CameraError> {
     let position = c2w.point(Vec3::ZERO);
     let forward = c2w.vector(Vec3::Z).normalize_or_zero();
     let up = c2w.vector(Vec3::Y);

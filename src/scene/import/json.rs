@@ -371,7 +371,7 @@ impl Loader<'_> {
                 let image = self
                     .textures
                     .load(&f, true)
-                    .map_err(|e| SceneError::new(self.file, at, e))?;
+                    .map_err(|e| SceneError::new(self.file, at, e.to_string()))?;
                 let scale = scale.map(Color::rgb).unwrap_or(Rgb::ONE);
                 check_color(self.file, &format!("{loc}.scale"), scale)?;
                 Ok(Texture::Bitmap { image, scale })
@@ -707,7 +707,7 @@ pub(crate) fn parse_with(text: &str, resolver: Resolver) -> Result<SceneBuilder,
         c.resolution[0],
         c.resolution[1],
     )
-    .map_err(|m| SceneError::new(file, "camera", m))?;
+    .map_err(|m| SceneError::new(file, "camera", m.to_string()))?;
     b.set_camera(cam);
 
     let mut loader = Loader {

@@ -12,7 +12,9 @@ impl Ctx {
             .b
             .resolver()
             .resolve(rel, &format!("line {}", n.line))?;
-        self.bitmaps.load(&file, srgb).map_err(|e| self.err(n, e))
+        self.bitmaps
+            .load(&file, srgb)
+            .map_err(|e| self.err(n, e.to_string()))
     }
 
     /// Translates a `<texture>` element.

@@ -120,7 +120,8 @@ impl Ctx {
         let m = self.to_world(&p)?;
         let c2w = Transform::new(m).ok_or_else(|| self.err(n, "to_world is not invertible"))?;
         // Mitsuba's camera space: +z forward, +y up, +x toward the image's left.
-        let cam = camera_from(&c2w, Vec3::NEG_X, vfov, (w, h)).map_err(|e| self.err(n, e))?;
+        let cam =
+            camera_from(&c2w, Vec3::NEG_X, vfov, (w, h)).map_err(|e| self.err(n, e.to_string()))?;
         self.b.set_camera(cam);
         for k in [
             "near_clip",

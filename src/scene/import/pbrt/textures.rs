@@ -29,7 +29,9 @@ impl Parser {
             .resolver()
             .resolve(rel, "texture")
             .map_err(|e| self.at(loc, e))?;
-        self.bitmaps.load(&file, srgb).map_err(|e| self.err(loc, e))
+        self.bitmaps
+            .load(&file, srgb)
+            .map_err(|e| self.err(loc, e.to_string()))
     }
 
     /// `Texture "name" "spectrum"|"float" "class" params`.
