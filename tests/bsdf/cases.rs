@@ -1,6 +1,6 @@
 //! The materials and geometry under test.
 
-use super::POWER_TESTS;
+use super::chi2::POWER_TESTS;
 use super::grid::*;
 use super::stats::*;
 
