@@ -35,7 +35,7 @@ fn variance_terms(imgs: &[Image], norm: &[Image], eps: f64) -> (f64, f64) {
 fn auto_depth_predicts_the_variance_of_independent_renders_and_keeps_optimal_where_it_pays() {
     use omis::job::optimal_depth::{self, PILOT_SPP};
     // The small-light box: depth 1 (NEE against light tracing and emitter hits of a 2 cm light)
-    // is where optimal weights gain most (BENCHMARKS.md #14).
+    // is where optimal weights gain most (BENCHMARKS.md, "Optimal against balance MIS").
     let mut scene = load("cornell-box-small-light.json", 96, 80);
     let s = RenderSettings {
         seed: 11,
@@ -148,7 +148,7 @@ fn auto_depth_predicts_the_variance_of_independent_renders_and_keeps_optimal_whe
 /// applied on the same 4 samples per pixel, the weights fit those samples: on the glass caustic
 /// that made optimal weights at depth 3 look 20 % better than at depth 2 (relMSE x time 0.532
 /// against 0.678 of balance's here), the job took D_opt 3, and at equal time it measured 1.3x
-/// balance's error (BENCHMARKS.md #14). Cross-fitted, depth 3 gains nothing over depth 2 (1.09
+/// balance's error (BENCHMARKS.md, "Optimal against balance MIS"). Cross-fitted, depth 3 gains nothing over depth 2 (1.09
 /// against 0.68).
 #[test]
 fn auto_depth_is_not_fooled_by_weights_fitted_to_the_pilots_own_samples() {

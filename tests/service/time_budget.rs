@@ -39,7 +39,7 @@ fn a_time_budget_job_renders_passes_until_its_time_is_up() {
         Some(spp / 4)
     );
     // Growing passes (1, 2, 4, ... 64 samples), the last fitted to the time left (where the
-    // time left allows a fit: when the job ends can only be measured, BENCHMARKS #14 stop 42).
+    // time left allows a fit: when the job ends can only be measured, BENCHMARKS.md, "The render service").
     let id = submit_settings(
         &c,
         &url,

@@ -253,7 +253,7 @@ fn techniques(
             }
             for (ss, tt, w, c, own) in cap.samples {
                 if c == Rgb::ZERO {
-                    // Weighted e_s by design (see `connect`): checked by tests/optimal.rs.
+                    // Weighted e_s by design (see `connect`): checked by tests/optimal/.
                     if mode.is_none() {
                         assert_eq!(w.iter().filter(|x| **x != 0.0).count(), 1);
                     }
