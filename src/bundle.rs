@@ -6,41 +6,67 @@ use crate::scene::{Scene, SceneParams};
 use std::io::Read;
 use std::path::{Component, Path, PathBuf};
 
+/// Why a scene was not packed into a bundle. No variant names its cause as a `source`: the
+/// message already holds it, and error chains print it once.
+#[derive(Debug, thiserror::Error)]
+pub enum PackError {
+    /// The scene did not load (so the files it reads are unknown).
+    #[error(transparent)]
+    Scene(#[from] crate::scene::SceneError),
+    /// The scene's path does not end in a file name.
+    #[error("{}: not a file name", .0.display())]
+    NotAFileName(PathBuf),
+    /// A file (the scene, or one it reads) or the scene's folder could not be read.
+    #[error("{}: {error}", .path.display())]
+    Read {
+        /// The file or folder.
+        path: PathBuf,
+        /// The file system's error.
+        error: std::io::Error,
+    },
+    /// A file the scene reads lies outside its folder (a bundle holds paths relative to it).
+    #[error("{} is outside the scene's folder", .0.display())]
+    OutsideFolder(PathBuf),
+    /// The archive could not be finished.
+    #[error("cannot finish the bundle: {0}")]
+    Finish(std::io::Error),
+}
+
 /// Packs `scene` (loaded with `params` to learn the files it reads) into a tar archive. Returns
 /// the archive and the scene file's name inside it.
-pub fn pack(scene_path: &Path, params: &SceneParams) -> Result<(Vec<u8>, String), String> {
-    let scene = Scene::load_with(scene_path, params).map_err(|e| e.to_string())?;
+pub fn pack(scene_path: &Path, params: &SceneParams) -> Result<(Vec<u8>, String), PackError> {
+    let scene = Scene::load_with(scene_path, params)?;
     pack_files(scene_path, &scene.files)
 }
 
 /// Packs the scene file and `files` (paths inside the scene's folder).
-pub fn pack_files(scene_path: &Path, files: &[PathBuf]) -> Result<(Vec<u8>, String), String> {
+pub fn pack_files(scene_path: &Path, files: &[PathBuf]) -> Result<(Vec<u8>, String), PackError> {
+    let read = |path: &Path| {
+        let path = path.to_path_buf();
+        move |error: std::io::Error| PackError::Read { path, error }
+    };
     let main = scene_path
         .file_name()
         .and_then(|n| n.to_str())
-        .ok_or_else(|| format!("{}: not a file name", scene_path.display()))?
+        .ok_or_else(|| PackError::NotAFileName(scene_path.to_path_buf()))?
         .to_string();
-    let base = crate::scene::json::scene_folder(scene_path)
-        .map_err(|e| format!("{}: {e}", scene_path.display()))?;
+    let base = crate::scene::json::scene_folder(scene_path).map_err(read(scene_path))?;
     let mut tar = tar::Builder::new(Vec::new());
     // The coordinator accepts plain files only; a file with holes on disk (a copied texture,
     // say) must still go as a plain entry, not a GNU sparse one.
     tar.sparse(false);
     tar.append_path_with_name(scene_path, &main)
-        .map_err(|e| format!("{}: {e}", scene_path.display()))?;
+        .map_err(read(scene_path))?;
     for f in files {
         let rel = f
             .strip_prefix(&base)
-            .map_err(|_| format!("{} is outside the scene's folder", f.display()))?;
+            .map_err(|_| PackError::OutsideFolder(f.clone()))?;
         if rel == Path::new(&main) {
             continue;
         }
-        tar.append_path_with_name(f, rel)
-            .map_err(|e| format!("{}: {e}", f.display()))?;
+        tar.append_path_with_name(f, rel).map_err(read(f))?;
     }
-    let bytes = tar
-        .into_inner()
-        .map_err(|e| format!("cannot finish the bundle: {e}"))?;
+    let bytes = tar.into_inner().map_err(PackError::Finish)?;
     Ok((bytes, main))
 }
 
@@ -169,15 +195,29 @@ pub fn unpack(bytes: impl Read, dest: &Path, max_bytes: u64) -> Result<Vec<Strin
     Ok(files)
 }
 
+/// Why no scene file of an unpacked bundle was chosen.
+#[derive(Debug, thiserror::Error)]
+pub enum MainFileError {
+    /// The scene file named is not one of the bundle's files.
+    #[error("main file '{0}' is not in the bundle")]
+    NotInBundle(String),
+    /// No top-level file has a scene file's extension.
+    #[error("the bundle has no top-level .json, .pbrt or .xml scene file")]
+    None,
+    /// Several top-level files have one (their names, in the bundle's order).
+    #[error("the bundle has several scene files ({}); name one with ?main=", .0.join(", "))]
+    Several(Vec<String>),
+}
+
 /// The scene file of an unpacked bundle: `main` when given (it must be one of the files), else
 /// the only top-level .json / .pbrt / .xml file.
-pub fn choose_main(files: &[String], main: Option<&str>) -> Result<String, String> {
+pub fn choose_main(files: &[String], main: Option<&str>) -> Result<String, MainFileError> {
     if let Some(m) = main {
         return files
             .iter()
             .find(|f| f.as_str() == m)
             .cloned()
-            .ok_or_else(|| format!("main file '{m}' is not in the bundle"));
+            .ok_or_else(|| MainFileError::NotInBundle(m.to_string()));
     }
     let candidates: Vec<&String> = files
         .iter()
@@ -190,14 +230,9 @@ pub fn choose_main(files: &[String], main: Option<&str>) -> Result<String, Strin
         .collect();
     match candidates.as_slice() {
         [one] => Ok((*one).clone()),
-        [] => Err("the bundle has no top-level .json, .pbrt or .xml scene file".into()),
-        _ => Err(format!(
-            "the bundle has several scene files ({}); name one with ?main=",
-            candidates
-                .iter()
-                .map(|s| s.as_str())
-                .collect::<Vec<_>>()
-                .join(", ")
+        [] => Err(MainFileError::None),
+        _ => Err(MainFileError::Several(
+            candidates.into_iter().cloned().collect(),
         )),
     }
 }

@@ -199,7 +199,7 @@ async fn simulated_worker(
             };
             let out = crate::worker::run_merge(input, &lease.job.resolved).await;
             beat.abort();
-            (out.map_err(anyhow::Error::msg)?, None)
+            (out?, None)
         } else {
             let key = (
                 t.rect.width() as u32,
@@ -260,7 +260,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
     let r = settings
         .resolve(&mut scene, &Limits::default())
         .map_err(super::job_args::flag_error)?;
-    let (tar, main) = bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
+    let (tar, main) = bundle::pack_files(&a.scene, &scene.files)?;
     let t0 = Instant::now();
     let recorded = Arc::new(record(&scene, &r, a.record));
     let recorded_n: usize = recorded.values().map(Vec::len).sum();

@@ -42,7 +42,7 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
     let r = settings
         .resolve(&mut scene, &Limits::default())
         .map_err(super::job_args::flag_error)?;
-    let (tar, main) = bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
+    let (tar, main) = bundle::pack_files(&a.scene, &scene.files)?;
     let megapixels = (r.width as f64 * r.height as f64) / 1e6;
     let tmp = std::env::temp_dir().join(format!("omis-bench-service-{}", std::process::id()));
     std::fs::create_dir_all(&tmp)?;

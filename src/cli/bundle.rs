@@ -25,7 +25,7 @@ pub struct BundleArgs {
 /// the `main` query parameter of `POST /v1/scenes`.
 pub fn run(a: BundleArgs) -> anyhow::Result<()> {
     let params = parse_defines(&a.defines)?;
-    let (tar, main) = bundle::pack(&a.scene, &params).map_err(anyhow::Error::msg)?;
+    let (tar, main) = bundle::pack(&a.scene, &params)?;
     std::fs::write(&a.out, &tar).with_context(|| format!("{}", a.out.display()))?;
     println!(
         "{}",

@@ -79,9 +79,7 @@ impl Client {
     pub(crate) async fn upload_scene(&self, scene: &Path, params: &SceneParams) -> Result<String> {
         let s = scene.to_path_buf();
         let params = params.clone();
-        let (tar, main) = tokio::task::spawn_blocking(move || bundle::pack(&s, &params))
-            .await?
-            .map_err(anyhow::Error::msg)?;
+        let (tar, main) = tokio::task::spawn_blocking(move || bundle::pack(&s, &params)).await??;
         self.upload_bundle(tar, main).await
     }
 

@@ -264,7 +264,7 @@ impl Reference {
     /// Reads the reference EXR, its beauty and its layers of depths 0 ..= `max_depth`.
     fn load(path: &Path, max_depth: u32) -> Result<Reference> {
         // The header first: a small file can claim a frame too large to decode.
-        exr_header::check_cli(path).map_err(anyhow::Error::msg)?;
+        exr_header::check_cli(path)?;
         let layers = exr_io::read_exr_layers(path).map_err(anyhow::Error::msg)?;
         let beauty = layers
             .iter()

@@ -66,7 +66,7 @@ pub fn run(a: DiffArgs) -> Result<()> {
 /// Both files' headers, before decoding: a small file can claim a frame too large to decode.
 fn check_headers(a: &DiffArgs) -> Result<()> {
     for p in [&a.image, &a.reference] {
-        exr_header::check_cli(p).map_err(anyhow::Error::msg)?;
+        exr_header::check_cli(p)?;
     }
     Ok(())
 }

@@ -63,7 +63,7 @@ struct Done {
 }
 
 fn read_reference(p: &Path, r: &Resolved) -> Result<Image> {
-    exr_header::check_cli(p).map_err(anyhow::Error::msg)?;
+    exr_header::check_cli(p)?;
     let img = exr_io::read_exr(p).map_err(anyhow::Error::msg)?;
     if img.width != r.width as usize || img.height != r.height as usize {
         bail!(
@@ -116,8 +116,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
     let done = if a.in_process {
         in_process(&a, &scene, &resolved, &out)?
     } else {
-        let (tar, main) =
-            crate::bundle::pack_files(&a.scene, &scene.files).map_err(anyhow::Error::msg)?;
+        let (tar, main) = crate::bundle::pack_files(&a.scene, &scene.files)?;
         drop(scene);
         through_service(&a, (tar, main), &out)?
     };

@@ -42,11 +42,29 @@ use std::time::Instant;
 
 /// Why a merge cannot go on: a stored result that cannot be read (its render task is rendered
 /// again) or a problem with the job's own files (the job fails).
+#[derive(Debug, thiserror::Error)]
 pub(crate) enum MergeError {
     /// The render task (id) whose stored result is damaged or missing, and why.
+    #[error("{1}")]
     Result(i64, String),
     /// The job's files cannot serve the merge.
+    #[error("{0}")]
     Job(String),
+    /// Tile `tile`'s checkpoint file could not be read.
+    #[error("tile checkpoint {tile}: {error}")]
+    CheckpointRead { tile: usize, error: std::io::Error },
+    /// Tile `tile`'s checkpoint holds the passes asked for but does not decode.
+    #[error("tile checkpoint {tile}: {error}")]
+    CheckpointDecode {
+        tile: usize,
+        error: crate::film::format::FormatError,
+    },
+    /// No slot of tile `tile` holds a valid checkpoint of `passes` passes.
+    #[error("tile checkpoint {tile}: no valid checkpoint holding {passes} passes")]
+    CheckpointAbsent { tile: usize, passes: u32 },
+    /// Some tile's slots hold no valid checkpoint of `0` passes.
+    #[error("a tile checkpoint holding {0} passes is missing")]
+    CheckpointMissing(u32),
 }
 
 impl From<std::io::Error> for MergeError {
@@ -252,7 +270,7 @@ pub(crate) fn begin(app: &App, job: &JobRow, rt: &mut Runtime, pass: u32) -> Ser
             reject_result(app, &job.id, rt, pass, t, &e);
             return Ok(());
         }
-        Err(MergeError::Job(e)) => return Err(ServiceError::Job(e)),
+        Err(e) => return Err(ServiceError::job(e)),
     };
     let groups = merge_groups(app, &rt.resolved);
     app.db().create_merge_tasks(&job.id, pass, &groups)?;
@@ -294,7 +312,7 @@ fn read_slot(
     r: &Resolved,
     t: usize,
     n: u32,
-) -> Result<Option<Vec<u8>>, String> {
+) -> Result<Option<Vec<u8>>, MergeError> {
     let mut bytes = Vec::new();
     let slot = checkpoint_slot(app, job, r, t, n);
     Ok(read_slot_into(&slot, r, t, n, &mut bytes)?.map(|_| bytes))
@@ -309,12 +327,12 @@ fn read_slot_into(
     t: usize,
     n: u32,
     buf: &mut Vec<u8>,
-) -> Result<Option<std::ops::Range<usize>>, String> {
+) -> Result<Option<std::ops::Range<usize>>, MergeError> {
     let (at, len) = (*at, *len);
     let mut f = match std::fs::File::open(path) {
         Ok(f) => f,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => return Err(format!("tile checkpoint {t}: {e}")),
+        Err(error) => return Err(MergeError::CheckpointRead { tile: t, error }),
     };
     no_readahead(&f);
     let start = buf.len();
@@ -322,9 +340,9 @@ fn read_slot_into(
         Ok(_) => TileCheckpoint::peek(&buf[start..], r.grid().tile(t)).ok(),
         // Shorter than the slot: never written whole.
         Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => None,
-        Err(e) => {
+        Err(error) => {
             buf.truncate(start);
-            return Err(format!("tile checkpoint {t}: {e}"));
+            return Err(MergeError::CheckpointRead { tile: t, error });
         }
     };
     if holds != Some(n) {
@@ -379,7 +397,7 @@ fn load_tile(
     r: &Resolved,
     t: usize,
     n: u32,
-) -> Result<Option<TileAccum>, String> {
+) -> Result<Option<TileAccum>, MergeError> {
     let tile = r.grid().tile(t);
     let layout = r.film_layout();
     if n == 0 {
@@ -389,7 +407,7 @@ fn load_tile(
         None => Ok(None),
         Some(bytes) => TileCheckpoint::decode(&bytes, tile, &layout)
             .map(|ck| Some(ck.tile))
-            .map_err(|e| format!("tile checkpoint {t}: {e}")),
+            .map_err(|error| MergeError::CheckpointDecode { tile: t, error }),
     }
 }
 
@@ -433,13 +451,10 @@ pub(crate) fn stream_input(
         // beforehand (the slot's), so the head is written first and checked after.
         let slot = checkpoint_slot(app, job, r, t, held);
         buf.extend(merge_stream::tile_entry(Some(slot.2)));
-        read_slot_into(&slot, r, t, held, &mut buf)
-            .map_err(MergeError::Job)?
-            .ok_or_else(|| {
-                MergeError::Job(format!(
-                    "tile checkpoint {t}: no valid checkpoint holding {held} passes"
-                ))
-            })?;
+        read_slot_into(&slot, r, t, held, &mut buf)?.ok_or(MergeError::CheckpointAbsent {
+            tile: t,
+            passes: held,
+        })?;
         if !flush(&mut buf, send, CHUNK) {
             return Ok(());
         }
@@ -542,7 +557,7 @@ fn merge_failed(app: &App, job: &str, rt: &mut Runtime, pass: u32, e: MergeError
                 "a result of pass {pass} is damaged ({e}); it is rendered again"
             ))
         }
-        MergeError::Job(e) => ServiceError::Job(e),
+        e => ServiceError::job(e),
     }
 }
 
@@ -579,9 +594,9 @@ fn for_groups<F>(
     groups: &[std::ops::Range<usize>],
     images: &mut PassImages,
     f: F,
-) -> Result<(), String>
+) -> Result<(), MergeError>
 where
-    F: Fn(std::ops::Range<usize>) -> Result<LayerImages, String> + Sync,
+    F: Fn(std::ops::Range<usize>) -> Result<LayerImages, MergeError> + Sync,
 {
     use std::sync::Mutex;
     use std::sync::atomic::{AtomicUsize, Ordering};
@@ -589,7 +604,7 @@ where
     let threads = read_threads()
         .min((app.cfg.merge_memory_bytes / band_bytes(&r.grid(), &layout)).max(1) as usize);
     let next = AtomicUsize::new(0);
-    let out = Mutex::new((images, None::<String>));
+    let out = Mutex::new((images, None::<MergeError>));
     std::thread::scope(|s| {
         for _ in 0..threads.min(groups.len()) {
             s.spawn(|| {
@@ -626,7 +641,7 @@ fn images_of(
     bands: std::ops::Range<usize>,
     n: u32,
     all_layers: bool,
-) -> Result<Option<LayerImages>, String> {
+) -> Result<Option<LayerImages>, MergeError> {
     let mut held = Vec::new();
     for t in r.grid().tiles_of_bands(bands) {
         match load_tile(app, job, r, t, n)? {
@@ -741,7 +756,7 @@ fn read_back_groups(
                 }
             }
         })
-        .map_err(ServiceError::Job)?;
+        .map_err(ServiceError::job)?;
         if missing.into_inner() {
             tracing::warn!(
                 "job {} pass {pass}: merge of bands {:?} is not in its checkpoints; merged again",
@@ -943,9 +958,9 @@ pub(crate) fn write_final(app: &App, job: &JobRow, rt: &Runtime) -> ServiceResul
     let mut images = PassImages::new(passes);
     for_groups(app, r, &groups, &mut images, |bands| {
         images_of(app, &job.id, r, bands, passes, true)?
-            .ok_or_else(|| format!("a tile checkpoint holding {passes} passes is missing"))
+            .ok_or(MergeError::CheckpointMissing(passes))
     })
-    .map_err(ServiceError::Job)?;
+    .map_err(ServiceError::job)?;
     let (image, layers) = images.into_named(r);
     write_outputs(app, job, rt, &image, Exr::Images(&layers))
 }

@@ -8,6 +8,10 @@
 //! [`TaskFilm`](crate::film::TaskFilm), and ships it laid out by band
 //! ([`crate::film::format::encode_banded`]); merge tasks run [`crate::film::merge_task`].
 
+mod error;
+
+pub(crate) use error::WorkerError;
+
 use crate::bundle;
 use crate::film;
 use crate::integrator;
@@ -29,12 +33,12 @@ use tokio::sync::{OnceCell, watch};
 /// A `Read` over the chunks of a streamed download, as they arrive from the async side (for a
 /// blocking thread).
 struct ChannelReader {
-    rx: tokio::sync::mpsc::Receiver<Result<bytes::Bytes, String>>,
+    rx: tokio::sync::mpsc::Receiver<Result<bytes::Bytes, WorkerError>>,
     chunk: bytes::Bytes,
 }
 
 impl ChannelReader {
-    fn new(rx: tokio::sync::mpsc::Receiver<Result<bytes::Bytes, String>>) -> ChannelReader {
+    fn new(rx: tokio::sync::mpsc::Receiver<Result<bytes::Bytes, WorkerError>>) -> ChannelReader {
         ChannelReader {
             rx,
             chunk: bytes::Bytes::new(),
@@ -65,29 +69,28 @@ impl std::io::Read for ChannelReader {
 pub(crate) async fn run_merge(
     input: reqwest::RequestBuilder,
     resolved: &crate::job::Resolved,
-) -> Result<Vec<u8>, String> {
+) -> Result<Vec<u8>, WorkerError> {
     let mut r = input
         .timeout(Duration::from_secs(3600))
         .send()
         .await
-        .map_err(|e| format!("merge input: {e}"))?;
+        .map_err(WorkerError::MergeInput)?;
     if !r.status().is_success() {
-        return Err(format!(
-            "merge input: HTTP {} {}",
-            r.status(),
-            r.text().await.unwrap_or_default()
-        ));
+        return Err(WorkerError::MergeInputStatus {
+            status: r.status(),
+            body: r.text().await.unwrap_or_default(),
+        });
     }
     let (tx, rx) = tokio::sync::mpsc::channel(4);
     let (grid, layout) = (resolved.grid(), resolved.film_layout());
     let merging = tokio::task::spawn_blocking(move || {
-        film::merge_task::run(ChannelReader::new(rx), &grid, &layout).map_err(|e| e.to_string())
+        film::merge_task::run(ChannelReader::new(rx), &grid, &layout).map_err(WorkerError::from)
     });
     loop {
         let next = match r.chunk().await {
             Ok(Some(c)) => Ok(c),
             Ok(None) => break,
-            Err(e) => Err(format!("merge input: {e}")),
+            Err(e) => Err(WorkerError::MergeInput(e)),
         };
         let failed = next.is_err();
         // A merge that stopped (bad input) has dropped the receiver.
@@ -96,7 +99,7 @@ pub(crate) async fn run_merge(
         }
     }
     drop(tx);
-    merging.await.map_err(|e| format!("merge panicked: {e}"))?
+    merging.await.map_err(WorkerError::MergePanicked)?
 }
 
 /// How a worker runs.
@@ -116,7 +119,8 @@ pub(crate) struct WorkerConfig {
     pub cache: PathBuf,
 }
 
-type SceneCell = Arc<OnceCell<Result<Arc<Scene>, String>>>;
+/// A scene loaded once for every task of its key, or why it failed (shared by those tasks).
+type SceneCell = Arc<OnceCell<Result<Arc<Scene>, Arc<WorkerError>>>>;
 
 struct Worker {
     cfg: WorkerConfig,
@@ -200,7 +204,7 @@ impl Worker {
     }
 
     /// The scene of a bundle at the job's resolution, loaded once.
-    async fn scene(&self, job: &LeasedJob) -> Result<Arc<Scene>, String> {
+    async fn scene(&self, job: &LeasedJob) -> Result<Arc<Scene>, Arc<WorkerError>> {
         // The same bundle with other parameter values is another scene.
         let defines = serde_json::to_string(&job.resolved.defines).unwrap_or_default();
         let key = (
@@ -209,55 +213,57 @@ impl Worker {
             job.resolved.height,
         );
         let cell = lock(&self.scenes).entry(key).or_default().clone();
-        cell.get_or_init(|| async {
-            let dir = self.cfg.cache.join(&job.scene_id);
-            if !dir.join(".complete").exists() {
-                let r = self
-                    .req(
-                        reqwest::Method::GET,
-                        &format!("/v1/worker/scenes/{}", job.scene_id),
-                    )
-                    .send()
-                    .await
-                    .map_err(|e| format!("downloading scene {}: {e}", job.scene_id))?;
-                if !r.status().is_success() {
-                    return Err(format!(
-                        "downloading scene {}: HTTP {}",
-                        job.scene_id,
-                        r.status()
-                    ));
-                }
-                let bytes = r
-                    .bytes()
-                    .await
-                    .map_err(|e| format!("downloading scene {}: {e}", job.scene_id))?;
-                let d = dir.clone();
-                tokio::task::spawn_blocking(move || {
-                    let _ = std::fs::remove_dir_all(&d);
-                    bundle::unpack(&bytes[..], &d, u64::MAX).map_err(|e| e.to_string())?;
-                    std::fs::write(d.join(".complete"), b"").map_err(|e| e.to_string())
-                })
-                .await
-                .map_err(|e| e.to_string())??;
-            }
-            let main = dir.join(&job.scene_main);
-            let (w, h) = (job.resolved.width, job.resolved.height);
-            let params = job.resolved.defines.clone();
-            tokio::task::spawn_blocking(move || {
-                let mut scene = Scene::load_with(&main, &params).map_err(|e| e.to_string())?;
-                if (scene.camera.width, scene.camera.height) != (w, h) {
-                    scene.camera = scene
-                        .camera
-                        .with_resolution(w, h)
-                        .map_err(|e| e.to_string())?;
-                }
-                Ok(Arc::new(scene))
-            })
+        cell.get_or_init(|| async { self.load_scene(job).await.map_err(Arc::new) })
             .await
-            .map_err(|e| e.to_string())?
+            .clone()
+    }
+
+    /// Downloads and unpacks the bundle of `job` (unless cached) and loads its scene at the
+    /// job's resolution.
+    async fn load_scene(&self, job: &LeasedJob) -> Result<Arc<Scene>, WorkerError> {
+        let dir = self.cfg.cache.join(&job.scene_id);
+        if !dir.join(".complete").exists() {
+            let r = self
+                .req(
+                    reqwest::Method::GET,
+                    &format!("/v1/worker/scenes/{}", job.scene_id),
+                )
+                .send()
+                .await
+                .map_err(|error| WorkerError::Download {
+                    scene: job.scene_id.clone(),
+                    error,
+                })?;
+            if !r.status().is_success() {
+                return Err(WorkerError::DownloadStatus {
+                    scene: job.scene_id.clone(),
+                    status: r.status(),
+                });
+            }
+            let bytes = r.bytes().await.map_err(|error| WorkerError::Download {
+                scene: job.scene_id.clone(),
+                error,
+            })?;
+            let d = dir.clone();
+            tokio::task::spawn_blocking(move || -> Result<(), WorkerError> {
+                let _ = std::fs::remove_dir_all(&d);
+                bundle::unpack(&bytes[..], &d, u64::MAX)?;
+                std::fs::write(d.join(".complete"), b"")?;
+                Ok(())
+            })
+            .await??;
+        }
+        let main = dir.join(&job.scene_main);
+        let (w, h) = (job.resolved.width, job.resolved.height);
+        let params = job.resolved.defines.clone();
+        tokio::task::spawn_blocking(move || -> Result<Arc<Scene>, WorkerError> {
+            let mut scene = Scene::load_with(&main, &params)?;
+            if (scene.camera.width, scene.camera.height) != (w, h) {
+                scene.camera = scene.camera.with_resolution(w, h)?;
+            }
+            Ok(Arc::new(scene))
         })
-        .await
-        .clone()
+        .await?
     }
 
     async fn lease(&self) -> Result<Option<Lease>, reqwest::Error> {
@@ -369,7 +375,7 @@ impl Worker {
     }
 
     /// Runs merge task `lease` (`run_merge`) with this worker's credentials.
-    async fn merge(&self, lease: &Lease) -> Result<Vec<u8>, String> {
+    async fn merge(&self, lease: &Lease) -> Result<Vec<u8>, WorkerError> {
         let t = &lease.task;
         let input = self
             .req(
@@ -391,7 +397,7 @@ impl Worker {
                 Ok(bytes) => self.upload(t, bytes).await,
                 Err(e) => {
                     tracing::error!("merge task {}: {e}", t.id);
-                    self.fail(t, &e).await;
+                    self.fail(t, &e.to_string()).await;
                 }
             }
             lock(&self.held).remove(&t.id);
@@ -401,7 +407,7 @@ impl Worker {
         match self.scene(&lease.job).await {
             Err(e) => {
                 tracing::error!("task {}: {e}", t.id);
-                self.fail(t, &e).await;
+                self.fail(t, &e.to_string()).await;
             }
             Ok(scene) => {
                 let settings = lease.job.resolved.render.clone();

@@ -50,7 +50,7 @@ pub(crate) async fn upload_reference(
 fn check_reference(path: &Path, max_resolution: usize) -> ApiResult<(usize, usize)> {
     let max_samples = 4 * (max_resolution as u64) * (max_resolution as u64);
     if let Err(e) = exr_header::check(path, max_resolution, max_samples) {
-        let status = if e.starts_with("not a readable EXR") {
+        let status = if matches!(e, exr_header::ExrHeaderError::Unreadable(_)) {
             StatusCode::BAD_REQUEST
         } else {
             StatusCode::UNPROCESSABLE_ENTITY

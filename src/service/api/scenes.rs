@@ -143,7 +143,7 @@ pub(crate) fn store_library(app: &App, name: &str) -> ApiResult<(SceneMeta, Scen
     let path = library_file(app, name)?;
     let lib = path.parent().unwrap_or(&path);
     let (tar, main) = bundle::pack(&path, &Default::default())
-        .map_err(|e| bad("scene.library", hide_folder(&e, lib)))?;
+        .map_err(|e| bad("scene.library", hide_folder(&e.to_string(), lib)))?;
     let id = new_bundle(app, |f| f.write_all(&tar))?;
     store_bundle(app, &id, Some(&main), "scene.library")
 }
@@ -247,7 +247,7 @@ fn store_bundle(
                 ApiError::disk(&format!("cannot unpack '{path}' of the bundle"), source)
             }
         })?;
-        let main = bundle::choose_main(&files, main).map_err(|e| bad(field, e))?;
+        let main = bundle::choose_main(&files, main).map_err(|e| bad(field, e.to_string()))?;
         let scene = Scene::load(&files_dir.join(&main))
             // Name the file inside the bundle, not the server's path.
             .map_err(|e| bad(field, hide_folder(&e.to_string(), &files_dir)))?;
