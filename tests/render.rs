@@ -24,25 +24,6 @@ fn render(scene: &Scene, settings: &RenderSettings, threads: usize) -> PixelSums
         .clone()
 }
 
-/// Mean and standard error of the mean over a pixel region (pixels are independent estimates).
-fn region(sums: &PixelSums, x0: usize, y0: usize, x1: usize, y1: usize, c: usize) -> (f64, f64) {
-    let mut m = 0.0;
-    let mut v = 0.0;
-    let mut n = 0.0;
-    for y in y0..y1 {
-        for x in x0..x1 {
-            let i = y * sums.width + x;
-            let k = sums.count[i] as f64;
-            let mean = sums.sum[i][c] / k;
-            let var = ((sums.sum_sq[i][c] / k - mean * mean) * k / (k - 1.0)).max(0.0) / k;
-            m += mean;
-            v += var;
-            n += 1.0;
-        }
-    }
-    (m / n, (v / (n * n)).sqrt())
-}
-
 #[test]
 fn furnace_every_pixel_matches_the_analytic_sum() {
     // Closed sphere, albedo 0.5, emission 1, seen from inside: L_D = sum_{d=0}^{D} 0.5^d.
@@ -64,7 +45,7 @@ fn furnace_every_pixel_matches_the_analytic_sum() {
         let mut noisy_pixels = 0;
         for y in 0..sums.height {
             for x in 0..sums.width {
-                let (m, se) = region(&sums, x, y, x + 1, y + 1, 1);
+                let (m, se) = common::sums_region(&sums, x, y, x + 1, y + 1, 1);
                 // Depths 1 and 2 are zero-variance estimators here (both strategies are exact for
                 // a diffuse sphere seen from inside): allow f32 rounding, 1e-5 relative.
                 let tol = 4.0 * se + 1e-5 * expected;
@@ -135,9 +116,9 @@ fn light_sampling_equals_bsdf_sampling_for_direct_light() {
             for rx in 0..4 {
                 let (x0, y0, x1, y1) = (rx * w / 4, ry * h / 4, (rx + 1) * w / 4, (ry + 1) * h / 4);
                 for c in 0..3 {
-                    let (a, sa) = region(&by_light, x0, y0, x1, y1, c);
-                    let (b, sb) = region(&by_bsdf, x0, y0, x1, y1, c);
-                    let (m, sm) = region(&by_mis, x0, y0, x1, y1, c);
+                    let (a, sa) = common::sums_region(&by_light, x0, y0, x1, y1, c);
+                    let (b, sb) = common::sums_region(&by_bsdf, x0, y0, x1, y1, c);
+                    let (m, sm) = common::sums_region(&by_mis, x0, y0, x1, y1, c);
                     let tol = 4.0 * (sa * sa + sb * sb).sqrt();
                     assert!(
                         (a - b).abs() <= tol,

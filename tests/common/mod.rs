@@ -142,3 +142,30 @@ pub fn assert_agree(what: &str, a: &[Image], b: &[Image], g: usize) -> f64 {
     eprintln!("{what}: worst deviation {worst:.2} standard errors");
     worst
 }
+
+/// Mean and standard error of the mean over the pixels [x0, x1) x [y0, y1) of accumulated sums
+/// (pixels are independent estimates).
+pub fn sums_region(
+    sums: &omis::film::PixelSums,
+    x0: usize,
+    y0: usize,
+    x1: usize,
+    y1: usize,
+    c: usize,
+) -> (f64, f64) {
+    let mut m = 0.0;
+    let mut v = 0.0;
+    let mut n = 0.0;
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let i = y * sums.width + x;
+            let k = sums.count[i] as f64;
+            let mean = sums.sum[i][c] / k;
+            let var = ((sums.sum_sq[i][c] / k - mean * mean) * k / (k - 1.0)).max(0.0) / k;
+            m += mean;
+            v += var;
+            n += 1.0;
+        }
+    }
+    (m / n, (v / (n * n)).sqrt())
+}

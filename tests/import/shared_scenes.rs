@@ -25,25 +25,6 @@ fn render(scene: &Scene, spp: u32, max_depth: u32, seed: u64) -> PixelSums {
         .clone()
 }
 
-/// Mean and standard error of the mean over a pixel region (pixels are independent estimates).
-fn region(sums: &PixelSums, x0: usize, y0: usize, x1: usize, y1: usize, c: usize) -> (f64, f64) {
-    let mut m = 0.0;
-    let mut v = 0.0;
-    let mut n = 0.0;
-    for y in y0..y1 {
-        for x in x0..x1 {
-            let i = y * sums.width + x;
-            let k = sums.count[i] as f64;
-            let mean = sums.sum[i][c] / k;
-            let var = ((sums.sum_sq[i][c] / k - mean * mean) * k / (k - 1.0)).max(0.0) / k;
-            m += mean;
-            v += var;
-            n += 1.0;
-        }
-    }
-    (m / n, (v / (n * n)).sqrt())
-}
-
 /// Compares two renders region by region, every channel, within 4 combined standard errors.
 /// Returns the number of regions with signal.
 fn compare_regions(
@@ -56,8 +37,8 @@ fn compare_regions(
     let mut worst: f64 = 0.0;
     for &(x0, y0, x1, y1) in regions {
         for c in 0..3 {
-            let (ma, sa) = region(a, x0, y0, x1, y1, c);
-            let (mb, sb) = region(b, x0, y0, x1, y1, c);
+            let (ma, sa) = common::sums_region(a, x0, y0, x1, y1, c);
+            let (mb, sb) = common::sums_region(b, x0, y0, x1, y1, c);
             let se = (sa * sa + sb * sb).sqrt();
             // A tiny relative allowance covers f32 rounding where both are exact.
             let tol = 4.0 * se + 1e-6 * ma.abs().max(mb.abs());
@@ -167,10 +148,10 @@ fn cornell_box_pbrt_matches_our_json_scene() {
         "the image is mostly dark ({lit} lit region-channels)"
     );
     // The red wall is on the left, the green on the right (as in Tungsten's reference).
-    let (red_left, _) = region(&a, 2, 24, 8, 40, 0);
-    let (green_left, _) = region(&a, 2, 24, 8, 40, 1);
-    let (red_right, _) = region(&a, 56, 24, 62, 40, 0);
-    let (green_right, _) = region(&a, 56, 24, 62, 40, 1);
+    let (red_left, _) = common::sums_region(&a, 2, 24, 8, 40, 0);
+    let (green_left, _) = common::sums_region(&a, 2, 24, 8, 40, 1);
+    let (red_right, _) = common::sums_region(&a, 56, 24, 62, 40, 0);
+    let (green_right, _) = common::sums_region(&a, 56, 24, 62, 40, 1);
     assert!(red_left > 2.0 * green_left && green_right > 2.0 * red_right);
 }
 
@@ -229,7 +210,7 @@ fn veach_mis_pbrt_matches_mitsuba_where_the_models_agree() {
     let lit = compare_regions("veach-mis pbrt vs mitsuba (diffuse)", &a, &b, &regions);
     assert!(lit >= 50, "too few lit regions ({lit})");
     // And the plates do differ: Mitsuba's are darker (specularReflectance 0.3).
-    let plates = |s: &PixelSums| region(s, 0, 12, w, 24, 1).0;
+    let plates = |s: &PixelSums| common::sums_region(s, 0, 12, w, 24, 1).0;
     eprintln!("plate band: pbrt {} mitsuba {}", plates(&a), plates(&b));
     assert!(plates(&b) < plates(&a));
 }
