@@ -344,7 +344,7 @@ pub(crate) fn luminance(c: Rgb) -> f64 {
 }
 
 /// The heuristic of the weights (optimal MIS is not defined for merging: balance).
-pub(crate) fn heuristic(settings: &RenderSettings) -> MisKind {
+fn heuristic(settings: &RenderSettings) -> MisKind {
     if settings.mis == MisKind::Power {
         MisKind::Power
     } else {
