@@ -276,6 +276,27 @@ fn bad_input_exits_nonzero_with_one_line() {
         ]),
         "4x4",
     );
+    // An output that can never be written is refused before rendering, in both modes: with
+    // 4096 spp at 1024x1024 a render that started first would run for minutes.
+    for mode in [&[][..], &["--in-process"][..]] {
+        let started = std::time::Instant::now();
+        let mut args = vec![
+            "render",
+            "scenes/furnace.json",
+            "--spp",
+            "4096",
+            "--resolution",
+            "1024x1024",
+            "--out",
+            "no/such/folder/out.exr",
+        ];
+        args.extend_from_slice(mode);
+        assert_one_line_error(&omis(&args), "no/such/folder");
+        assert!(
+            started.elapsed().as_secs() < 20,
+            "refused only after rendering"
+        );
+    }
 }
 
 #[test]

@@ -5,7 +5,7 @@
 //! an integer multiple of it).
 
 use crate::accel::{Accel, SphereGeom};
-use crate::film::image::{Image, exr_io, metrics, png};
+use crate::film::image::{Image, error_map, exr_io, metrics, png};
 use crate::geometry::warp::uniform_sphere;
 use crate::geometry::{Ray, Vec2, Vec3};
 use crate::integrator::{IntegratorKind, RenderSettings};
@@ -352,8 +352,9 @@ fn compare_reference(a: &BenchArgs, img: &Image) -> Result<Option<RefStats>> {
     }
     let e = metrics::compare(img, &reference, 0.01).map_err(anyhow::Error::msg)?;
     if let Some(p) = &a.error_map {
-        let map = metrics::error_map(img, &reference, 0.01, 1.0).map_err(anyhow::Error::msg)?;
-        png::write_rgb8(p, img.width, img.height, &map).map_err(anyhow::Error::msg)?;
+        let pic =
+            error_map::error_picture(img, &reference, 0.01, None).map_err(anyhow::Error::msg)?;
+        png::write_rgb8(p, pic.width, pic.height, &pic.rgb).map_err(anyhow::Error::msg)?;
     }
     Ok(Some(RefStats {
         relmse: e.relmse,

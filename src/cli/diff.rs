@@ -1,7 +1,7 @@
 //! `omis diff`: relMSE (all pixels, and without the 0.1% worst) and MSE of an image against a
 //! reference, the signed error map, and with `--layers` every EXR layer the two files share.
 
-use crate::film::image::{exr_io, metrics, png};
+use crate::film::image::{error_map, exr_io, metrics, png};
 use crate::service::exr_header;
 use anyhow::{Result, bail};
 use clap::Args;
@@ -17,9 +17,10 @@ pub struct DiffArgs {
     /// Write the red (brighter) / green (darker) relative error picture.
     #[arg(long)]
     pub error_map: Option<PathBuf>,
-    /// Relative error shown at full intensity in the error map.
-    #[arg(long, default_value_t = 1.0)]
-    pub error_scale: f64,
+    /// Relative error shown at full intensity in the error map (default: fitted to the image's
+    /// error, the 95th percentile rounded up; the legend under the map gives it).
+    #[arg(long)]
+    pub error_scale: Option<f64>,
     /// Compare every layer the two files share (beauty, variance, strategies, depths), and
     /// fail unless each is bit-identical when `--eps 0`.
     #[arg(long)]
@@ -40,9 +41,14 @@ pub fn run(a: DiffArgs) -> Result<()> {
     let reference = exr_io::read_exr(&a.reference).map_err(anyhow::Error::msg)?;
     let s = metrics::compare(&img, &reference, a.eps).map_err(anyhow::Error::msg)?;
     if let Some(p) = &a.error_map {
-        let map = metrics::error_map(&img, &reference, a.eps, a.error_scale)
+        if let Some(s) = a.error_scale
+            && !(s > 0.0 && s.is_finite())
+        {
+            bail!("--error-scale must be a finite number > 0");
+        }
+        let pic = error_map::error_picture(&img, &reference, a.eps, a.error_scale)
             .map_err(anyhow::Error::msg)?;
-        png::write_rgb8(p, img.width, img.height, &map).map_err(anyhow::Error::msg)?;
+        png::write_rgb8(p, pic.width, pic.height, &pic.rgb).map_err(anyhow::Error::msg)?;
     }
     if a.json {
         println!("{}", serde_json::to_string(&s)?);

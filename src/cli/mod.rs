@@ -11,7 +11,9 @@ mod compare;
 mod diff;
 mod healthcheck;
 mod job_args;
+mod out_path;
 mod procstat;
+mod progress;
 mod render;
 mod service_cmds;
 

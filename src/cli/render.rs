@@ -5,6 +5,7 @@
 
 use super::client::Client;
 use super::job_args::JobArgs;
+use super::progress::RenderProgress;
 use super::service_cmds::{init_logging, runtime, submit_job, wait_job};
 use crate::film::RayStats;
 use crate::film::image::{Image, exr_io, metrics, png};
@@ -16,7 +17,6 @@ use crate::service;
 use crate::service::exr_header;
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
 #[derive(Args)]
@@ -113,6 +113,10 @@ pub fn run(a: RenderArgs) -> Result<()> {
             .unwrap_or_else(|| "render".into());
         PathBuf::from(format!("{stem}.exr"))
     });
+    super::out_path::check_writable(&out, "--out")?;
+    if let Some(p) = &a.png {
+        super::out_path::check_writable(p, "--png")?;
+    }
     let done = if a.in_process {
         in_process(&a, &scene, &resolved, &out)?
     } else {
@@ -126,16 +130,15 @@ pub fn run(a: RenderArgs) -> Result<()> {
 fn in_process(a: &RenderArgs, scene: &Scene, r: &Resolved, out: &Path) -> Result<Done> {
     let pool = super::thread_pool(a.threads)?;
     let tiles = r.tiles().len() as u64;
-    let bar = ProgressBar::new(r.total_passes().map_or(0, |p| p as u64 * tiles));
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} tiles {eta}",
-        )
-        .expect("valid template"),
+    let bar = RenderProgress::new(
+        r.total_passes().map(|p| p as u64 * tiles),
+        r.time_budget_s,
+        0.0,
+        false,
     );
-    let output = pool.install(|| r.render_in_process(scene, &|n| bar.inc(n as u64)));
+    let output = pool.install(|| r.render_in_process(scene, &|n| bar.tiles_done(n as u64)));
     let spp = output.spp;
-    bar.finish_and_clear();
+    bar.finish();
     let scene_name = a
         .scene
         .file_name()

@@ -2,13 +2,13 @@
 
 use super::client::{self, Client};
 use super::job_args::JobArgs;
+use super::progress::RenderProgress;
 use crate::job::Limits;
 use crate::protocol::{JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource};
 use crate::service;
 use crate::worker;
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
@@ -44,6 +44,8 @@ pub(crate) fn init_logging() {
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        // Colour codes only where a terminal shows them, not in redirected logs.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .try_init();
 }
 
@@ -322,40 +324,28 @@ pub(crate) async fn submit_job(
 pub(crate) async fn wait_job(c: &Client, status: &JobStatus, quiet: bool) -> Result<JobState> {
     let id = &status.id;
     let tiles = status.tiles_per_pass as u64;
-    let total = status.passes_total.map(|p| p as u64 * tiles);
-    let bar = if quiet {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(total.unwrap_or(0))
-    };
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} tiles {msg} {eta}",
-        )
-        .expect("valid template"),
+    let bar = RenderProgress::new(
+        status.passes_total.map(|p| p as u64 * tiles),
+        status.time_budget_s,
+        status.elapsed_s,
+        quiet,
     );
     let state = c
         .follow(id, |e| match e {
-            JobEvent::TileDone(_) => bar.inc(1),
-            JobEvent::PassDone(p) => {
-                let spp = p.spp;
-                match p.relmse {
-                    Some(r) => bar.set_message(format!("{spp} spp, relMSE {r:.3e}")),
-                    None => bar.set_message(format!("{spp} spp")),
-                }
-                if total.is_none() {
-                    bar.set_length(bar.position());
-                }
-            }
+            JobEvent::TileDone(_) => bar.tiles_done(1),
+            JobEvent::PassDone(p) => bar.pass_done(p.spp, p.relmse),
             _ => {}
         })
         .await?;
-    bar.finish_and_clear();
+    bar.finish();
     Ok(state)
 }
 
 pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
     runtime()?.block_on(async move {
+        if let Some(out) = &a.out {
+            super::out_path::check_writable(out, "--out")?;
+        }
         let c = a.server.client()?;
         let scene = client::scene_source(&c, &a.scene, &a.job.settings()?.defines).await?;
         let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), a.name.as_deref()).await?;
@@ -431,6 +421,7 @@ pub(crate) fn download(a: DownloadArgs) -> Result<()> {
         );
     }
     runtime()?.block_on(async move {
+        super::out_path::check_writable(&a.out, "--out")?;
         let n = a.server.client()?.download(&a.id, &a.file, &a.out).await?;
         eprintln!("{}: {n} bytes", a.out.display());
         Ok(())

@@ -7,7 +7,7 @@ use super::runtime::Runtime;
 use super::store::{JobRow, write_atomic};
 use crate::film::Image;
 use crate::film::format::merge_stream;
-use crate::film::image::{exr_io, metrics, png};
+use crate::film::image::{error_map, exr_io, png};
 
 /// What a job's outputs write of its image.exr.
 pub(crate) enum Exr<'a> {
@@ -35,8 +35,9 @@ pub(crate) fn write_outputs(
         .map_err(ServiceError::job)?;
     write_atomic(&app.paths.output(&job.id, "preview.png"), &preview)?;
     if let Some(r) = &rt.reference {
-        let map = metrics::error_map(image, r, rt.resolved.eps, 1.0).map_err(ServiceError::job)?;
-        let bytes = png::encode_rgb8(image.width, image.height, &map).map_err(ServiceError::job)?;
+        let pic =
+            error_map::error_picture(image, r, rt.resolved.eps, None).map_err(ServiceError::job)?;
+        let bytes = png::encode_rgb8(pic.width, pic.height, &pic.rgb).map_err(ServiceError::job)?;
         write_atomic(&app.paths.output(&job.id, "error.png"), &bytes)?;
     }
     let r = &rt.resolved;

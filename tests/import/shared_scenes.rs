@@ -355,11 +355,12 @@ fn staircase_relmse_against_tungsten() {
     .map(|n| tmp.join(n));
     omis::film::image::png::write_png(&paths[0], &img, 1.0).expect("write render");
     omis::film::image::png::write_png(&paths[1], &reference, 1.0).expect("write reference");
-    let map =
-        omis::film::image::metrics::error_map(&img, &reference, 0.01, 1.0).expect("error map");
+    let map = omis::film::image::error_map::relative_error_map(&img, &reference, 0.01, 1.0)
+        .expect("error map");
     omis::film::image::png::write_rgb8(&paths[2], img.width, img.height, &map).expect("write map");
     // Block map at a finer scale (saturating at 25 %), shown at full size.
-    let bmap = omis::film::image::metrics::error_map(&bi, &br, 0.01, 0.25).expect("error map");
+    let bmap =
+        omis::film::image::error_map::relative_error_map(&bi, &br, 0.01, 0.25).expect("error map");
     let up = upscale(&bmap, bi.width, bi.height, 8);
     omis::film::image::png::write_rgb8(&paths[3], bi.width * 8, bi.height * 8, &up)
         .expect("write map");

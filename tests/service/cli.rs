@@ -96,7 +96,29 @@ fn cli_clients_submit_wait_download_status_and_cancel() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert_eq!(&std::fs::read(&png).expect("png")[..4], b"\x89PNG");
+    // The error map is scaled to this render's error (a few percent per pixel at 2 passes, which
+    // a fixed scale of 100% showed as black) and carries its legend below the image.
+    let map = image::open(&png).expect("the error map decodes").to_rgb8();
+    assert_eq!(map.width() as usize, image.width);
+    assert!(
+        map.height() as usize > image.height,
+        "a legend under the map"
+    );
+    let mean_of = |px: &mut dyn Iterator<Item = u8>| {
+        let v: Vec<f64> = px.map(f64::from).collect();
+        v.iter().sum::<f64>() / v.len() as f64
+    };
+    let shown = mean_of(&mut (0..image.height as u32).flat_map(|y| {
+        let map = &map;
+        (0..map.width()).map(move |x| *map.get_pixel(x, y).0.iter().max().unwrap_or(&0))
+    }));
+    let fixed = omis::film::image::error_map::relative_error_map(&image, &reference, eps, 1.0)
+        .expect("same size");
+    let at_full_scale = mean_of(&mut fixed.chunks(3).map(|p| p[0].max(p[1])));
+    assert!(
+        shown > 40.0 && shown > 3.0 * at_full_scale,
+        "mean intensity {shown:.1} scaled, {at_full_scale:.1} at a scale of 100%"
+    );
     // Cancelling an ended job is a one-line error naming the state.
     let out = omis(&["cancel", &id]);
     assert!(!out.status.success());

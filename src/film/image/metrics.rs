@@ -20,7 +20,7 @@ pub struct SizeMismatch {
 
 impl SizeMismatch {
     /// Ok when `img` and `reference` have the same size.
-    fn check(img: &Image, reference: &Image) -> Result<(), SizeMismatch> {
+    pub(crate) fn check(img: &Image, reference: &Image) -> Result<(), SizeMismatch> {
         if img.width != reference.width || img.height != reference.height {
             return Err(SizeMismatch {
                 image: (img.width, img.height),
@@ -115,40 +115,6 @@ pub fn compare(img: &Image, reference: &Image, eps: f64) -> Result<ErrorStats, S
     })
 }
 
-/// Signed relative error picture (as in Cailleau et al.'s figures): red where the image is brighter than the
-/// reference, green where it is darker; intensity |I - R| / (R + sqrt(eps)) on luminance,
-/// saturating at `scale`.
-pub fn error_map(
-    img: &Image,
-    reference: &Image,
-    eps: f64,
-    scale: f64,
-) -> Result<Vec<u8>, SizeMismatch> {
-    SizeMismatch::check(img, reference)?;
-    let mut out = Vec::with_capacity(img.pixels.len() * 3);
-    for (a, r) in img.pixels.iter().zip(&reference.pixels) {
-        let la = crate::geometry::luminance(*a) as f64;
-        let lr = crate::geometry::luminance(*r) as f64;
-        let e = if la == lr {
-            0.0
-        } else {
-            (la - lr) / (lr.abs() + eps.sqrt())
-        };
-        let m = if e.is_finite() {
-            (e.abs() / scale).min(1.0)
-        } else {
-            1.0
-        };
-        let v = (m * 255.0 + 0.5) as u8;
-        if e >= 0.0 {
-            out.extend_from_slice(&[v, 0, 0]);
-        } else {
-            out.extend_from_slice(&[0, v, 0]);
-        }
-    }
-    Ok(out)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -165,7 +131,5 @@ mod tests {
         // One pixel off by 1 relative to 1 in all three channels: 3 / 6.
         assert!((s.relmse - 0.5).abs() < 1e-12);
         assert!((s.mse - 0.5).abs() < 1e-12);
-        let map = error_map(&i, &r, 0.01, 1.0).unwrap();
-        assert!(map[0] > 0 && map[1] == 0);
     }
 }

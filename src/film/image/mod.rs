@@ -1,7 +1,9 @@
 //! Images and what leaves a renderer as one: `Image` (linear RGB f32), EXR files written and
 //! read (`exr_io`), 8-bit sRGB PNG previews (`png`), error metrics against a reference
-//! (`metrics`) and SVG charts (`plot`). It knows nothing of how an image was accumulated.
+//! (`metrics`), the error picture with its legend (`error_map`) and SVG charts (`plot`). It
+//! knows nothing of how an image was accumulated.
 
+pub mod error_map;
 pub mod exr_io;
 pub mod metrics;
 pub mod plot;

@@ -427,7 +427,8 @@ async function jobView(signal, id) {
       h('figure', { class: 'panel' }, stage, caption),
       h('div', { class: 'side' },
         h('figure', { class: 'panel' }, h('h2', {}, 'relMSE against time'), chartBox),
-        h('figure', { class: 'panel', id: 'error-pane' }, h('h2', {}, 'Error map'), errImg),
+        h('figure', { class: 'panel', id: 'error-pane' }, h('h2', {}, 'Error map'), errImg,
+          h('figcaption', { class: 'hint' }, 'Red: brighter than the reference; green: darker. The bar under the map gives the relative error shown at full colour, fitted to this image.')),
         h('details', { class: 'panel' }, h('summary', {}, 'Events'), events))));
   stage.style.aspectRatio = `${st.width} / ${st.height}`;
 
