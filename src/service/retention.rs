@@ -73,6 +73,17 @@ pub(crate) fn sweep(app: &App) -> Vec<String> {
         }
     }
     if let Some(budget) = budget {
+        // The spare result logs first: a cache of files for the next job's logs, no one's data.
+        let used = folder_bytes(&app.paths.root);
+        let spares = app.paths.spare_logs();
+        if used > budget && spares.is_dir() {
+            tracing::info!(
+                "retention: the data folder holds {used} bytes, over the budget of {budget} \
+                 (--store-budget): removing the spare result logs ({} bytes)",
+                folder_bytes(&spares)
+            );
+            let _ = std::fs::remove_dir_all(&spares);
+        }
         for job in &left {
             let used = folder_bytes(&app.paths.root);
             if used <= budget {
