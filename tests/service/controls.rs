@@ -416,3 +416,41 @@ fn the_job_list_pages_and_filters_and_names_a_bad_query_field() {
         assert_eq!(v["field"], field, "{q}: {v}");
     }
 }
+
+#[test]
+fn time_paused_does_not_count_against_a_time_budget() {
+    let dir = folder("pause-budget");
+    let (_server, url) = serve(&dir.join("data"), &[]);
+    let _w = worker(&url, "w", &[]);
+    let c = http();
+    let v = submit_with(
+        &c,
+        &url,
+        json!({ "resolution": [40, 32], "time_budget_s": 2.0, "pass_size": 4, "max_pass_size": 4 }),
+        json!({}),
+    );
+    let id = v["id"].as_str().expect("id").to_string();
+    wait_state(&c, &url, &id, |s| s["state"] == "running");
+    assert_eq!(control(&c, &url, &id, "pause").0, 200);
+    // Paused for longer than the whole budget.
+    std::thread::sleep(Duration::from_millis(3000));
+    let (s, st) = control(&c, &url, &id, "resume");
+    assert_eq!(s, 200, "{st}");
+    let resumed = st["spp_done"].as_u64().expect("spp");
+    let resumed_at = Instant::now();
+    let st = wait_state(&c, &url, &id, |s| s["state"] == "done");
+    // Had the pause counted, the budget would be spent and the job would end at once; it
+    // renders on for the rest of its budget instead.
+    assert!(
+        resumed_at.elapsed() >= Duration::from_millis(1000),
+        "ended {:?} after the resume: {st}",
+        resumed_at.elapsed()
+    );
+    assert!(st["spp_done"].as_u64().expect("spp") > resumed, "{st}");
+    let (elapsed, paused) = (
+        st["elapsed_s"].as_f64().expect("elapsed"),
+        st["paused_s"].as_f64().expect("paused"),
+    );
+    assert!(paused >= 2.9, "{st}");
+    assert!(elapsed < 3.5, "the time paused counted as rendering: {st}");
+}
