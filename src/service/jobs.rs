@@ -404,18 +404,16 @@ pub(crate) fn set_priority(app: &App, id: &str, priority: i32) -> ServiceResult<
 }
 
 /// Deletes a job that has ended: its rows (`JobStore::delete_job`), then its files
-/// (`delete_files`). Err(state) when it has not ended; Ok(None) when there is no such job.
-pub(crate) fn delete(app: &App, id: &str) -> ServiceResult<Result<Option<JobRow>, JobState>> {
-    let deleted = app.db().delete_job(id)?;
-    match deleted {
-        store::Deleted::Removed(row) => {
-            delete_files(app, &row);
-            tracing::info!("job {id}: deleted ({})", row.state);
-            Ok(Ok(Some(*row)))
-        }
-        store::Deleted::NotFinal(state) => Ok(Err(state)),
-        store::Deleted::Missing => Ok(Ok(None)),
+/// (`delete_files`); not one that is active, nor one whose image another job uses as its
+/// reference (the answer says which).
+pub(crate) fn delete(app: &App, id: &str) -> ServiceResult<store::Deleted> {
+    let image = app.paths.output(id, "image.exr").display().to_string();
+    let deleted = app.db().delete_job(id, &image)?;
+    if let store::Deleted::Removed(row) = &deleted {
+        delete_files(app, row);
+        tracing::info!("job {id}: deleted ({})", row.state);
     }
+    Ok(deleted)
 }
 
 /// Removes every file a deleted job stored: its folder (result logs, tile checkpoints,

@@ -39,7 +39,7 @@ pub(crate) fn sweep(app: &App) -> Vec<String> {
     let now = store::now();
     let mut deleted = Vec::new();
     let mut delete = |job: &store::JobRow, why: &str| match jobs::delete(app, &job.id) {
-        Ok(Ok(Some(_))) => {
+        Ok(store::Deleted::Removed(_)) => {
             tracing::info!(
                 "retention: deleted job {} ({}{}, ended {:.0} s ago): {why}",
                 job.id,

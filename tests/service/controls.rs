@@ -288,11 +288,21 @@ fn deleting_a_job_frees_the_disk_it_used_and_only_an_ended_job_is_deleted() {
     wait_state(&c, &url, &id, |s| s["state"] == "done");
     let done = job_bytes(&data);
     assert!(done > before, "the job stored nothing? {before} -> {done}");
-    let r = c
-        .delete(format!("{url}/v1/jobs/{id}"))
-        .send()
-        .expect("DELETE");
-    assert_eq!(r.status().as_u16(), 204);
+    // A job whose reference is its image keeps it until that job is deleted.
+    let user = submit_with(&c, &url, settings(4), json!({ "reference": { "job": id } }));
+    let user = user["id"].as_str().expect("id").to_string();
+    wait_state(&c, &url, &user, |s| s["state"] == "done");
+    let delete = |job: &str| {
+        c.delete(format!("{url}/v1/jobs/{job}"))
+            .send()
+            .expect("DELETE")
+    };
+    let r = delete(&id);
+    assert_eq!(r.status().as_u16(), 409);
+    let v: Value = r.json().expect("error");
+    assert!(v["error"].as_str().unwrap_or("").contains(&user), "{v}");
+    assert_eq!(delete(&user).status().as_u16(), 204);
+    assert_eq!(delete(&id).status().as_u16(), 204);
     let after = job_bytes(&data);
     assert_eq!(
         after, before,

@@ -219,6 +219,15 @@ fn find_job(app: &App, id: &str) -> ApiResult<JobRow> {
         .ok_or_else(|| ApiError::not_found("job", id))
 }
 
+/// A whole number of decimal digits; one past `u64::MAX` is `u64::MAX` (more than any limit or
+/// cursor, not an error).
+fn whole_number(s: &str) -> Option<u64> {
+    if s.is_empty() || !s.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    Some(s.parse::<u64>().unwrap_or(u64::MAX))
+}
+
 /// The store's query for GET /v1/jobs's `q`: 400 naming the query field that is wrong.
 fn job_query(q: &JobListQuery) -> ApiResult<store::JobQuery> {
     let states = match q.state.as_deref() {
@@ -242,17 +251,16 @@ fn job_query(q: &JobListQuery) -> ApiResult<store::JobQuery> {
     let since = match q.since.as_deref() {
         None | Some("") => None,
         Some(s) => Some(
+            // Past the largest float (infinity) is after every job: not an error.
             s.parse::<f64>()
                 .ok()
-                .filter(|t| t.is_finite() && *t >= 0.0)
+                .filter(|t| !t.is_nan() && *t >= 0.0)
                 .ok_or_else(|| bad("since", "seconds since the Unix epoch, a number >= 0"))?,
         ),
     };
     let limit = match q.limit.as_deref() {
         None | Some("") => JobListQuery::MAX_LIMIT,
-        Some(l) => l
-            .parse::<u64>()
-            .ok()
+        Some(l) => whole_number(l)
             .filter(|n| *n >= 1)
             .ok_or_else(|| bad("limit", "a whole number >= 1"))?
             .min(JobListQuery::MAX_LIMIT as u64) as u32,
@@ -260,10 +268,9 @@ fn job_query(q: &JobListQuery) -> ApiResult<store::JobQuery> {
     let after = match q.after.as_deref() {
         None | Some("") => None,
         Some(a) => Some(
-            a.parse::<i64>()
-                .ok()
-                .filter(|n| *n >= 0)
-                .ok_or_else(|| bad("after", "the `next` of an earlier page"))?,
+            whole_number(a)
+                .ok_or_else(|| bad("after", "the `next` of an earlier page"))?
+                .min(i64::MAX as u64) as i64,
         ),
     };
     Ok(store::JobQuery {
@@ -460,12 +467,17 @@ pub(crate) async fn delete_job(
         .await
         .map_err(ApiError::internal)??;
     match deleted {
-        Ok(Some(_)) => Ok(StatusCode::NO_CONTENT),
-        Ok(None) => Err(ApiError::not_found("job", &id)),
-        Err(state) => Err(wrong_state(
+        store::Deleted::Removed(_) => Ok(StatusCode::NO_CONTENT),
+        store::Deleted::Missing => Err(ApiError::not_found("job", &id)),
+        store::Deleted::NotFinal(state) => Err(wrong_state(
             &id,
             state,
             "only a done, failed or cancelled job can be deleted (cancel it first)",
+        )),
+        store::Deleted::Referenced(user) => Err(ApiError::field(
+            StatusCode::CONFLICT,
+            "id",
+            format!("job '{user}' uses the image of job '{id}' as its reference; delete it first"),
         )),
     }
 }

@@ -99,6 +99,8 @@ pub(crate) enum Deleted {
     Removed(Box<JobRow>),
     /// The job has not ended: nothing was deleted.
     NotFinal(JobState),
+    /// Another job (this one) uses the job's image as its reference: nothing was deleted.
+    Referenced(String),
     /// No such job.
     Missing,
 }
@@ -273,8 +275,9 @@ pub(crate) trait JobStore: Send {
     /// counted as paused. False when it had not failed.
     fn requeue_failed(&self, id: &str) -> StoreResult<bool>;
     /// Deletes a job that has ended and every row of it (tasks, events, series, failed
-    /// attempts, blocklist), in one transaction.
-    fn delete_job(&self, id: &str) -> StoreResult<Deleted>;
+    /// attempts, blocklist), in one transaction; not while another job's reference is its
+    /// image (at `image`).
+    fn delete_job(&self, id: &str, image: &str) -> StoreResult<Deleted>;
     /// Moves an active (queued, running or paused) job to `state`; false when the job had
     /// already ended (a cancelled job stays cancelled).
     fn set_job_state(&self, id: &str, state: JobState, error: Option<&str>) -> StoreResult<bool>;

@@ -433,7 +433,7 @@ impl JobStore for SqliteStore {
         tx.commit()?;
         Ok(true)
     }
-    fn delete_job(&self, id: &str) -> StoreResult<Deleted> {
+    fn delete_job(&self, id: &str, image: &str) -> StoreResult<Deleted> {
         let tx = self.conn.unchecked_transaction()?;
         let row = cached_row(
             &tx,
@@ -447,6 +447,16 @@ impl JobStore for SqliteStore {
         };
         if row.state.is_active() {
             return Ok(Deleted::NotFinal(row.state));
+        }
+        let user: Option<String> = cached_row(
+            &tx,
+            "SELECT id FROM jobs WHERE reference = ?1 AND id != ?2 ORDER BY seq LIMIT 1",
+            params![image, id],
+            |r| r.get(0),
+        )
+        .optional()?;
+        if let Some(user) = user {
+            return Ok(Deleted::Referenced(user));
         }
         for table in ["tasks", "events", "series", "failures", "blocklist"] {
             cached_exec(&tx, &format!("DELETE FROM {table} WHERE job_id = ?1"), [id])?;
@@ -1140,7 +1150,7 @@ mod tests {
             ["urgent"]
         );
         assert!(matches!(
-            db.delete_job("old").expect("delete"),
+            db.delete_job("old", "old.exr").expect("delete"),
             Deleted::NotFinal(JobState::Running)
         ));
         assert!(
@@ -1155,12 +1165,12 @@ mod tests {
                 .expect("cancel")
         );
         assert!(matches!(
-            db.delete_job("old").expect("delete"),
+            db.delete_job("old", "old.exr").expect("delete"),
             Deleted::Removed(_)
         ));
         assert!(db.job("old").expect("job").is_none());
         assert!(matches!(
-            db.delete_job("old").expect("delete"),
+            db.delete_job("old", "old.exr").expect("delete"),
             Deleted::Missing
         ));
         drop(db);
