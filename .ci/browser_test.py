@@ -5,8 +5,8 @@ It starts `omis serve` (loopback, a temporary --data, a client and a worker toke
 workers) and chromedriver, then, in the browser: answers the token prompt (a wrong token first,
 which must be refused), submits a job through the form (a library scene with a finished job as
 the reference), watches the preview change, waits for `done`, checks the relMSE chart, the error
-map and the workers page, cancels a second job from its page, and saves screenshots under --out
-(job-page.png is checked not to be blank by decoding the PNG here).
+map and the workers page, pauses, resumes, reprioritises and cancels a second job from its
+page, and saves screenshots under --out (job-page.png is checked not to be blank by decoding the PNG here).
 
 Python's standard library only: the WebDriver protocol is JSON over HTTP, so no Selenium (and no
 driver download) is involved. Every process it starts is stopped on the way out, on failure, on
@@ -582,6 +582,25 @@ def main():
         if any(b >= a_ for a_, b in zip(ids, ids[1:])):
             raise Fail(f"the event log repeats or reorders events after the reconnect: {ids[:40]}")
         log(f"the event stream resumed after event {seen_before} without repeats ({len(ids)} events listed)")
+        # Pause and resume from the page; the priority through its prompt.
+        wait_for("the pause button", 20, lambda: driver.text("#pause") == "Pause")
+        driver.click("#pause")
+        wait_for("paused", 20, lambda: driver.text("#job-state") == "paused")
+        if driver.text("#job-eta") != "paused" or driver.text("#pause") != "Resume":
+            raise Fail(f"a paused job's page shows ETA {driver.text('#job-eta')!r}, button {driver.text('#pause')!r}")
+        if api("GET", f"/v1/jobs/{long_job['id']}")["state"] != "paused":
+            raise Fail("the server does not say paused")
+        driver.click("#pause")
+        wait_for("resumed", 20, lambda: driver.text("#job-state") in ("running", "queued"))
+        log("pause and resume work")
+        driver.click("#priority")
+        wait_for("the priority prompt", 10, lambda: driver.s("GET", "/alert/text") is not None)
+        driver.s("POST", "/alert/text", {"text": "7"})
+        driver.accept_alert()
+        wait_for("the new priority", 20, lambda: driver.text("#job-priority") == "7")
+        if api("GET", f"/v1/jobs/{long_job['id']}")["priority"] != 7:
+            raise Fail("the server does not have the new priority")
+        log("the priority is set from the page")
         wait_for("the cancel button", 20, lambda: driver.js("const b = document.getElementById('cancel'); return b && !b.hidden"))
         driver.click("#cancel")
         wait_for("the confirmation", 10, lambda: driver.s("GET", "/alert/text") is not None)

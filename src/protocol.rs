@@ -56,8 +56,8 @@ macro_rules! string_enum {
 }
 
 string_enum! {
-    /// A job's state: `queued` until a task is first leased, `running`, then one of the three
-    /// final states.
+    /// A job's state: `queued` until a task is first leased, `running` (or `paused` by a client
+    /// from either), then one of the three final states.
     JobState {
         /// Created; no task leased yet.
         Queued = "queued",
@@ -69,13 +69,25 @@ string_enum! {
         Failed = "failed",
         /// Cancelled by a client.
         Cancelled = "cancelled",
+        /// Paused by a client: no new leases; tasks in hand finish and are kept. Resuming
+        /// returns it to `queued` (no task leased yet) or `running`.
+        Paused = "paused",
     }
 }
 
 impl JobState {
-    /// Queued or running: the job still has work to hand out.
+    /// Not ended (queued, running or paused): the job still has work to do, though a paused
+    /// one hands none out.
     pub fn is_active(self) -> bool {
-        matches!(self, JobState::Queued | JobState::Running)
+        matches!(
+            self,
+            JobState::Queued | JobState::Running | JobState::Paused
+        )
+    }
+
+    /// Done, failed or cancelled: nothing more will happen to the job.
+    pub fn is_final(self) -> bool {
+        !self.is_active()
     }
 }
 
@@ -356,6 +368,38 @@ pub struct JobRequest {
     /// A label for lists and logs.
     #[serde(default)]
     pub name: Option<String>,
+    /// Higher first: workers take the tasks of the job of highest priority, then of the
+    /// oldest job within a priority.
+    #[serde(default)]
+    pub priority: i32,
+}
+
+/// The query of GET /v1/jobs (every field optional; as sent, checked by the coordinator).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct JobListQuery {
+    /// Comma-separated job states (any of them).
+    pub state: Option<String>,
+    /// A substring of the job's name (case-insensitive).
+    pub name: Option<String>,
+    /// Jobs created at or after this time (seconds since the Unix epoch).
+    pub since: Option<String>,
+    /// Jobs per page (at most `JobListQuery::MAX_LIMIT`, the default).
+    pub limit: Option<String>,
+    /// The `next` of the page before.
+    pub after: Option<String>,
+}
+
+impl JobListQuery {
+    /// The most jobs in one page, and the default.
+    pub const MAX_LIMIT: u32 = 500;
+}
+
+/// PATCH /v1/jobs/{id}: what to change of a job that has not ended.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JobPatch {
+    /// The job's new priority (higher first).
+    pub priority: i32,
 }
 
 /// One point of a job's relMSE series (one per merged pass).
@@ -452,9 +496,10 @@ pub struct JobStatus {
     pub started_at: Option<f64>,
     /// When it reached a final state.
     pub finished_at: Option<f64>,
-    /// Seconds from the first lease to the end (or to now); 0 before the first lease.
+    /// Seconds of rendering from the first lease to the end (or to now), time paused left
+    /// out; 0 before the first lease.
     pub elapsed_s: f64,
-    /// Estimated seconds left; 0 once the job has ended.
+    /// Estimated seconds left; 0 once the job has ended; None while paused or unknown.
     pub eta_s: Option<f64>,
     /// relMSE of the last merged pass against the reference.
     pub relmse: Option<f64>,
@@ -480,13 +525,26 @@ pub struct JobStatus {
     pub optimal_depth: Option<crate::job::optimal_depth::DepthChoice>,
     /// Paths of the job's resources.
     pub links: JobLinks,
+    /// Higher first (see [`JobRequest::priority`]).
+    #[serde(default)]
+    pub priority: i32,
+    /// Seconds the job has spent paused (or failed before a requeue): not counted in
+    /// `elapsed_s` nor against a time budget.
+    #[serde(default)]
+    pub paused_s: f64,
+    /// The job this one retries (POST /v1/jobs/{id}/retry).
+    #[serde(default)]
+    pub retry_of: Option<String>,
 }
 
-/// GET /v1/jobs.
+/// GET /v1/jobs: one page of the jobs that match the query, oldest first.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct JobList {
-    /// Every job, oldest first.
+    /// The page's jobs, oldest first.
     pub jobs: Vec<JobStatus>,
+    /// The `after` of the next page; None on the last.
+    #[serde(default)]
+    pub next: Option<String>,
 }
 
 /// Metadata of a stored scene bundle (the answer of POST /v1/scenes).

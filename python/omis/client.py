@@ -8,7 +8,7 @@ import subprocess
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping, NamedTuple, Optional, Union
+from typing import Any, Iterator, Mapping, NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -149,10 +149,34 @@ class Client:
         out: list[str] = self._http.json("GET", "/v1/scenes", "listing the library")["library"]
         return out
 
-    def jobs(self) -> list["Job"]:
-        """Every job of the coordinator, oldest first."""
-        docs = self._http.json("GET", "/v1/jobs", "listing the jobs")["jobs"]
-        return [Job(self, d["id"], d) for d in docs]
+    def jobs(
+        self,
+        state: Union[str, Sequence[str], None] = None,
+        name: Optional[str] = None,
+        since: Optional[float] = None,
+    ) -> list["Job"]:
+        """The jobs of the coordinator, oldest first (every page of GET /v1/jobs): those in
+        `state` (a state or several: ``"done"``, ``("done", "failed")``), whose name contains
+        `name` (case-insensitive), created at or after `since` (seconds since the epoch)."""
+        query: dict[str, str] = {}
+        if state is not None:
+            query["state"] = state if isinstance(state, str) else ",".join(state)
+        if name is not None:
+            query["name"] = name
+        if since is not None:
+            query["since"] = repr(float(since))
+        out: list[Job] = []
+        after: Optional[str] = None
+        while True:
+            q = dict(query)
+            if after is not None:
+                q["after"] = after
+            page = self._http.json("GET", "/v1/jobs", "listing the jobs", query=q)
+            out.extend(Job(self, d["id"], d) for d in page["jobs"])
+            nxt = page.get("next")
+            if nxt is None or nxt == after:
+                return out
+            after = str(nxt)
 
     def job(self, job_id: str) -> "Job":
         """The job of that id (its status is fetched, so an unknown id raises)."""
@@ -286,9 +310,11 @@ class Client:
         *,
         reference: Optional[Reference] = None,
         name: Optional[str] = None,
+        priority: Optional[int] = None,
         **settings: Any,
     ) -> "Job":
-        """Submits a render job; returns it at once (`Job.wait` follows it).
+        """Submits a render job; returns it at once (`Job.wait` follows it). Workers take the
+        tasks of jobs of higher `priority` first (default 0), then of the oldest job.
 
         `settings` are the job settings of proto/openapi.yaml with Python names: ``spp=64,
         integrator="bdpt", mis="optimal", resolution=(320, 180), time_budget=10, seed=1,
@@ -303,6 +329,8 @@ class Client:
             request["reference"] = self.reference_source(reference)
         if name is not None:
             request["name"] = name
+        if priority is not None:
+            request["priority"] = int(priority)
         doc = self._http.json("POST", "/v1/jobs", "submitting the job", request)
         return Job(self, doc["id"], doc)
 
@@ -348,16 +376,56 @@ class Job:
 
     @property
     def state(self) -> str:
-        """``queued``, ``running``, ``done``, ``failed`` or ``cancelled`` (fetched now)."""
+        """``queued``, ``running``, ``paused``, ``done``, ``failed`` or ``cancelled`` (fetched
+        now)."""
         state: str = self.status()["state"]
         return state
+
+    def _control(self, action: str, what: str) -> dict[str, Any]:
+        doc: dict[str, Any] = self._http.json("POST", f"/v1/jobs/{self.id}/{action}", what)
+        self.last_status = doc
+        return doc
 
     def cancel(self) -> dict[str, Any]:
         """Cancels the job; returns its status document. A job that has already ended raises
         `ServiceError` (409)."""
-        doc: dict[str, Any] = self._http.json("POST", f"/v1/jobs/{self.id}/cancel", "cancelling")
+        return self._control("cancel", "cancelling")
+
+    def pause(self) -> dict[str, Any]:
+        """Pauses a queued or running job: no new tasks; those in hand finish and are kept.
+        Returns its status document; any other state raises `ServiceError` (409)."""
+        return self._control("pause", "pausing")
+
+    def resume(self) -> dict[str, Any]:
+        """Resumes a paused job; returns its status document (409 when not paused)."""
+        return self._control("resume", "resuming")
+
+    def requeue(self) -> dict[str, Any]:
+        """Queues a failed job's failed tasks again (after a fix) and goes on with it; returns
+        its status document (409 when it has not failed)."""
+        return self._control("requeue", "requeuing")
+
+    def retry(self) -> "Job":
+        """Submits a failed or cancelled job again as a new job (same scene, settings,
+        reference, name and priority); returns the new job, whose status names this one
+        (``retry_of``)."""
+        doc: dict[str, Any] = self._http.json("POST", f"/v1/jobs/{self.id}/retry", "retrying")
+        return Job(self.client, doc["id"], doc)
+
+    def set_priority(self, priority: int) -> dict[str, Any]:
+        """Sets the priority of a job that has not ended (higher first); returns its status
+        document."""
+        doc: dict[str, Any] = self._http.json(
+            "PATCH", f"/v1/jobs/{self.id}", "setting the priority", {"priority": int(priority)}
+        )
         self.last_status = doc
         return doc
+
+    def delete(self) -> None:
+        """Deletes a job that has ended, with every file it stored (409 while it is active:
+        cancel it first)."""
+        self._http.read("DELETE", f"/v1/jobs/{self.id}", "deleting")
+        self._exr = None
 
     def events(
         self, last_event_id: Optional[str] = None, timeout: Optional[float] = None

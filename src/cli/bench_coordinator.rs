@@ -289,7 +289,7 @@ pub fn run(a: BenchCoordinatorArgs) -> Result<()> {
                 let counters = Arc::new(Counters::default());
                 let done = Arc::new(AtomicBool::new(false));
                 let t0 = Instant::now();
-                let st = submit_job(&c, scene.clone(), &a.job, None, None).await?;
+                let st = submit_job(&c, scene.clone(), &a.job, None, None, 0).await?;
                 let workers: Vec<_> = (0..n)
                     .map(|k| {
                         tokio::spawn(simulated_worker(

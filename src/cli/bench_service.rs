@@ -74,7 +74,7 @@ pub fn run(a: BenchServiceArgs) -> Result<()> {
                 super::procstat::usage(pid),
             );
             let scene = SceneSource::Bundle(c.upload_bundle(tar.clone(), main.clone()).await?);
-            let st = submit_job(&c, scene, &a.job, None, None).await?;
+            let st = submit_job(&c, scene, &a.job, None, None, 0).await?;
             let id = st.id.clone();
             let mut last_tile = Instant::now();
             let mut latencies = Vec::new();

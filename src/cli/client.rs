@@ -1,10 +1,10 @@
-//! HTTP client of the coordinator's API, for `submit`, `status`, `download`, `cancel` and the
-//! embedded service behind `omis render`.
+//! HTTP client of the coordinator's API, for `submit`, `status`, `download`, `cancel`, the job
+//! controls (`jobs`, `pause`, `resume`, ...) and the embedded service behind `omis render`.
 
 use crate::bundle;
 use crate::protocol::{
-    ErrorBody, EventKind, JobEvent, JobRequest, JobState, JobStatus, ReferenceInfo, SceneMeta,
-    SceneSource,
+    ErrorBody, EventKind, JobEvent, JobList, JobPatch, JobRequest, JobState, JobStatus,
+    ReferenceInfo, SceneMeta, SceneSource, WorkerList,
 };
 use crate::scene::SceneParams;
 use anyhow::{Context, Result, bail};
@@ -136,6 +136,68 @@ impl Client {
         self.json(
             self.req(reqwest::Method::POST, &format!("/v1/jobs/{id}/cancel")),
             "cancelling",
+        )
+        .await
+    }
+
+    /// POST /v1/jobs/{id}/{action} (pause, resume, requeue, retry); the job's status after it
+    /// (a retry's: the new job's).
+    pub(crate) async fn job_action(&self, id: &str, action: &str) -> Result<JobStatus> {
+        self.json(
+            self.req(reqwest::Method::POST, &format!("/v1/jobs/{id}/{action}")),
+            action,
+        )
+        .await
+    }
+
+    /// Sets a job's priority; returns its status document.
+    pub(crate) async fn set_priority(&self, id: &str, priority: i32) -> Result<JobStatus> {
+        self.json(
+            self.req(reqwest::Method::PATCH, &format!("/v1/jobs/{id}"))
+                .json(&JobPatch { priority }),
+            "setting the priority",
+        )
+        .await
+    }
+
+    /// Deletes a job that has ended, with its files.
+    pub(crate) async fn delete(&self, id: &str) -> Result<()> {
+        self.send(
+            self.req(reqwest::Method::DELETE, &format!("/v1/jobs/{id}")),
+            "deleting",
+        )
+        .await?;
+        Ok(())
+    }
+
+    /// Every job `query` selects (GET /v1/jobs, its pages followed), oldest first.
+    pub(crate) async fn jobs(&self, query: &[(&str, String)]) -> Result<Vec<JobStatus>> {
+        let mut all = Vec::new();
+        let mut after: Option<String> = None;
+        loop {
+            let mut q: Vec<(&str, String)> = query.to_vec();
+            if let Some(a) = &after {
+                q.push(("after", a.clone()));
+            }
+            let page: JobList = self
+                .json(
+                    self.req(reqwest::Method::GET, "/v1/jobs").query(&q),
+                    "listing jobs",
+                )
+                .await?;
+            all.extend(page.jobs);
+            match page.next {
+                Some(n) if after.as_ref() != Some(&n) => after = Some(n),
+                _ => return Ok(all),
+            }
+        }
+    }
+
+    /// Every worker the coordinator knows.
+    pub(crate) async fn workers(&self) -> Result<WorkerList> {
+        self.json(
+            self.req(reqwest::Method::GET, "/v1/workers"),
+            "listing workers",
         )
         .await
     }

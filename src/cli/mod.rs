@@ -11,6 +11,7 @@ mod compare;
 mod diff;
 mod healthcheck;
 mod job_args;
+mod job_cmds;
 mod out_path;
 mod procstat;
 mod progress;
@@ -43,8 +44,23 @@ enum Command {
     Submit(service_cmds::SubmitArgs),
     /// Write the bundle `submit` uploads for a scene file: the scene and every file it reads.
     Bundle(bundle::BundleArgs),
-    /// Show a job's status.
-    Status(service_cmds::IdArgs),
+    /// A summary of the farm (jobs and workers by state, the queue), or of one job; --json
+    /// for the raw document.
+    Status(job_cmds::StatusArgs),
+    /// List jobs as a table (--state, --name to filter; --json for the documents).
+    Jobs(job_cmds::JobsArgs),
+    /// Pause a job: it gets no new tasks; those in hand finish and are kept.
+    Pause(job_cmds::JobArgs),
+    /// Resume a paused job.
+    Resume(job_cmds::JobArgs),
+    /// Queue a failed job's failed tasks again (after a fix) and go on with it.
+    Requeue(job_cmds::JobArgs),
+    /// Submit a failed or cancelled job again as a new job; prints the new job's id.
+    Retry(job_cmds::JobArgs),
+    /// Delete a job that has ended, with every file it stored.
+    Delete(job_cmds::JobArgs),
+    /// Set a job's priority (higher first).
+    Priority(job_cmds::PriorityArgs),
     /// Download a job's EXR (or preview, error map, convergence plot).
     Download(service_cmds::DownloadArgs),
     /// Cancel a job.
@@ -102,7 +118,14 @@ pub fn main() -> i32 {
         Command::Worker(a) => service_cmds::worker(a),
         Command::Submit(a) => service_cmds::submit(a),
         Command::Bundle(a) => bundle::run(a),
-        Command::Status(a) => service_cmds::status(a),
+        Command::Status(a) => job_cmds::status(a),
+        Command::Jobs(a) => job_cmds::jobs(a),
+        Command::Pause(a) => job_cmds::action(a, "pause"),
+        Command::Resume(a) => job_cmds::action(a, "resume"),
+        Command::Requeue(a) => job_cmds::action(a, "requeue"),
+        Command::Retry(a) => job_cmds::action(a, "retry"),
+        Command::Delete(a) => job_cmds::delete(a),
+        Command::Priority(a) => job_cmds::priority(a),
         Command::Download(a) => service_cmds::download(a),
         Command::Cancel(a) => service_cmds::cancel(a),
         Command::Diff(a) => diff::run(a),

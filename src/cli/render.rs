@@ -190,7 +190,7 @@ fn through_service(a: &RenderArgs, (tar, main): (Vec<u8>, String), out: &Path) -
             let start = std::time::Instant::now();
             let c = Client::new(&running.url, None)?;
             let scene = SceneSource::Bundle(c.upload_bundle(tar, main).await?);
-            let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), None).await?;
+            let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), None, 0).await?;
             let id = st.id.clone();
             let state = wait_job(&c, &st, false).await?;
             let st = c.status(&id).await?;

@@ -1,4 +1,5 @@
-//! `omis serve`, `omis worker`, and the clients `submit`, `status`, `download`, `cancel`.
+//! `omis serve`, `omis worker`, and the clients `submit`, `download`, `cancel` (the job
+//! controls and `status` are in `job_cmds.rs`).
 
 use super::client::{self, Client};
 use super::job_args::JobArgs;
@@ -134,6 +135,17 @@ pub(crate) struct ServeArgs {
     /// final EXR always written; 0: the EXR after every pass too).
     #[arg(long, default_value_t = service::DEFAULT_EXR_INTERVAL_S)]
     pub exr_interval: f64,
+    /// Delete finished (done, failed, cancelled) jobs, with their files, this many days after
+    /// they ended (fractions allowed).
+    #[arg(long, value_name = "DAYS")]
+    pub keep_finished: Option<f64>,
+    /// While the data folder holds more than this (e.g. 20G, 512M), delete the finished jobs
+    /// that ended first, with their files.
+    #[arg(long, value_name = "SIZE")]
+    pub store_budget: Option<String>,
+    /// Seconds between two sweeps of --keep-finished and --store-budget.
+    #[arg(long, default_value_t = 60.0, hide = true)]
+    pub sweep_interval: f64,
 }
 
 pub(crate) fn serve(a: ServeArgs) -> Result<()> {
@@ -187,6 +199,22 @@ pub(crate) fn serve(a: ServeArgs) -> Result<()> {
         bail!("--exr-interval must be a finite number of seconds >= 0");
     }
     cfg.exr_interval_s = a.exr_interval;
+    if let Some(days) = a.keep_finished {
+        if !(days >= 0.0 && days.is_finite()) {
+            bail!("--keep-finished must be a number of days >= 0");
+        }
+        cfg.keep_finished_s = Some(days * 86400.0);
+    }
+    if let Some(size) = &a.store_budget {
+        cfg.store_budget_bytes = Some(
+            service::retention::parse_size(size)
+                .map_err(|e| anyhow::anyhow!("--store-budget: {e}"))?,
+        );
+    }
+    if !(a.sweep_interval > 0.0 && a.sweep_interval.is_finite()) {
+        bail!("--sweep-interval must be a number of seconds > 0");
+    }
+    cfg.sweep_interval_s = a.sweep_interval;
     let rt = runtime()?;
     let result = rt.block_on(async move {
         let running = service::start(cfg).await?;
@@ -268,7 +296,7 @@ pub(crate) struct ServerArgs {
 }
 
 impl ServerArgs {
-    fn client(&self) -> Result<Client> {
+    pub(crate) fn client(&self) -> Result<Client> {
         Client::new(
             &self.server,
             token(&self.token, &self.token_file, "--token-file")?,
@@ -288,6 +316,9 @@ pub(crate) struct SubmitArgs {
     /// A name for the job.
     #[arg(long)]
     pub name: Option<String>,
+    /// The job's priority: workers take the tasks of higher ones first (default 0).
+    #[arg(long, default_value_t = 0, allow_hyphen_values = true)]
+    pub priority: i32,
     /// Wait until the job ends, with a progress bar.
     #[arg(long)]
     pub wait: bool,
@@ -305,6 +336,7 @@ pub(crate) async fn submit_job(
     job: &JobArgs,
     reference: Option<&std::path::Path>,
     name: Option<&str>,
+    priority: i32,
 ) -> Result<JobStatus> {
     let settings = job.settings()?;
     let reference = match reference {
@@ -316,6 +348,7 @@ pub(crate) async fn submit_job(
         settings,
         reference,
         name: name.map(str::to_string),
+        priority,
     };
     c.submit(&req).await
 }
@@ -348,7 +381,15 @@ pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
         }
         let c = a.server.client()?;
         let scene = client::scene_source(&c, &a.scene, &a.job.settings()?.defines).await?;
-        let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), a.name.as_deref()).await?;
+        let st = submit_job(
+            &c,
+            scene,
+            &a.job,
+            a.reference.as_deref(),
+            a.name.as_deref(),
+            a.priority,
+        )
+        .await?;
         let id = st.id.clone();
         if !a.wait {
             println!("{id}");
@@ -378,14 +419,6 @@ pub(crate) struct IdArgs {
     pub id: String,
     #[command(flatten)]
     pub server: ServerArgs,
-}
-
-pub(crate) fn status(a: IdArgs) -> Result<()> {
-    runtime()?.block_on(async move {
-        let st = a.server.client()?.status(&a.id).await?;
-        println!("{}", serde_json::to_string_pretty(&st)?);
-        Ok(())
-    })
 }
 
 pub(crate) fn cancel(a: IdArgs) -> Result<()> {

@@ -54,11 +54,12 @@ fn plan_pass(
     r: &mut Resolved,
     p: u32,
 ) -> store::StoreResult<Option<Range<u32>>> {
-    let (Some(_), Some(started)) = (r.time_budget_s, job.started_at) else {
+    let (Some(_), Some(_)) = (r.time_budget_s, job.started_at) else {
         return Ok(r.pass_range(p));
     };
     let done = progress_spp(job, r, app.db().tasks_done(&job.id)?);
-    let elapsed = store::now() - started;
+    // The budget is of rendering time: the time the job spent paused is left out.
+    let elapsed = job.render_seconds(store::now());
     // The rate between the last two merges where two passes are merged: the passes overlap
     // (two are queued at a time), so the merges come as fast as the workers render and merge,
     // and the last pass is the longest, its fixed costs the least per sample. Before that, the
@@ -139,7 +140,8 @@ pub(crate) fn fail_job(app: &App, id: &str, error: &str) {
                 error: error.to_string(),
             }),
         );
-        app.result_logs.remove(&app.paths, id);
+        // Its result logs stay: a requeue goes on from them (deleting the job removes them).
+        app.result_logs.forget(id);
     }
     drop_runtime(app, id);
 }
@@ -354,6 +356,88 @@ pub(crate) fn cancel(app: &App, id: &str) -> ServiceResult<bool> {
     }
     drop_runtime(app, id);
     Ok(ended)
+}
+
+/// Pauses a queued or running job: it leases nothing more; the tasks in hand finish and their
+/// results are kept. False when it was not queued or running.
+pub(crate) fn pause(app: &App, id: &str) -> ServiceResult<bool> {
+    let paused = app.db().pause(id)?;
+    if paused {
+        tracing::info!("job {id}: paused");
+    }
+    Ok(paused)
+}
+
+/// Resumes a paused job; false when it was not paused.
+pub(crate) fn resume(app: &App, id: &str) -> ServiceResult<bool> {
+    let resumed = app.db().resume(id)?;
+    if resumed {
+        tracing::info!("job {id}: resumed");
+        app.work.notify_waiters();
+        // A pass whose results all came in while paused is merged now.
+        advance(app, id);
+    }
+    Ok(resumed)
+}
+
+/// Makes a failed job active again: its failed tasks are queued afresh (every worker may take
+/// them again), its error is cleared, and it goes on from its checkpoints and the results it
+/// kept, as after a restart. False when it had not failed.
+pub(crate) fn requeue(app: &App, id: &str) -> ServiceResult<bool> {
+    let requeued = app.db().requeue_failed(id)?;
+    if requeued {
+        tracing::info!("job {id}: requeued");
+        drop_runtime(app, id);
+        app.work.notify_waiters();
+        advance(app, id);
+    }
+    Ok(requeued)
+}
+
+/// Sets the priority of a job that has not ended; false when it had.
+pub(crate) fn set_priority(app: &App, id: &str, priority: i32) -> ServiceResult<bool> {
+    let set = app.db().set_priority(id, priority)?;
+    if set {
+        app.work.notify_waiters();
+    }
+    Ok(set)
+}
+
+/// Deletes a job that has ended: its rows (`JobStore::delete_job`), then its files
+/// (`delete_files`); not one that is active, nor one whose image another job uses as its
+/// reference (the answer says which).
+pub(crate) fn delete(app: &App, id: &str) -> ServiceResult<store::Deleted> {
+    let image = app.paths.output(id, "image.exr").display().to_string();
+    let deleted = app.db().delete_job(id, &image)?;
+    if let store::Deleted::Removed(row) = &deleted {
+        delete_files(app, row);
+        tracing::info!("job {id}: deleted ({})", row.state);
+    }
+    Ok(deleted)
+}
+
+/// Removes every file a deleted job stored: its folder (result logs, tile checkpoints,
+/// outputs), its uploaded reference and its scene bundle when no other job uses them. Its rows
+/// are gone already, so a crash in between leaves files that no row names, never a row without
+/// its files.
+fn delete_files(app: &App, job: &JobRow) {
+    drop_runtime(app, &job.id);
+    app.result_logs.forget(&job.id);
+    let dir = app.paths.job(&job.id);
+    if let Err(e) = std::fs::remove_dir_all(&dir)
+        && e.kind() != std::io::ErrorKind::NotFound
+    {
+        tracing::warn!("job {}: cannot remove {}: {e}", job.id, dir.display());
+    }
+    if let Some(reference) = &job.reference {
+        let uploaded = std::path::Path::new(reference).starts_with(app.paths.reference_dir());
+        if uploaded && !app.db().reference_in_use(reference).unwrap_or(true) {
+            let _ = std::fs::remove_file(reference);
+        }
+    }
+    if !app.db().scene_in_use(&job.scene_id).unwrap_or(true) {
+        let _ = std::fs::remove_dir_all(app.paths.scene(&job.scene_id));
+    }
 }
 
 /// Streams the input of leased merge task `task` of `job` through `send` (`merge::serve_input`);

@@ -883,7 +883,8 @@ fn report_pass(
         ),
         None => None,
     };
-    let seconds = job.started_at.map_or(0.0, |s| store::now() - s);
+    // Rendering time: a pause is not counted (a time budget's fit reads these seconds).
+    let seconds = job.render_seconds(store::now());
     app.db().add_series(
         &job.id,
         &SeriesPoint {

@@ -11,6 +11,7 @@ pub(crate) mod jobs;
 pub(crate) mod merge;
 pub(crate) mod outputs;
 pub(crate) mod pool;
+pub(crate) mod retention;
 pub(crate) mod runtime;
 pub(crate) mod server;
 pub(crate) mod store;
@@ -72,6 +73,13 @@ pub(crate) struct Config {
     /// costs its ZIP compression, ~0.4 CPU-seconds: a third of what a path-traced job's
     /// coordinator spent when it was written after every pass (BENCHMARKS.md, "The render service").
     pub exr_interval_s: f64,
+    /// Finished jobs older than this many seconds are deleted (`retention`).
+    pub keep_finished_s: Option<f64>,
+    /// While the data folder holds more bytes than this, the finished jobs that ended first
+    /// are deleted (`retention`).
+    pub store_budget_bytes: Option<u64>,
+    /// Seconds between two retention sweeps.
+    pub sweep_interval_s: f64,
 }
 
 /// Bytes of free upload and merge-input buffers the coordinator keeps for reuse.
@@ -111,6 +119,9 @@ impl Config {
             worker_log: None,
             merge_memory_bytes: 256 << 20,
             exr_interval_s: DEFAULT_EXR_INTERVAL_S,
+            keep_finished_s: None,
+            store_budget_bytes: None,
+            sweep_interval_s: 60.0,
         }
     }
 }
@@ -348,6 +359,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
         .await;
     });
     tokio::spawn(jobs::reaper(app.clone()));
+    tokio::spawn(retention::sweeper(app.clone()));
     let pool = (cfg.workers > 0).then(|| pool::Pool::spawn(app.clone(), &url));
     Ok(Running {
         app,

@@ -85,7 +85,7 @@ fn cli_clients_submit_wait_download_status_and_cancel() {
         measured, relmse,
         "relMSE of the final EXR against the pass's"
     );
-    let out = omis(&["status", &id]);
+    let out = omis(&["status", &id, "--json"]);
     assert!(out.status.success());
     let v: Value = serde_json::from_slice(&out.stdout).expect("status JSON");
     assert_eq!(v["id"], id.as_str());

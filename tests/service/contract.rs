@@ -48,6 +48,8 @@ fn the_router_and_the_openapi_contract_have_the_same_routes() {
             "get" => c.get(&u),
             "post" => c.post(&u),
             "put" => c.put(&u),
+            "patch" => c.patch(&u),
+            "delete" => c.delete(&u),
             _ => unreachable!(),
         }
         .timeout(Duration::from_secs(10))

@@ -9,6 +9,7 @@ mod cli;
 #[path = "../common/mod.rs"]
 mod common;
 mod contract;
+mod controls;
 mod jobs;
 mod leases;
 mod limits;

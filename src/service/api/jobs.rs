@@ -1,16 +1,17 @@
-//! Jobs: submit (POST /v1/jobs), list, status, cancel, the event stream (Server-Sent Events)
-//! and the job's files (EXR, preview, error map, convergence plot).
+//! Jobs: submit (POST /v1/jobs), list (paged, filtered), status, the controls (cancel, pause,
+//! resume, requeue, retry, priority, delete), the event stream (Server-Sent Events) and the
+//! job's files (EXR, preview, error map, convergence plot).
 
 use super::errors::{ApiError, ApiResult, JsonBody, bad, settings_error};
 use super::{AppState, references, scenes};
 use crate::protocol::{
-    JobEvent, JobLinks, JobList, JobRequest, JobStatus, QueuedEvent, SceneMeta, SceneRef,
-    SceneSource, SseData,
+    JobEvent, JobLinks, JobList, JobListQuery, JobPatch, JobRequest, JobState, JobStatus,
+    QueuedEvent, SceneMeta, SceneRef, SceneSource, SseData,
 };
 use crate::service::store::{self, EventRow, JobRow};
 use crate::service::{App, jobs, runtime};
 use axum::Json;
-use axum::extract::{Path, State};
+use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -59,7 +60,7 @@ fn create_job_blocking(app: &App, req: JobRequest) -> ApiResult<JobRow> {
         SceneSource::Inline(v) => scenes::store_inline(app, v)?,
     };
     let made_here = !matches!(req.scene, SceneSource::Bundle(_));
-    let created = create_job_with(app, &req, &meta, scene);
+    let created = create_job_with(app, &req, &meta, scene, None);
     // A bundle this request made for a job it did not create is of no use to anyone.
     if created.is_err() && made_here {
         scenes::remove_bundle(app, &meta.id);
@@ -67,12 +68,22 @@ fn create_job_blocking(app: &App, req: JobRequest) -> ApiResult<JobRow> {
     created
 }
 
-/// The job of `req` on its stored scene bundle `meta`, loaded as `scene`.
+/// What a retry takes over of the job it repeats (beyond its request).
+struct RetryOf<'a> {
+    /// The job retried.
+    id: &'a str,
+    /// Its reference image, already checked when it was created.
+    reference: Option<&'a str>,
+}
+
+/// The job of `req` on its stored scene bundle `meta`, loaded as `scene` (a retry: of the job
+/// `retry`, with its reference).
 fn create_job_with(
     app: &App,
     req: &JobRequest,
     meta: &SceneMeta,
     mut scene: crate::scene::Scene,
+    retry: Option<RetryOf>,
 ) -> ApiResult<JobRow> {
     if !req.settings.defines.is_empty() {
         // The bundle was checked with the file's own defaults; the job renders it with its
@@ -83,9 +94,10 @@ fn create_job_with(
         .settings
         .resolve(&mut scene, &app.cfg.limits)
         .map_err(settings_error)?;
-    let reference = match &req.reference {
-        None => None,
-        Some(src) => Some(references::job_reference(
+    let reference = match (&retry, &req.reference) {
+        (Some(r), _) => r.reference.map(str::to_string),
+        (None, None) => None,
+        (None, Some(src)) => Some(references::job_reference(
             app,
             src,
             resolved.width,
@@ -109,6 +121,8 @@ fn create_job_with(
         scene_main: &meta.main,
         reference: reference.as_deref(),
         accum_bytes: accum,
+        priority: req.priority,
+        retry_of: retry.as_ref().map(|r| r.id),
     })?;
     app.event(
         &id,
@@ -139,10 +153,8 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         0
     };
     let now = store::now();
-    let elapsed = job
-        .started_at
-        .map(|s| job.finished_at.unwrap_or(now) - s)
-        .unwrap_or(0.0);
+    // Rendering time: a pause does not count (nor against a time budget).
+    let elapsed = job.render_seconds(now);
     let progress_spp = jobs::progress_spp(job, &r, tiles_done);
     // The budget left: the pilot's seconds count against it (`Resolved::fit_to_budget`).
     let budget_left = r
@@ -150,6 +162,8 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         .map(|b| (b - r.pilot_s.unwrap_or(0.0) - elapsed).max(0.0));
     let eta = if !active {
         Some(0.0)
+    } else if job.state == JobState::Paused {
+        None
     } else if let Some(spp) = r.spp_limit() {
         (progress_spp > 0.0)
             .then(|| elapsed / progress_spp * (spp as f64 - progress_spp).max(0.0))
@@ -193,6 +207,9 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         optimal_max_depth: r.optimal_max_depth(),
         optimal_depth: r.optimal_depth.clone(),
         links: JobLinks::of(&job.id),
+        priority: job.priority,
+        paused_s: job.paused_until(job.finished_at.unwrap_or(now)),
+        retry_of: job.retry_of.clone(),
     })
 }
 
@@ -202,14 +219,267 @@ fn find_job(app: &App, id: &str) -> ApiResult<JobRow> {
         .ok_or_else(|| ApiError::not_found("job", id))
 }
 
-/// GET /v1/jobs.
-pub(crate) async fn list_jobs(State(app): State<AppState>) -> ApiResult<Json<JobList>> {
-    let rows = app.db().jobs()?;
+/// A whole number of decimal digits; one past `u64::MAX` is `u64::MAX` (more than any limit or
+/// cursor, not an error).
+fn whole_number(s: &str) -> Option<u64> {
+    if s.is_empty() || !s.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    Some(s.parse::<u64>().unwrap_or(u64::MAX))
+}
+
+/// The store's query for GET /v1/jobs's `q`: 400 naming the query field that is wrong.
+fn job_query(q: &JobListQuery) -> ApiResult<store::JobQuery> {
+    let states = match q.state.as_deref() {
+        None | Some("") => Vec::new(),
+        Some(list) => list
+            .split(',')
+            .map(|s| s.trim().parse::<JobState>())
+            .collect::<Result<_, _>>()
+            .map_err(|e| {
+                let names: Vec<&str> = JobState::ALL.iter().map(|s| s.as_str()).collect();
+                bad("state", format!("{e}; states: {}", names.join(", ")))
+            })?,
+    };
+    let name = match q.name.as_deref() {
+        None | Some("") => None,
+        Some(n) if n.chars().count() > 200 || n.chars().any(|c| c.is_control()) => {
+            return Err(bad("name", "at most 200 characters, no control characters"));
+        }
+        Some(n) => Some(n.to_string()),
+    };
+    let since = match q.since.as_deref() {
+        None | Some("") => None,
+        Some(s) => Some(
+            // Past the largest float (infinity) is after every job: not an error.
+            s.parse::<f64>()
+                .ok()
+                .filter(|t| !t.is_nan() && *t >= 0.0)
+                .ok_or_else(|| bad("since", "seconds since the Unix epoch, a number >= 0"))?,
+        ),
+    };
+    let limit = match q.limit.as_deref() {
+        None | Some("") => JobListQuery::MAX_LIMIT,
+        Some(l) => whole_number(l)
+            .filter(|n| *n >= 1)
+            .ok_or_else(|| bad("limit", "a whole number >= 1"))?
+            .min(JobListQuery::MAX_LIMIT as u64) as u32,
+    };
+    let after = match q.after.as_deref() {
+        None | Some("") => None,
+        Some(a) => Some(
+            whole_number(a)
+                .ok_or_else(|| bad("after", "the `next` of an earlier page"))?
+                .min(i64::MAX as u64) as i64,
+        ),
+    };
+    Ok(store::JobQuery {
+        states,
+        name,
+        since,
+        after,
+        limit,
+    })
+}
+
+/// GET /v1/jobs: one page of the jobs the query selects, oldest first, and the cursor of the
+/// next page.
+pub(crate) async fn list_jobs(
+    State(app): State<AppState>,
+    Query(q): Query<JobListQuery>,
+) -> ApiResult<Json<JobList>> {
+    let mut query = job_query(&q)?;
+    let limit = query.limit as usize;
+    // One more than the page: whether a next page exists.
+    query.limit += 1;
+    let mut rows = app.db().jobs_page(&query)?;
+    let next = (rows.len() > limit).then(|| rows[limit - 1].seq.to_string());
+    rows.truncate(limit);
     let jobs = rows
         .iter()
         .map(|j| job_status(&app, j))
         .collect::<ApiResult<_>>()?;
-    Ok(Json(JobList { jobs }))
+    Ok(Json(JobList { jobs, next }))
+}
+
+/// A 409 for a control that the job's state does not allow.
+fn wrong_state(id: &str, state: JobState, wants: &str) -> ApiError {
+    ApiError::field(
+        StatusCode::CONFLICT,
+        "id",
+        format!("job '{id}' is {state}; {wants}"),
+    )
+}
+
+/// Runs control `f` on job `id` on a blocking thread; its `false` answers 409 (`wants`: the
+/// states it needs), else the job's status after it.
+async fn control(
+    app: AppState,
+    id: String,
+    wants: &'static str,
+    f: fn(&App, &str) -> crate::service::error::ServiceResult<bool>,
+) -> ApiResult<Json<JobStatus>> {
+    find_job(&app, &id)?;
+    let a = app.clone();
+    let i = id.clone();
+    let done = tokio::task::spawn_blocking(move || f(&a, &i))
+        .await
+        .map_err(ApiError::internal)??;
+    let job = find_job(&app, &id)?;
+    if !done {
+        return Err(wrong_state(&id, job.state, wants));
+    }
+    Ok(Json(job_status(&app, &job)?))
+}
+
+/// POST /v1/jobs/{id}/pause.
+pub(crate) async fn pause_job(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<JobStatus>> {
+    control(
+        app,
+        id,
+        "only a queued or running job can be paused",
+        jobs::pause,
+    )
+    .await
+}
+
+/// POST /v1/jobs/{id}/resume.
+pub(crate) async fn resume_job(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<JobStatus>> {
+    control(app, id, "only a paused job can be resumed", jobs::resume).await
+}
+
+/// POST /v1/jobs/{id}/requeue.
+pub(crate) async fn requeue_job(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<JobStatus>> {
+    control(
+        app,
+        id,
+        "only a failed job can be requeued (retry makes a new job of a cancelled one)",
+        jobs::requeue,
+    )
+    .await
+}
+
+/// PATCH /v1/jobs/{id}: its priority.
+pub(crate) async fn patch_job(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+    JsonBody(patch): JsonBody<JobPatch>,
+) -> ApiResult<Json<JobStatus>> {
+    find_job(&app, &id)?;
+    let set = jobs::set_priority(&app, &id, patch.priority)?;
+    let job = find_job(&app, &id)?;
+    if !set {
+        return Err(wrong_state(
+            &id,
+            job.state,
+            "the priority of a job that has ended cannot change",
+        ));
+    }
+    Ok(Json(job_status(&app, &job)?))
+}
+
+/// POST /v1/jobs/{id}/retry: a failed or cancelled job again, as a new job (same scene,
+/// settings, reference, name and priority); 201 with the new job's status.
+pub(crate) async fn retry_job(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    let old = find_job(&app, &id)?;
+    if !matches!(old.state, JobState::Failed | JobState::Cancelled) {
+        return Err(wrong_state(
+            &id,
+            old.state,
+            "only a failed or cancelled job can be retried",
+        ));
+    }
+    let _permit = app.validation().await?;
+    let a = app.clone();
+    let job = tokio::task::spawn_blocking(move || retry_blocking(&a, &old))
+        .await
+        .map_err(ApiError::internal)??;
+    let a = app.clone();
+    let new_id = job.id.clone();
+    tokio::task::spawn_blocking(move || jobs::advance(&a, &new_id));
+    let status = job_status(&app, &job)?;
+    Ok((
+        StatusCode::CREATED,
+        [(header::LOCATION, format!("/v1/jobs/{}", job.id))],
+        Json(status),
+    )
+        .into_response())
+}
+
+fn retry_blocking(app: &App, old: &JobRow) -> ApiResult<JobRow> {
+    let settings: crate::job::JobSettings = serde_json::from_str(&old.settings)
+        .map_err(|e| ApiError::internal(format!("job {}: bad settings: {e}", old.id)))?;
+    let gone = |what: &str| {
+        ApiError::field(
+            StatusCode::CONFLICT,
+            "id",
+            format!("job '{}' cannot be retried: its {what} is gone", old.id),
+        )
+    };
+    if scenes::scene_meta(app, &old.scene_id).is_none() {
+        return Err(gone("scene bundle"));
+    }
+    if let Some(r) = &old.reference
+        && !std::path::Path::new(r).is_file()
+    {
+        return Err(gone("reference image"));
+    }
+    let (meta, scene) = scenes::load_bundle(app, &old.scene_id)?;
+    let req = JobRequest {
+        scene: SceneSource::Bundle(old.scene_id.clone()),
+        settings,
+        reference: None,
+        name: old.name.clone(),
+        priority: old.priority,
+    };
+    create_job_with(
+        app,
+        &req,
+        &meta,
+        scene,
+        Some(RetryOf {
+            id: &old.id,
+            reference: old.reference.as_deref(),
+        }),
+    )
+}
+
+/// DELETE /v1/jobs/{id}: a job that has ended, with every file it stored; 204.
+pub(crate) async fn delete_job(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<StatusCode> {
+    let a = app.clone();
+    let i = id.clone();
+    let deleted = tokio::task::spawn_blocking(move || jobs::delete(&a, &i))
+        .await
+        .map_err(ApiError::internal)??;
+    match deleted {
+        store::Deleted::Removed(_) => Ok(StatusCode::NO_CONTENT),
+        store::Deleted::Missing => Err(ApiError::not_found("job", &id)),
+        store::Deleted::NotFinal(state) => Err(wrong_state(
+            &id,
+            state,
+            "only a done, failed or cancelled job can be deleted (cancel it first)",
+        )),
+        store::Deleted::Referenced(user) => Err(ApiError::field(
+            StatusCode::CONFLICT,
+            "id",
+            format!("job '{user}' uses the image of job '{id}' as its reference; delete it first"),
+        )),
+    }
 }
 
 /// GET /v1/jobs/{id}.

@@ -34,6 +34,12 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("get", "/v1/jobs"),
     ("get", "/v1/jobs/{id}"),
     ("post", "/v1/jobs/{id}/cancel"),
+    ("patch", "/v1/jobs/{id}"),
+    ("delete", "/v1/jobs/{id}"),
+    ("post", "/v1/jobs/{id}/pause"),
+    ("post", "/v1/jobs/{id}/resume"),
+    ("post", "/v1/jobs/{id}/requeue"),
+    ("post", "/v1/jobs/{id}/retry"),
     ("get", "/v1/jobs/{id}/events"),
     ("get", "/v1/jobs/{id}/image.exr"),
     ("get", "/v1/jobs/{id}/preview.png"),
@@ -59,8 +65,17 @@ pub(crate) fn router(app: AppState) -> Router {
     let limit = DefaultBodyLimit::max(app.cfg.max_upload_bytes as usize);
     let client = Router::new()
         .route("/v1/jobs", post(jobs::create_job).get(jobs::list_jobs))
-        .route("/v1/jobs/{id}", get(jobs::get_job))
+        .route(
+            "/v1/jobs/{id}",
+            get(jobs::get_job)
+                .patch(jobs::patch_job)
+                .delete(jobs::delete_job),
+        )
         .route("/v1/jobs/{id}/cancel", post(jobs::cancel_job))
+        .route("/v1/jobs/{id}/pause", post(jobs::pause_job))
+        .route("/v1/jobs/{id}/resume", post(jobs::resume_job))
+        .route("/v1/jobs/{id}/requeue", post(jobs::requeue_job))
+        .route("/v1/jobs/{id}/retry", post(jobs::retry_job))
         .route("/v1/jobs/{id}/events", get(jobs::job_events))
         .route("/v1/jobs/{id}/image.exr", get(jobs::job_exr))
         .route("/v1/jobs/{id}/preview.png", get(jobs::job_preview))

@@ -231,7 +231,7 @@ fn check_owner(task: &TaskRow, worker: &str, attempt: u32) -> ApiResult<()> {
 }
 
 /// The task `task_id` and its job, when `q` names the current attempt of the worker holding it
-/// and the job is running (404 for a task never issued, 409 for one no longer current).
+/// and the job is running or paused (404 for a task never issued, 409 for one no longer current).
 fn current_task(app: &AppState, task_id: i64, q: &ResultQuery) -> ApiResult<(TaskRow, JobRow)> {
     let (task, job) = {
         let db = app.db();
@@ -252,7 +252,8 @@ fn current_task(app: &AppState, task_id: i64, q: &ResultQuery) -> ApiResult<(Tas
         (task, job)
     };
     check_owner(&task, &q.worker_id, q.attempt)?;
-    if job.state != JobState::Running {
+    // A paused job's tasks in hand finish: their results are kept.
+    if !matches!(job.state, JobState::Running | JobState::Paused) {
         return Err(ApiError::field(
             StatusCode::CONFLICT,
             "id",

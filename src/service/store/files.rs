@@ -44,7 +44,11 @@ impl Paths {
         self.root.join("scenes").join(id)
     }
     pub fn reference(&self, id: &str) -> PathBuf {
-        self.root.join("references").join(format!("{id}.exr"))
+        self.reference_dir().join(format!("{id}.exr"))
+    }
+    /// The folder of uploaded reference images.
+    pub fn reference_dir(&self) -> PathBuf {
+        self.root.join("references")
     }
     /// Whether the folder holds jobs or scenes (of an earlier database).
     pub fn holds_jobs_or_scenes(&self) -> bool {

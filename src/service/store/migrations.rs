@@ -134,6 +134,16 @@ pub(super) const MIGRATIONS: &[&str] = &[
      );
      ALTER TABLE workers ADD COLUMN unhealthy TEXT;
      ALTER TABLE workers ADD COLUMN last_done_at REAL;",
+    // 5: farm controls: a job's priority (the lease order: priority, then seq), when it was
+    // paused and the seconds it spent paused before (not rendering time), the job a retry
+    // repeats; indexes for the lease order, the filtered job list and retention.
+    "ALTER TABLE jobs ADD COLUMN priority INTEGER NOT NULL DEFAULT 0;
+     ALTER TABLE jobs ADD COLUMN paused_at REAL;
+     ALTER TABLE jobs ADD COLUMN paused_s REAL NOT NULL DEFAULT 0;
+     ALTER TABLE jobs ADD COLUMN retry_of TEXT;
+     CREATE INDEX jobs_lease_order ON jobs (state, priority DESC, seq);
+     CREATE INDEX jobs_seq ON jobs (seq);
+     CREATE INDEX jobs_finished ON jobs (finished_at);",
 ];
 
 /// The version whose schema `PRAGMA user_version` 0 stood for before `schema_version` existed:
@@ -286,6 +296,17 @@ mod tests {
             assert_eq!(
                 (job.state, job.passes_done, job.scene_main.as_str()),
                 (JobState::Running, 2, "scene.json"),
+                "from {from}"
+            );
+            // Jobs from before priorities: priority 0, never paused, no retry.
+            assert_eq!(
+                (
+                    job.priority,
+                    job.paused_at,
+                    job.paused_s,
+                    job.retry_of.as_deref()
+                ),
+                (0, None, 0.0, None),
                 "from {from}"
             );
             let task: TaskRow = db.task(7).expect("task").expect("the task is there");

@@ -50,6 +50,59 @@ pub(crate) struct JobRow {
     pub non_finite: i64,
     pub accum_bytes: i64,
     pub result_bytes: i64,
+    /// Its place in submission order (the job list's cursor).
+    pub seq: i64,
+    /// Higher first in the lease order.
+    pub priority: i32,
+    /// When it was paused (or failed: a requeue counts that time as paused), if it is.
+    pub paused_at: Option<f64>,
+    /// Seconds spent paused before `paused_at`.
+    pub paused_s: f64,
+    /// The job this one retries.
+    pub retry_of: Option<String>,
+}
+
+impl JobRow {
+    /// Seconds the job has spent paused up to time `at`.
+    pub fn paused_until(&self, at: f64) -> f64 {
+        self.paused_s + self.paused_at.map_or(0.0, |p| (at - p).max(0.0))
+    }
+
+    /// Seconds of rendering from the first lease to `at` (or to the end, if earlier), the time
+    /// paused left out: what a time budget counts.
+    pub fn render_seconds(&self, at: f64) -> f64 {
+        let end = self.finished_at.map_or(at, |f| f.min(at));
+        self.started_at
+            .map_or(0.0, |s| (end - s - self.paused_until(end)).max(0.0))
+    }
+}
+
+/// What [`JobStore::jobs_page`] selects.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct JobQuery {
+    /// Jobs in one of these states (empty: any).
+    pub states: Vec<JobState>,
+    /// Jobs whose name contains this (case-insensitively, ASCII).
+    pub name: Option<String>,
+    /// Jobs created at or after this time (seconds since the Unix epoch).
+    pub since: Option<f64>,
+    /// Jobs after this one in submission order (its `seq`).
+    pub after: Option<i64>,
+    /// At most this many.
+    pub limit: u32,
+}
+
+/// What [`JobStore::delete_job`] did.
+#[derive(Clone, Debug)]
+pub(crate) enum Deleted {
+    /// The job's rows are gone; the row it had (its files are the caller's to remove).
+    Removed(Box<JobRow>),
+    /// The job has not ended: nothing was deleted.
+    NotFinal(JobState),
+    /// Another job (this one) uses the job's image as its reference: nothing was deleted.
+    Referenced(String),
+    /// No such job.
+    Missing,
 }
 
 /// A task (one tile of one pass) as stored.
@@ -129,6 +182,8 @@ pub(crate) struct NewJob<'a> {
     pub scene_main: &'a str,
     pub reference: Option<&'a str>,
     pub accum_bytes: i64,
+    pub priority: i32,
+    pub retry_of: Option<&'a str>,
 }
 
 /// Failed tasks of one job (distinct) after which a worker gets none of its tasks any more
@@ -197,12 +252,34 @@ pub(crate) trait JobStore: Send {
     fn insert_job(&self, j: &NewJob) -> StoreResult<()>;
     /// A job by id.
     fn job(&self, id: &str) -> StoreResult<Option<JobRow>>;
-    /// Every job, oldest first.
-    fn jobs(&self) -> StoreResult<Vec<JobRow>>;
-    /// Jobs still to be worked on (queued or running).
+    /// One page of the jobs `q` selects, in submission order.
+    fn jobs_page(&self, q: &JobQuery) -> StoreResult<Vec<JobRow>>;
+    /// Jobs in a final state, those that ended first first.
+    fn finished_jobs(&self) -> StoreResult<Vec<JobRow>>;
+    /// Whether a job uses scene bundle `scene`.
+    fn scene_in_use(&self, scene: &str) -> StoreResult<bool>;
+    /// Whether a job uses the reference image at `path`.
+    fn reference_in_use(&self, path: &str) -> StoreResult<bool>;
+    /// Jobs still to be worked on (queued, running or paused).
     fn active_jobs(&self) -> StoreResult<Vec<JobRow>>;
-    /// Moves an active (queued or running) job to `state`; false when the job had already
-    /// ended (a cancelled job stays cancelled).
+    /// Sets the priority of a job that has not ended; false when it had.
+    fn set_priority(&self, id: &str, priority: i32) -> StoreResult<bool>;
+    /// Pauses a queued or running job (it leases nothing until resumed); false otherwise.
+    fn pause(&self, id: &str) -> StoreResult<bool>;
+    /// Resumes a paused job: running again, or queued when no task of it was ever leased;
+    /// its time paused is added up. False when it was not paused.
+    fn resume(&self, id: &str) -> StoreResult<bool>;
+    /// Makes a failed job active again, in one transaction: its queued and leased tasks are
+    /// queued with their failure counts cleared, its failed attempts and blocklist forgotten
+    /// (every worker may take its tasks again), its error cleared, the time it spent failed
+    /// counted as paused. False when it had not failed.
+    fn requeue_failed(&self, id: &str) -> StoreResult<bool>;
+    /// Deletes a job that has ended and every row of it (tasks, events, series, failed
+    /// attempts, blocklist), in one transaction; not while another job's reference is its
+    /// image (at `image`).
+    fn delete_job(&self, id: &str, image: &str) -> StoreResult<Deleted>;
+    /// Moves an active (queued, running or paused) job to `state`; false when the job had
+    /// already ended (a cancelled job stays cancelled).
     fn set_job_state(&self, id: &str, state: JobState, error: Option<&str>) -> StoreResult<bool>;
     /// Replaces an active job's resolved settings (a time-budget job's fitted last pass,
     /// `Resolved::fit_to_budget`); false when the job had ended.
@@ -265,8 +342,9 @@ pub(crate) trait JobStore: Send {
     fn task(&self, task_id: i64) -> StoreResult<Option<TaskRow>>;
     /// Puts a task back in the queue (its result could not be merged).
     fn requeue(&self, task_id: i64) -> StoreResult<()>;
-    /// Leases the first queued task of the oldest active job to `worker`: its merge tasks
-    /// first, then its render tasks, passes in order; the worker is marked busy in the same
+    /// Leases the first queued task of the queued or running job of highest priority (the
+    /// oldest of those) to `worker`: its merge tasks first, then its render tasks, passes in
+    /// order; the worker is marked busy in the same
     /// transaction.
     fn lease(&self, worker: &str, lease_s: f64) -> StoreResult<Option<TaskRow>>;
     /// Extends a lease; false when the task is no longer this worker's attempt.

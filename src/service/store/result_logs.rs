@@ -101,6 +101,15 @@ impl ResultLogs {
         retire(paths, &paths.result_log(job, pass));
     }
 
+    /// Forgets where job `job`'s logs end, leaving them on disk (a failed job's, which a
+    /// requeue goes on from: its next records go at the logs' ends, as after a restart).
+    pub fn forget(&self, job: &str) {
+        self.cursors
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(job);
+    }
+
     /// Forgets job `job`'s logs (it ended) and keeps them as spares.
     pub fn remove(&self, paths: &Paths, job: &str) {
         let mut cursors = self.cursors.lock().unwrap_or_else(|e| e.into_inner());

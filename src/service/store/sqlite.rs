@@ -5,8 +5,8 @@
 
 use super::migrations;
 use super::{
-    BLOCKLIST_AFTER, Completed, EventRow, Failure, JobRow, JobStore, NewJob, Outcome, StoreError,
-    StoreResult, TaskRow, UNHEALTHY_AFTER_JOBS, now,
+    BLOCKLIST_AFTER, Completed, Deleted, EventRow, Failure, JobQuery, JobRow, JobStore, NewJob,
+    Outcome, StoreError, StoreResult, TaskRow, UNHEALTHY_AFTER_JOBS, now,
 };
 use crate::protocol::{
     EventKind, JobState, SeriesPoint, TaskKind, TaskState, WorkerInfo, WorkerState, WorkerTask,
@@ -55,7 +55,7 @@ pub(crate) struct SqliteStore {
 
 const JOB_COLS: &str = "id, name, state, error, settings, resolved, scene_id, scene_main, \
     reference, created_at, started_at, finished_at, passes_done, spp_done, samples, rays, \
-    non_finite, accum_bytes, result_bytes";
+    non_finite, accum_bytes, result_bytes, seq, priority, paused_at, paused_s, retry_of";
 
 const TASK_COLS: &str =
     "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, result_at, result_len, kind";
@@ -81,6 +81,11 @@ fn job_row(r: &rusqlite::Row) -> rusqlite::Result<JobRow> {
         non_finite: r.get(16)?,
         accum_bytes: r.get(17)?,
         result_bytes: r.get(18)?,
+        seq: r.get(19)?,
+        priority: r.get(20)?,
+        paused_at: r.get(21)?,
+        paused_s: r.get(22)?,
+        retry_of: r.get(23)?,
     })
 }
 
@@ -143,6 +148,8 @@ fn insert_event(
 // The states bound as parameters wherever a statement names one.
 const J_QUEUED: JobState = JobState::Queued;
 const J_RUNNING: JobState = JobState::Running;
+const J_PAUSED: JobState = JobState::Paused;
+const J_FAILED: JobState = JobState::Failed;
 const T_QUEUED: TaskState = TaskState::Queued;
 const T_LEASED: TaskState = TaskState::Leased;
 const T_DONE: TaskState = TaskState::Done;
@@ -292,7 +299,8 @@ impl JobStore for SqliteStore {
         cached_exec(
             &self.conn,
             "INSERT INTO jobs (id, seq, name, state, settings, resolved, scene_id, scene_main, \
-             reference, created_at, accum_bytes) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
+             reference, created_at, accum_bytes, priority, retry_of) \
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13)",
             params![
                 j.id,
                 seq,
@@ -304,7 +312,9 @@ impl JobStore for SqliteStore {
                 j.scene_main,
                 j.reference,
                 now(),
-                j.accum_bytes
+                j.accum_bytes,
+                j.priority,
+                j.retry_of
             ],
         )?;
         Ok(())
@@ -319,19 +329,147 @@ impl JobStore for SqliteStore {
         .optional()
         .map_err(StoreError::from)
     }
-    fn jobs(&self) -> StoreResult<Vec<JobRow>> {
-        let mut st = self
-            .conn
-            .prepare(&format!("SELECT {JOB_COLS} FROM jobs ORDER BY seq"))?;
-        st.query_map([], job_row)?
+    fn jobs_page(&self, q: &JobQuery) -> StoreResult<Vec<JobRow>> {
+        // One statement for every query: an absent filter binds NULL, which passes every row.
+        let states: Option<String> = (!q.states.is_empty()).then(|| {
+            q.states
+                .iter()
+                .map(|s| s.as_str())
+                .collect::<Vec<_>>()
+                .join(",")
+        });
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {JOB_COLS} FROM jobs WHERE seq > ?1 \
+             AND (?2 IS NULL OR instr(',' || ?2 || ',', ',' || state || ',') > 0) \
+             AND (?3 IS NULL OR instr(lower(COALESCE(name, '')), lower(?3)) > 0) \
+             AND (?4 IS NULL OR created_at >= ?4) \
+             ORDER BY seq LIMIT ?5"
+        ))?;
+        st.query_map(
+            params![
+                q.after.unwrap_or(i64::MIN),
+                states,
+                q.name,
+                q.since,
+                q.limit
+            ],
+            job_row,
+        )?
+        .collect::<rusqlite::Result<Vec<_>>>()
+        .map_err(StoreError::from)
+    }
+    fn finished_jobs(&self) -> StoreResult<Vec<JobRow>> {
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {JOB_COLS} FROM jobs WHERE state NOT IN (?1, ?2, ?3) \
+             ORDER BY COALESCE(finished_at, created_at), seq"
+        ))?;
+        st.query_map(params![J_QUEUED, J_RUNNING, J_PAUSED], job_row)?
             .collect::<rusqlite::Result<Vec<_>>>()
             .map_err(StoreError::from)
     }
+    fn scene_in_use(&self, scene: &str) -> StoreResult<bool> {
+        Ok(cached_row(
+            &self.conn,
+            "SELECT EXISTS (SELECT 1 FROM jobs WHERE scene_id = ?1)",
+            [scene],
+            |r| r.get(0),
+        )?)
+    }
+    fn reference_in_use(&self, path: &str) -> StoreResult<bool> {
+        Ok(cached_row(
+            &self.conn,
+            "SELECT EXISTS (SELECT 1 FROM jobs WHERE reference = ?1)",
+            [path],
+            |r| r.get(0),
+        )?)
+    }
+    fn set_priority(&self, id: &str, priority: i32) -> StoreResult<bool> {
+        let n = cached_exec(
+            &self.conn,
+            "UPDATE jobs SET priority = ?2 WHERE id = ?1 AND state IN (?3, ?4, ?5)",
+            params![id, priority, J_QUEUED, J_RUNNING, J_PAUSED],
+        )?;
+        Ok(n == 1)
+    }
+    fn pause(&self, id: &str) -> StoreResult<bool> {
+        let n = cached_exec(
+            &self.conn,
+            "UPDATE jobs SET state = ?2, paused_at = ?3 WHERE id = ?1 AND state IN (?4, ?5)",
+            params![id, J_PAUSED, now(), J_QUEUED, J_RUNNING],
+        )?;
+        Ok(n == 1)
+    }
+    fn resume(&self, id: &str) -> StoreResult<bool> {
+        let n = cached_exec(
+            &self.conn,
+            "UPDATE jobs SET state = CASE WHEN started_at IS NULL THEN ?2 ELSE ?3 END, \
+             paused_s = paused_s + MAX(0, ?4 - COALESCE(paused_at, ?4)), paused_at = NULL \
+             WHERE id = ?1 AND state = ?5",
+            params![id, J_QUEUED, J_RUNNING, now(), J_PAUSED],
+        )?;
+        Ok(n == 1)
+    }
+    fn requeue_failed(&self, id: &str) -> StoreResult<bool> {
+        let tx = self.conn.unchecked_transaction()?;
+        let n = cached_exec(
+            &tx,
+            "UPDATE jobs SET state = CASE WHEN started_at IS NULL THEN ?2 ELSE ?3 END, \
+             error = NULL, \
+             paused_s = paused_s + MAX(0, ?4 - COALESCE(paused_at, finished_at, ?4)), \
+             paused_at = NULL, finished_at = NULL WHERE id = ?1 AND state = ?5",
+            params![id, J_QUEUED, J_RUNNING, now(), J_FAILED],
+        )?;
+        if n != 1 {
+            return Ok(false);
+        }
+        cached_exec(
+            &tx,
+            "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL, failures = 0, \
+             last_error = NULL WHERE job_id = ?1 AND state IN (?2, ?3)",
+            params![id, T_QUEUED, T_LEASED],
+        )?;
+        cached_exec(&tx, "DELETE FROM failures WHERE job_id = ?1", [id])?;
+        cached_exec(&tx, "DELETE FROM blocklist WHERE job_id = ?1", [id])?;
+        tx.commit()?;
+        Ok(true)
+    }
+    fn delete_job(&self, id: &str, image: &str) -> StoreResult<Deleted> {
+        let tx = self.conn.unchecked_transaction()?;
+        let row = cached_row(
+            &tx,
+            &format!("SELECT {JOB_COLS} FROM jobs WHERE id = ?1"),
+            [id],
+            job_row,
+        )
+        .optional()?;
+        let Some(row) = row else {
+            return Ok(Deleted::Missing);
+        };
+        if row.state.is_active() {
+            return Ok(Deleted::NotFinal(row.state));
+        }
+        let user: Option<String> = cached_row(
+            &tx,
+            "SELECT id FROM jobs WHERE reference = ?1 AND id != ?2 ORDER BY seq LIMIT 1",
+            params![image, id],
+            |r| r.get(0),
+        )
+        .optional()?;
+        if let Some(user) = user {
+            return Ok(Deleted::Referenced(user));
+        }
+        for table in ["tasks", "events", "series", "failures", "blocklist"] {
+            cached_exec(&tx, &format!("DELETE FROM {table} WHERE job_id = ?1"), [id])?;
+        }
+        cached_exec(&tx, "DELETE FROM jobs WHERE id = ?1", [id])?;
+        tx.commit()?;
+        Ok(Deleted::Removed(Box::new(row)))
+    }
     fn active_jobs(&self) -> StoreResult<Vec<JobRow>> {
         let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {JOB_COLS} FROM jobs WHERE state IN (?1, ?2) ORDER BY seq"
+            "SELECT {JOB_COLS} FROM jobs WHERE state IN (?1, ?2, ?3) ORDER BY seq"
         ))?;
-        st.query_map(params![J_QUEUED, J_RUNNING], job_row)?
+        st.query_map(params![J_QUEUED, J_RUNNING, J_PAUSED], job_row)?
             .collect::<rusqlite::Result<Vec<_>>>()
             .map_err(StoreError::from)
     }
@@ -341,16 +479,16 @@ impl JobStore for SqliteStore {
             &self.conn,
             "UPDATE jobs SET state = ?2, error = COALESCE(?3, error), \
              finished_at = COALESCE(?4, finished_at) WHERE id = ?1 \
-             AND state IN (?5, ?6)",
-            params![id, state, error, finished, J_QUEUED, J_RUNNING],
+             AND state IN (?5, ?6, ?7)",
+            params![id, state, error, finished, J_QUEUED, J_RUNNING, J_PAUSED],
         )?;
         Ok(n == 1)
     }
     fn set_job_resolved(&self, id: &str, resolved: &str) -> StoreResult<bool> {
         let n = cached_exec(
             &self.conn,
-            "UPDATE jobs SET resolved = ?2 WHERE id = ?1 AND state IN (?3, ?4)",
-            params![id, resolved, J_QUEUED, J_RUNNING],
+            "UPDATE jobs SET resolved = ?2 WHERE id = ?1 AND state IN (?3, ?4, ?5)",
+            params![id, resolved, J_QUEUED, J_RUNNING, J_PAUSED],
         )?;
         Ok(n == 1)
     }
@@ -587,7 +725,7 @@ impl JobStore for SqliteStore {
             let mut st = tx.prepare_cached(
                 "SELECT id FROM jobs WHERE state IN (?1, ?2) AND NOT EXISTS \
                  (SELECT 1 FROM blocklist b WHERE b.job_id = jobs.id AND b.worker_id = ?3) \
-                 ORDER BY seq",
+                 ORDER BY priority DESC, seq",
             )?;
             st.query_map(params![J_QUEUED, J_RUNNING, worker], |r| r.get(0))?
                 .collect::<rusqlite::Result<_>>()?
@@ -636,14 +774,15 @@ impl JobStore for SqliteStore {
         let n = cached_exec(
             &self.conn,
             "UPDATE tasks SET lease_expires = ?4 WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 \
-             AND state = ?5 AND job_id IN (SELECT id FROM jobs WHERE state = ?6)",
+             AND state = ?5 AND job_id IN (SELECT id FROM jobs WHERE state IN (?6, ?7))",
             params![
                 task_id,
                 attempt,
                 worker,
                 now() + lease_s,
                 T_LEASED,
-                J_RUNNING
+                J_RUNNING,
+                J_PAUSED
             ],
         )?;
         Ok(n == 1)
@@ -926,6 +1065,8 @@ mod tests {
                 scene_main: "scene.json",
                 reference: None,
                 accum_bytes: 0,
+                priority: 0,
+                retry_of: None,
             })
             .expect("job");
             db.create_tasks(job, 0, 0..tiles, 0..16).expect("tasks");
@@ -949,6 +1090,89 @@ mod tests {
             "the lease query was prepared again"
         );
         drop(st);
+        drop(db);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// The lease order: priority first (higher first), then submission order; a paused job
+    /// leases nothing and, resumed, leases again; a priority changed later counts at the next
+    /// lease. A job deleted in a final state takes its rows with it; an active one is kept.
+    #[test]
+    fn leases_follow_priority_and_skip_paused_jobs() {
+        let dir = std::env::temp_dir().join(format!("omis-store-{}", uuid::Uuid::new_v4()));
+        std::fs::create_dir_all(&dir).expect("temporary folder");
+        let db = SqliteStore::open(&dir.join("db.sqlite")).expect("store");
+        for (job, priority) in [("old", 0), ("urgent", 5), ("later", 0)] {
+            db.insert_job(&NewJob {
+                id: job,
+                name: Some(job),
+                settings: "{}",
+                resolved: "{}",
+                scene_id: "s",
+                scene_main: "scene.json",
+                reference: None,
+                accum_bytes: 0,
+                priority,
+                retry_of: None,
+            })
+            .expect("job");
+            db.create_tasks(job, 0, 0..2, 0..16).expect("tasks");
+        }
+        db.register_worker("w", "w", 1, "test").expect("worker");
+        let lease = || db.lease("w", 60.0).expect("lease").map(|t| t.job_id);
+        assert_eq!(lease().as_deref(), Some("urgent"));
+        assert!(db.pause("urgent").expect("pause"));
+        assert!(!db.pause("urgent").expect("pause twice"), "already paused");
+        assert_eq!(
+            lease().as_deref(),
+            Some("old"),
+            "a paused job leases nothing"
+        );
+        assert!(db.set_priority("later", 9).expect("priority"));
+        assert_eq!(lease().as_deref(), Some("later"));
+        assert!(db.resume("urgent").expect("resume"));
+        let urgent = db.job("urgent").expect("job").expect("there");
+        assert_eq!(urgent.state, JobState::Running);
+        assert!(urgent.paused_at.is_none() && urgent.paused_s >= 0.0);
+        assert_eq!(lease().as_deref(), Some("later"));
+        assert_eq!(lease().as_deref(), Some("urgent"));
+        assert_eq!(lease().as_deref(), Some("old"));
+        assert_eq!(lease(), None);
+        let page = db
+            .jobs_page(&JobQuery {
+                name: Some("RG".into()),
+                limit: 10,
+                ..JobQuery::default()
+            })
+            .expect("page");
+        assert_eq!(
+            page.iter().map(|j| j.id.as_str()).collect::<Vec<_>>(),
+            ["urgent"]
+        );
+        assert!(matches!(
+            db.delete_job("old", "old.exr").expect("delete"),
+            Deleted::NotFinal(JobState::Running)
+        ));
+        assert!(
+            db.set_job_state("old", JobState::Failed, Some("x"))
+                .expect("fail")
+        );
+        assert!(db.requeue_failed("old").expect("requeue"));
+        let old = db.job("old").expect("job").expect("there");
+        assert_eq!((old.state, old.error), (JobState::Running, None));
+        assert!(
+            db.set_job_state("old", JobState::Cancelled, None)
+                .expect("cancel")
+        );
+        assert!(matches!(
+            db.delete_job("old", "old.exr").expect("delete"),
+            Deleted::Removed(_)
+        ));
+        assert!(db.job("old").expect("job").is_none());
+        assert!(matches!(
+            db.delete_job("old", "old.exr").expect("delete"),
+            Deleted::Missing
+        ));
         drop(db);
         let _ = std::fs::remove_dir_all(&dir);
     }

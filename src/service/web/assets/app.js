@@ -7,7 +7,7 @@
 
 const TOKEN_KEY = 'omis.client-token';
 const TERMINAL = new Set(['done', 'failed', 'cancelled']);
-const ACTIVE = new Set(['queued', 'running']);
+const ACTIVE = new Set(['queued', 'running', 'paused']);
 const SVG_NS = 'http://www.w3.org/2000/svg';
 
 // ---- DOM helpers ----
@@ -294,7 +294,7 @@ async function jobsView(signal) {
       h('td', { class: 'num' }, sppText(j)),
       h('td', { class: 'num' }, j.passes_total ? `${j.passes_done} / ${j.passes_total}` : j.passes_done),
       h('td', { class: 'num' }, fmtSeconds(j.elapsed_s)),
-      h('td', { class: 'num' }, ACTIVE.has(j.state) ? fmtSeconds(j.eta_s) : '—'),
+      h('td', { class: 'num' }, j.state === 'paused' ? 'paused' : ACTIVE.has(j.state) ? fmtSeconds(j.eta_s) : '—'),
       h('td', { class: 'num' }, fmtRel(j.relmse)),
       h('td', {}, fmtClock(j.created_at)))));
   });
@@ -389,6 +389,32 @@ async function jobView(signal, id) {
   const errImg = h('img', { id: 'error-map', class: 'errmap', alt: 'error map', hidden: true });
   const events = h('ol', { class: 'events', id: 'events' });
   const cancelBtn = h('button', { type: 'button', class: 'danger', id: 'cancel' }, 'Cancel');
+  const pauseBtn = h('button', { type: 'button', id: 'pause' }, 'Pause');
+  const priorityBtn = h('button', { type: 'button', id: 'priority' }, 'Priority');
+  // A control's answer is the job's new status; a refusal (409: its state changed) is shown.
+  const act = async (btn, url, opts) => {
+    btn.disabled = true;
+    try {
+      st = await apiJson(url, opts);
+      fetchedAt = performance.now();
+      render();
+    } catch (e) {
+      alert(e.message);
+    } finally {
+      btn.disabled = false;
+    }
+  };
+  pauseBtn.addEventListener('click', () => act(pauseBtn, `${path}/${st.state === 'paused' ? 'resume' : 'pause'}`, { method: 'POST' }));
+  priorityBtn.addEventListener('click', () => {
+    const v = prompt(`Priority of ${jobTitle(st)} (higher first):`, String(st.priority ?? 0));
+    if (v === null) return;
+    const n = Number(v.trim());
+    if (!Number.isInteger(n)) {
+      alert('The priority is a whole number.');
+      return;
+    }
+    act(priorityBtn, path, { method: 'PATCH', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify({ priority: n }) });
+  });
   const dl = (file, label) => h('button', {
     type: 'button',
     dataset: { file },
@@ -421,7 +447,7 @@ async function jobView(signal, id) {
     h('div', { class: 'job-head' },
       h('h1', { id: 'job-title' }, jobTitle(st)), stateEl,
       h('span', { class: 'muted mono' }, st.id),
-      h('div', { class: 'actions' }, cancelBtn, dlExr, dlPreview, dlError, dlPlot)),
+      h('div', { class: 'actions' }, pauseBtn, priorityBtn, cancelBtn, dlExr, dlPreview, dlError, dlPlot)),
     facts,
     h('div', { class: 'panes' },
       h('figure', { class: 'panel' }, stage, caption),
@@ -468,7 +494,9 @@ async function jobView(signal, id) {
 
   function render() {
     const active = ACTIVE.has(st.state);
-    const elapsed = st.elapsed_s + (active && st.started_at ? (performance.now() - fetchedAt) / 1000 : 0);
+    const paused = st.state === 'paused';
+    // Paused time is not rendering time: the clock stands still while paused.
+    const elapsed = st.elapsed_s + (active && !paused && st.started_at ? (performance.now() - fetchedAt) / 1000 : 0);
     const eta = active && st.eta_s !== null ? Math.max(0, st.eta_s - (performance.now() - fetchedAt) / 1000) : null;
     const s = st.settings || {};
     stateEl.replaceChildren(stateBadge(st.state, 'job-state'));
@@ -479,7 +507,8 @@ async function jobView(signal, id) {
       fact('Passes', st.passes_total ? `${st.passes_done} / ${st.passes_total}` : st.passes_done),
       fact('Tiles this pass', active ? `${(tilesDone.get(currentPass) || new Set()).size} / ${st.tiles_per_pass}` : '—', 'job-tiles'),
       fact('Elapsed', fmtSeconds(elapsed), 'job-elapsed'),
-      fact('ETA', active ? fmtSeconds(eta) : '—'),
+      fact('ETA', paused ? 'paused' : active ? fmtSeconds(eta) : '—', 'job-eta'),
+      fact('Priority', String(st.priority ?? 0), 'job-priority'),
       fact('relMSE', st.has_reference ? fmtRel(st.relmse) : 'no reference', 'job-relmse'),
       fact('Integrator', s.integrator === 'bdpt' ? `bdpt, ${s.mis}` : (s.integrator || '—')),
       ...(st.optimal_max_depth == null ? [] : [fact('Optimal max depth',
@@ -488,6 +517,8 @@ async function jobView(signal, id) {
     if (st.error) facts.append(h('div', { class: 'wide' }, h('dt', {}, 'Error'), h('dd', { class: 'error' }, st.error)));
     cancelBtn.hidden = !active;
     cancelBtn.disabled = false;
+    pauseBtn.hidden = priorityBtn.hidden = !active;
+    pauseBtn.textContent = paused ? 'Resume' : 'Pause';
     const any = st.passes_done > 0 || st.state === 'done';
     dlExr.disabled = dlPreview.disabled = !any;
     dlError.hidden = dlPlot.hidden = !st.has_reference;
