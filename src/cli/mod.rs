@@ -11,6 +11,7 @@ mod compare;
 mod diff;
 mod healthcheck;
 mod job_args;
+mod pools;
 mod procstat;
 mod render;
 mod service_cmds;
@@ -47,6 +48,10 @@ enum Command {
     Download(service_cmds::DownloadArgs),
     /// Cancel a job.
     Cancel(service_cmds::IdArgs),
+    /// List the coordinator's workers, or disable, enable or drain one.
+    Workers(pools::WorkersArgs),
+    /// Show a job's task history: every attempt, failed ones first.
+    Tasks(pools::TasksArgs),
     /// Compare an image with a reference: relMSE, MSE, optional error map.
     Diff(diff::DiffArgs),
     /// Measure BVH build time, ray rates and integrator throughput.
@@ -103,6 +108,8 @@ pub fn main() -> i32 {
         Command::Status(a) => service_cmds::status(a),
         Command::Download(a) => service_cmds::download(a),
         Command::Cancel(a) => service_cmds::cancel(a),
+        Command::Workers(a) => pools::workers(a),
+        Command::Tasks(a) => pools::tasks(a),
         Command::Diff(a) => diff::run(a),
         Command::Bench(a) => bench::run(a),
         Command::BenchService(a) => bench_service::run(a),

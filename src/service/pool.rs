@@ -36,6 +36,12 @@ impl Pool {
                             .arg("--name")
                             .arg(format!("local-{k}"))
                             .arg("--exit-with-parent")
+                            .args(
+                                (!app.cfg.worker_tags.is_empty())
+                                    .then(|| ["--tag".to_string(), app.cfg.worker_tags.join(",")])
+                                    .into_iter()
+                                    .flatten(),
+                            )
                             .stdin(std::process::Stdio::null())
                             .kill_on_drop(true);
                         if let Some(l) = &app.cfg.worker_log {
@@ -54,6 +60,12 @@ impl Pool {
                         tokio::select! {
                             status = child.wait() => {
                                 if *rx.borrow() {
+                                    return;
+                                }
+                                // Only a drain (asked by an operator) ends a worker cleanly:
+                                // it stays out of the pool.
+                                if matches!(&status, Ok(s) if s.success()) {
+                                    tracing::info!("local worker {k} drained; not restarted");
                                     return;
                                 }
                                 tracing::warn!("local worker {k} exited ({status:?}); restarting");

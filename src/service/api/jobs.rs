@@ -5,7 +5,7 @@ use super::errors::{ApiError, ApiResult, JsonBody, bad, settings_error};
 use super::{AppState, references, scenes};
 use crate::protocol::{
     JobEvent, JobLinks, JobList, JobRequest, JobStatus, QueuedEvent, SceneMeta, SceneRef,
-    SceneSource, SseData,
+    SceneSource, SseData, validate_tags,
 };
 use crate::service::store::{self, EventRow, JobRow};
 use crate::service::{App, jobs, runtime};
@@ -31,6 +31,11 @@ pub(crate) async fn create_job(
     {
         return Err(bad("name", "at most 200 characters, no control characters"));
     }
+    let require_tags = validate_tags(&req.require_tags).map_err(|e| bad("require_tags", e))?;
+    let req = JobRequest {
+        require_tags,
+        ..req
+    };
     // Loading the scene, resolving the settings (the automatic D_opt's pilot renders) and
     // reading the reference take memory and time in proportion to the job: a few at once.
     let _permit = app.validation().await?;
@@ -109,6 +114,7 @@ fn create_job_with(
         scene_main: &meta.main,
         reference: reference.as_deref(),
         accum_bytes: accum,
+        require_tags: &req.require_tags,
     })?;
     app.event(
         &id,
@@ -157,6 +163,21 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
     } else {
         budget_left
     };
+    // Each read of the store on its own line: a guard held to the end of the status's
+    // expression would lock the store twice.
+    let blocklisted_workers = app.db().blocklist(&job.id)?;
+    let waiting_for = if active && !job.require_tags.is_empty() {
+        let workers = app.db().workers()?;
+        super::pools::waiting_for(
+            &job.id,
+            &job.require_tags,
+            &workers,
+            now,
+            app.cfg.lease_s * 2.0,
+        )
+    } else {
+        None
+    };
     Ok(JobStatus {
         id: job.id.clone(),
         name: job.name.clone(),
@@ -193,7 +214,15 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         optimal_max_depth: r.optimal_max_depth(),
         optimal_depth: r.optimal_depth.clone(),
         links: JobLinks::of(&job.id),
+        require_tags: job.require_tags.clone(),
+        blocklisted_workers,
+        waiting_for,
     })
+}
+
+/// The status document of job `id` (404 if there is none).
+pub(crate) fn status_of(app: &App, id: &str) -> ApiResult<JobStatus> {
+    job_status(app, &find_job(app, id)?)
 }
 
 fn find_job(app: &App, id: &str) -> ApiResult<JobRow> {
