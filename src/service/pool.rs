@@ -62,8 +62,8 @@ impl Pool {
                                 if *rx.borrow() {
                                     return;
                                 }
-                                // Only a drain (asked by an operator) ends a worker cleanly:
-                                // it stays out of the pool.
+                                // A worker ends cleanly only when drained (by an operator or
+                                // a SIGTERM): it was asked to leave, so it stays out.
                                 if matches!(&status, Ok(s) if s.success()) {
                                     tracing::info!("local worker {k} drained; not restarted");
                                     return;
