@@ -75,6 +75,26 @@ fn a_tagged_job_goes_only_to_a_worker_with_every_tag_it_requires() {
         &json!({ "name": "x", "threads": 1, "tags": ["a b"] }),
     );
     assert_eq!((s, v["field"].as_str()), (400, Some("tags")), "{v}");
+    // And by the command line, before anything is sent.
+    for args in [
+        vec!["worker", "--coordinator", url.as_str(), "--tag", "gpu,Fast"],
+        vec![
+            "submit",
+            "cornell-box",
+            "--require-tag",
+            "a b",
+            "--server",
+            url.as_str(),
+        ],
+    ] {
+        let out = Command::new(EXE).args(&args).output().expect("omis");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?}");
+        assert!(
+            err.contains("tag") && err.trim().lines().count() == 1,
+            "{args:?}: {err}"
+        );
+    }
     let plain = register(&c, &url, "plain");
     let half = register_tagged(&c, &url, "half", &["gpu"]);
     let (s, v) = submit_tagged(&c, &url, 8, &["gpu", "fast"]);
