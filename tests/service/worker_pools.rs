@@ -350,6 +350,11 @@ fn a_blocklisted_worker_gets_no_task_of_the_job_until_cleared_and_the_history_sh
     );
     assert_eq!(f["attempts"][0]["error"], "disk full #2");
     assert_eq!(f["next"], Value::Null);
+    // A page across the failed attempts' end.
+    let f = get_json(&c, &format!("{url}/v1/jobs/{id}/tasks?limit=2&after=2"));
+    assert_eq!(f["attempts"][0]["error"], "disk full #2", "{f}");
+    assert_eq!(f["attempts"][1]["outcome"], "refused", "{f}");
+    assert_eq!(f["next"], 4);
     let r = c
         .get(format!("{url}/v1/jobs/{id}/tasks?limit=0"))
         .send()

@@ -155,7 +155,9 @@ pub(super) const MIGRATIONS: &[&str] = &[
        PRIMARY KEY (task_id, attempt)
      );
      CREATE INDEX task_attempts_job ON task_attempts (job_id, leased_at);
-     CREATE INDEX task_attempts_worker ON task_attempts (worker_id, leased_at);",
+     CREATE INDEX task_attempts_job_outcome ON task_attempts (job_id, outcome, leased_at);
+     CREATE INDEX task_attempts_worker ON task_attempts (worker_id, leased_at);
+     CREATE INDEX task_attempts_worker_outcome ON task_attempts (worker_id, outcome, leased_at);",
 ];
 
 /// The version whose schema `PRAGMA user_version` 0 stood for before `schema_version` existed:

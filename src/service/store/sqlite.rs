@@ -269,6 +269,26 @@ fn record_failure(
     })
 }
 
+/// A task attempt of its row (`task_attempts`' columns in order, as `task_attempts` reads them).
+fn attempt_row(r: &rusqlite::Row) -> rusqlite::Result<TaskAttempt> {
+    let leased_at: f64 = r.get(7)?;
+    let ended_at: Option<f64> = r.get(8)?;
+    Ok(TaskAttempt {
+        task_id: r.get(0)?,
+        job_id: r.get(1)?,
+        kind: r.get(2)?,
+        pass: r.get(3)?,
+        tile: r.get(4)?,
+        attempt: r.get(5)?,
+        worker_id: r.get(6)?,
+        leased_at,
+        ended_at,
+        outcome: r.get(9)?,
+        error: r.get(10)?,
+        seconds: ended_at.map(|e| (e - leased_at).max(0.0)),
+    })
+}
+
 /// Records how attempt `attempt` of task `task_id` ended (inside the caller's transaction).
 fn end_attempt(
     conn: &Connection,
@@ -1003,35 +1023,51 @@ impl JobStore for SqliteStore {
             AttemptsOf::Job(j) => ("job_id", j),
             AttemptsOf::Worker(w) => ("worker_id", w),
         };
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT task_id, job_id, kind, pass, tile, attempt, worker_id, leased_at, ended_at, \
-             outcome, error FROM task_attempts WHERE {column} = ?1 \
-             AND (?2 IS NULL OR outcome = ?2) \
-             ORDER BY outcome != ?3, leased_at, task_id, attempt LIMIT ?4 OFFSET ?5"
-        ))?;
-        st.query_map(
-            params![key, outcome, AttemptOutcome::Failed, limit, offset],
-            |r| {
-                let leased_at: f64 = r.get(7)?;
-                let ended_at: Option<f64> = r.get(8)?;
-                Ok(TaskAttempt {
-                    task_id: r.get(0)?,
-                    job_id: r.get(1)?,
-                    kind: r.get(2)?,
-                    pass: r.get(3)?,
-                    tile: r.get(4)?,
-                    attempt: r.get(5)?,
-                    worker_id: r.get(6)?,
-                    leased_at,
-                    ended_at,
-                    outcome: r.get(9)?,
-                    error: r.get(10)?,
-                    seconds: ended_at.map(|e| (e - leased_at).max(0.0)),
-                })
-            },
-        )?
-        .collect::<rusqlite::Result<Vec<_>>>()
-        .map_err(StoreError::from)
+        let cols = "task_id, job_id, kind, pass, tile, attempt, worker_id, leased_at, ended_at, \
+             outcome, error";
+        // Each page is read from an index in order (no sort of a large job's attempts while
+        // the store is held): the failed attempts, then the others.
+        let page = |sql: &str, p: &[&dyn ToSql]| -> rusqlite::Result<Vec<TaskAttempt>> {
+            let mut st = self.conn.prepare_cached(sql)?;
+            st.query_map(p, attempt_row)?.collect()
+        };
+        let of_outcome = format!(
+            "SELECT {cols} FROM task_attempts WHERE {column} = ?1 AND outcome = ?2 \
+             ORDER BY leased_at, rowid LIMIT ?3 OFFSET ?4"
+        );
+        if let Some(o) = outcome {
+            return Ok(page(&of_outcome, params![key, o, limit, offset])?);
+        }
+        let failed: u32 = cached_row(
+            &self.conn,
+            &format!("SELECT COUNT(*) FROM task_attempts WHERE {column} = ?1 AND outcome = ?2"),
+            params![key, AttemptOutcome::Failed],
+            |r| r.get(0),
+        )?;
+        let mut rows = if offset < failed {
+            page(
+                &of_outcome,
+                params![key, AttemptOutcome::Failed, limit, offset],
+            )?
+        } else {
+            Vec::new()
+        };
+        let left = limit.saturating_sub(rows.len() as u32);
+        if left > 0 {
+            rows.extend(page(
+                &format!(
+                    "SELECT {cols} FROM task_attempts WHERE {column} = ?1 AND outcome != ?2 \
+                     ORDER BY leased_at, rowid LIMIT ?3 OFFSET ?4"
+                ),
+                params![
+                    key,
+                    AttemptOutcome::Failed,
+                    left,
+                    offset.saturating_sub(failed)
+                ],
+            )?);
+        }
+        Ok(rows)
     }
     fn touch_worker(&self, id: &str, state: Option<WorkerState>) -> StoreResult<bool> {
         let n = cached_exec(
