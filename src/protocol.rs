@@ -130,6 +130,68 @@ string_enum! {
 }
 
 string_enum! {
+    /// What an operator allows a worker: lease tasks (`enabled`), lease none while keeping the
+    /// tasks in hand (`disabled`), or finish the tasks in hand and exit (`draining`). Kept
+    /// across restarts of the coordinator and of the worker.
+    WorkerAdmin {
+        /// Leases tasks.
+        Enabled = "enabled",
+        /// Leases nothing; the tasks in hand finish.
+        Disabled = "disabled",
+        /// Leases nothing; the worker exits once the tasks in hand are finished.
+        Draining = "draining",
+    }
+}
+
+string_enum! {
+    /// How an attempt at a task ended (`running` while its lease is held).
+    AttemptOutcome {
+        /// The lease is held.
+        Running = "running",
+        /// Its result was accepted.
+        Done = "done",
+        /// The worker reported an error.
+        Failed = "failed",
+        /// The worker went silent: the lease expired.
+        Expired = "expired",
+        /// Taken back without a verdict on the worker: its job ended, it left, or the task was
+        /// requeued.
+        Cancelled = "cancelled",
+        /// Its result was refused as invalid.
+        Refused = "refused",
+    }
+}
+
+/// The most tags a worker or a job may name.
+pub const MAX_TAGS: usize = 16;
+/// The longest tag, in bytes.
+pub const MAX_TAG_LEN: usize = 32;
+
+/// Checks a list of worker tags (`[a-z0-9_-]`, 1 to `MAX_TAG_LEN` long, at most `MAX_TAGS`);
+/// the tags sorted, without duplicates, or what is wrong with them.
+pub fn validate_tags(tags: &[String]) -> Result<Vec<String>, String> {
+    if tags.len() > MAX_TAGS {
+        return Err(format!("at most {MAX_TAGS} tags"));
+    }
+    for t in tags {
+        let ok = !t.is_empty()
+            && t.len() <= MAX_TAG_LEN
+            && t.bytes()
+                .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_' || b == b'-');
+        if !ok {
+            let shown: String = t.chars().take(40).collect();
+            return Err(format!(
+                "tag '{shown}': 1 to {MAX_TAG_LEN} of a-z, 0-9, '_' and '-'"
+            ));
+        }
+    }
+    let mut v = tags.to_vec();
+    v.sort();
+    v.dedup();
+    Ok(v)
+}
+
+string_enum! {
     /// The kind of a job event (the SSE `event:` line).
     EventKind {
         /// The job was created.
@@ -372,6 +434,9 @@ pub struct JobRequest {
     /// oldest job within a priority.
     #[serde(default)]
     pub priority: i32,
+    /// Worker tags the job needs: only a worker with every one of them gets its tasks.
+    #[serde(default)]
+    pub require_tags: Vec<String>,
 }
 
 /// The query of GET /v1/jobs (every field optional; as sent, checked by the coordinator).
@@ -535,6 +600,26 @@ pub struct JobStatus {
     /// The job this one retries (POST /v1/jobs/{id}/retry).
     #[serde(default)]
     pub retry_of: Option<String>,
+    /// Worker tags the job needs.
+    #[serde(default)]
+    pub require_tags: Vec<String>,
+    /// Workers that get none of its tasks any more (they failed several).
+    #[serde(default)]
+    pub blocklisted_workers: Vec<BlocklistEntry>,
+    /// Why an active job gets no worker (e.g. no live worker has its tags), or null.
+    #[serde(default)]
+    pub waiting_for: Option<String>,
+}
+
+/// A worker blocklisted for a job.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct BlocklistEntry {
+    /// The worker id.
+    pub worker_id: String,
+    /// Since when (seconds since the Unix epoch).
+    pub since: f64,
+    /// Why: the tasks it failed and the last error.
+    pub reason: String,
 }
 
 /// GET /v1/jobs: one page of the jobs that match the query, oldest first.
@@ -624,6 +709,80 @@ pub struct WorkerInfo {
     /// The tasks it holds a lease on now.
     #[serde(default)]
     pub tasks: Vec<WorkerTask>,
+    /// The tags it registered with.
+    #[serde(default)]
+    pub tags: Vec<String>,
+    /// What an operator allows it.
+    #[serde(default = "enabled")]
+    pub admin: WorkerAdmin,
+}
+
+fn enabled() -> WorkerAdmin {
+    WorkerAdmin::Enabled
+}
+
+/// One attempt at a task (GET /v1/jobs/{id}/tasks, GET /v1/workers/{id}/tasks).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TaskAttempt {
+    /// The task id.
+    pub task_id: i64,
+    /// The job the task belongs to.
+    pub job_id: String,
+    /// Render or merge.
+    pub kind: TaskKind,
+    /// The pass index (from 0).
+    pub pass: u32,
+    /// The tile index (a merge task: its band group).
+    pub tile: u32,
+    /// The attempt number (from 1).
+    pub attempt: u32,
+    /// The worker that held it.
+    pub worker_id: String,
+    /// When it was leased.
+    pub leased_at: f64,
+    /// When it ended; null while running.
+    pub ended_at: Option<f64>,
+    /// How it ended.
+    pub outcome: AttemptOutcome,
+    /// What went wrong (failed, expired, refused, cancelled).
+    pub error: Option<String>,
+    /// Seconds from lease to end.
+    pub seconds: Option<f64>,
+}
+
+/// A page of task attempts: failed ones first, then by lease time.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TaskAttemptList {
+    /// The attempts of this page.
+    pub attempts: Vec<TaskAttempt>,
+    /// The `after` of the next page; null on the last one.
+    pub next: Option<u32>,
+}
+
+/// The query of the task-history routes.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TaskAttemptQuery {
+    /// Only attempts that ended so.
+    #[serde(default)]
+    pub outcome: Option<AttemptOutcome>,
+    /// Attempts per page (default 100, at most 1000).
+    #[serde(default)]
+    pub limit: Option<u32>,
+    /// Attempts of earlier pages to skip (the previous page's `next`).
+    #[serde(default)]
+    pub after: Option<u32>,
+}
+
+/// The answer of the worker admin routes (disable, enable, drain, clearing the unhealthy mark).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct WorkerAdminAnswer {
+    /// The worker id.
+    pub worker_id: String,
+    /// What an operator allows it now.
+    pub admin: WorkerAdmin,
+    /// Why it leases nothing, or null when it is healthy.
+    pub unhealthy: Option<String>,
 }
 
 /// A task a worker holds a lease on (GET /v1/workers).
@@ -685,6 +844,9 @@ pub struct RegisterRequest {
     /// A previous id, to keep it across reconnects.
     #[serde(default)]
     pub id: Option<String>,
+    /// Its tags (`[a-z0-9_-]`, at most 16): jobs that require tags go only to workers with them.
+    #[serde(default)]
+    pub tags: Vec<String>,
 }
 
 /// The answer of POST /v1/worker/register.
@@ -787,6 +949,9 @@ pub struct HeartbeatRequest {
 pub struct HeartbeatAnswer {
     /// Ids of held tasks the worker should stop rendering.
     pub lost: Vec<i64>,
+    /// An operator asked the worker to drain: take no new task, finish those in hand, exit.
+    #[serde(default)]
+    pub drain: bool,
 }
 
 /// POST /v1/worker/deregister.

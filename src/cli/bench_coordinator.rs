@@ -145,6 +145,7 @@ async fn simulated_worker(
             threads: 1,
             version: env!("CARGO_PKG_VERSION").to_string(),
             id: None,
+            tags: Vec::new(),
         })
         .send()
         .await?

@@ -113,6 +113,27 @@ impl Client {
         Ok(info.id)
     }
 
+    /// GET `path` of the API; its JSON answer (`what` names it in errors).
+    pub(crate) async fn get_json<T: serde::de::DeserializeOwned>(
+        &self,
+        path: &str,
+        query: &[(&str, String)],
+        what: &str,
+    ) -> Result<T> {
+        self.json(self.req(reqwest::Method::GET, path).query(query), what)
+            .await
+    }
+
+    /// `method` (POST, DELETE) on `path` of the API without a body; its JSON answer.
+    pub(crate) async fn act<T: serde::de::DeserializeOwned>(
+        &self,
+        method: reqwest::Method,
+        path: &str,
+        what: &str,
+    ) -> Result<T> {
+        self.json(self.req(method, path), what).await
+    }
+
     /// Submits a job; returns its status document.
     pub(crate) async fn submit(&self, request: &JobRequest) -> Result<JobStatus> {
         self.json(

@@ -9,6 +9,10 @@ use clap::Args;
 
 #[derive(Args, Clone, Debug)]
 pub struct JobArgs {
+    /// A worker tag the job needs (repeatable, or a comma-separated list): only workers with
+    /// every such tag render it.
+    #[arg(long = "require-tag", value_name = "TAG", value_delimiter = ',')]
+    pub require_tags: Vec<String>,
     /// A value for a parameter of the scene file (Mitsuba's `$name`), winning over its
     /// `<default>`: `--define spp=64` (repeatable).
     #[arg(long = "define", value_name = "NAME=VALUE")]

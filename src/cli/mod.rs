@@ -13,6 +13,7 @@ mod healthcheck;
 mod job_args;
 mod job_cmds;
 mod out_path;
+mod pools;
 mod procstat;
 mod progress;
 mod render;
@@ -65,6 +66,10 @@ enum Command {
     Download(service_cmds::DownloadArgs),
     /// Cancel a job.
     Cancel(service_cmds::IdArgs),
+    /// List the coordinator's workers, or disable, enable or drain one.
+    Workers(pools::WorkersArgs),
+    /// Show a job's task history: every attempt, failed ones first.
+    Tasks(pools::TasksArgs),
     /// Compare an image with a reference: relMSE, MSE, optional error map.
     Diff(diff::DiffArgs),
     /// Measure BVH build time, ray rates and integrator throughput.
@@ -128,6 +133,8 @@ pub fn main() -> i32 {
         Command::Priority(a) => job_cmds::priority(a),
         Command::Download(a) => service_cmds::download(a),
         Command::Cancel(a) => service_cmds::cancel(a),
+        Command::Workers(a) => pools::workers(a),
+        Command::Tasks(a) => pools::tasks(a),
         Command::Diff(a) => diff::run(a),
         Command::Bench(a) => bench::run(a),
         Command::BenchService(a) => bench_service::run(a),

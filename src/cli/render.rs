@@ -181,6 +181,9 @@ fn through_service(a: &RenderArgs, (tar, main): (Vec<u8>, String), out: &Path) -
             service::Config::new("127.0.0.1:0".parse().expect("valid address"), data.clone());
         cfg.workers = workers;
         cfg.worker_threads = 1;
+        // The local workers serve the job, whatever tags it requires.
+        cfg.worker_tags = crate::protocol::validate_tags(&a.job.require_tags)
+            .map_err(|e| anyhow::anyhow!("--require-tag: {e}"))?;
         cfg.lease_s = 30.0;
         if std::env::var_os("OMIS_LOG").is_none() {
             cfg.worker_log = Some("warn".into());

@@ -5,7 +5,9 @@ use super::client::{self, Client};
 use super::job_args::JobArgs;
 use super::progress::RenderProgress;
 use crate::job::Limits;
-use crate::protocol::{JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource};
+use crate::protocol::{
+    JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource, validate_tags,
+};
 use crate::service;
 use crate::worker;
 use anyhow::{Context, Result, bail};
@@ -69,6 +71,9 @@ pub(crate) struct ServeArgs {
     /// Threads (concurrent tasks) of each local worker.
     #[arg(long, default_value_t = 1)]
     pub worker_threads: usize,
+    /// Tags of the local workers (repeatable, or a comma-separated list).
+    #[arg(long = "tag", value_name = "TAG", value_delimiter = ',')]
+    pub tags: Vec<String>,
     /// Scene library: jobs may name a scene file of this folder.
     #[arg(long, default_value = "scenes")]
     pub scenes: PathBuf,
@@ -160,6 +165,7 @@ pub(crate) fn serve(a: ServeArgs) -> Result<()> {
     cfg.worker_token = token(&a.worker_token, &a.worker_token_file, "--worker-token-file")?;
     cfg.workers = a.workers;
     cfg.worker_threads = a.worker_threads.max(1);
+    cfg.worker_tags = validate_tags(&a.tags).map_err(|e| anyhow::anyhow!("--tag: {e}"))?;
     cfg.lease_s = a.lease_seconds;
     if !(0.0..=30.0).contains(&a.max_lease_wait) {
         bail!("--max-lease-wait must be within 0 ..= 30 seconds");
@@ -255,6 +261,10 @@ pub(crate) struct WorkerArgs {
     /// Exit when the parent process ends (used by local pools).
     #[arg(long, hide = true)]
     pub exit_with_parent: bool,
+    /// Tags of this worker (repeatable, or a comma-separated list; a-z, 0-9, '_', '-'): a job
+    /// that requires tags goes only to workers with every one of them.
+    #[arg(long = "tag", value_name = "TAG", value_delimiter = ',')]
+    pub tags: Vec<String>,
 }
 
 pub(crate) fn worker(a: WorkerArgs) -> Result<()> {
@@ -275,6 +285,7 @@ pub(crate) fn worker(a: WorkerArgs) -> Result<()> {
             .name
             .unwrap_or_else(|| format!("{host}-{}", std::process::id())),
         exit_with_parent: a.exit_with_parent,
+        tags: validate_tags(&a.tags).map_err(|e| anyhow::anyhow!("--tag: {e}"))?,
         cache: a.cache.unwrap_or_else(|| {
             std::env::temp_dir().join(format!("omis-worker-{}", std::process::id()))
         }),
@@ -349,6 +360,8 @@ pub(crate) async fn submit_job(
         reference,
         name: name.map(str::to_string),
         priority,
+        require_tags: validate_tags(&job.require_tags)
+            .map_err(|e| anyhow::anyhow!("--require-tag: {e}"))?,
     };
     c.submit(&req).await
 }

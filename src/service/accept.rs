@@ -5,7 +5,7 @@
 
 use super::error::{ServiceError, ServiceResult};
 use super::runtime::{PassImages, resolved, runtime};
-use super::store::{JobRow, TaskRow};
+use super::store::{JobRow, Outcome, TaskRow};
 use super::{App, Metrics, buffers::Pooled, jobs, merge};
 use crate::film::format;
 use crate::film::format::merge_stream::MergeOutput;
@@ -66,7 +66,13 @@ async fn merge_output(
         }
         Accepted::Stale => {}
         Accepted::Invalid(problem) => {
-            let _ = jobs::task_failed(app, &task, &worker, &format!("invalid merge: {problem}"));
+            let _ = jobs::task_failed(
+                app,
+                &task,
+                &worker,
+                &format!("invalid merge: {problem}"),
+                Outcome::Refused,
+            );
         }
     }
     Ok(outcome)
@@ -153,7 +159,13 @@ async fn render_result(
     let stored = match checked {
         Checked::Stored(stored) => stored,
         Checked::Invalid(problem) => {
-            let _ = jobs::task_failed(app, &task, &worker, &format!("invalid result: {problem}"));
+            let _ = jobs::task_failed(
+                app,
+                &task,
+                &worker,
+                &format!("invalid result: {problem}"),
+                Outcome::Refused,
+            );
             return Ok(Accepted::Invalid(problem));
         }
     };

@@ -257,15 +257,18 @@ fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> ServiceResult<()> {
     Ok(())
 }
 
-/// Records a failed attempt; after `MAX_FAILURES` failed or lost attempts the job fails with
+/// Records a failed attempt (`outcome`: failed, or its result refused); after `MAX_FAILURES` failed or lost attempts the job fails with
 /// the worker's error. False when the attempt was not current.
 pub(crate) fn task_failed(
     app: &App,
     task: &TaskRow,
     worker: &str,
     error: &str,
+    outcome: store::Outcome,
 ) -> ServiceResult<bool> {
-    let failure = app.db().fail(task.id, task.attempt, worker, error)?;
+    let failure = app
+        .db()
+        .fail(task.id, task.attempt, worker, error, outcome)?;
     match failure {
         Some(f) => {
             after_failure(app, &f);

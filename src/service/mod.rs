@@ -65,6 +65,8 @@ pub(crate) struct Config {
     pub max_worker_requests: usize,
     /// OMIS_LOG of local workers (None: inherit).
     pub worker_log: Option<String>,
+    /// Tags of the local workers.
+    pub worker_tags: Vec<String>,
     /// Tile accumulators one merge task holds at most, and the coordinator when it reads
     /// checkpoints back, in bytes.
     pub merge_memory_bytes: u64,
@@ -117,6 +119,7 @@ impl Config {
             max_client_requests: 512,
             max_worker_requests: 1024,
             worker_log: None,
+            worker_tags: Vec::new(),
             merge_memory_bytes: 256 << 20,
             exr_interval_s: DEFAULT_EXR_INTERVAL_S,
             keep_finished_s: None,

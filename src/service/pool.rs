@@ -36,6 +36,12 @@ impl Pool {
                             .arg("--name")
                             .arg(format!("local-{k}"))
                             .arg("--exit-with-parent")
+                            .args(
+                                (!app.cfg.worker_tags.is_empty())
+                                    .then(|| ["--tag".to_string(), app.cfg.worker_tags.join(",")])
+                                    .into_iter()
+                                    .flatten(),
+                            )
                             .stdin(std::process::Stdio::null())
                             .kill_on_drop(true);
                         if let Some(l) = &app.cfg.worker_log {
@@ -54,6 +60,12 @@ impl Pool {
                         tokio::select! {
                             status = child.wait() => {
                                 if *rx.borrow() {
+                                    return;
+                                }
+                                // A worker ends cleanly only when drained (by an operator or
+                                // a SIGTERM): it was asked to leave, so it stays out.
+                                if matches!(&status, Ok(s) if s.success()) {
+                                    tracing::info!("local worker {k} drained; not restarted");
                                     return;
                                 }
                                 tracing::warn!("local worker {k} exited ({status:?}); restarting");

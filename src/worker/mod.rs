@@ -117,6 +117,8 @@ pub(crate) struct WorkerConfig {
     pub exit_with_parent: bool,
     /// Where downloaded scene bundles are unpacked.
     pub cache: PathBuf,
+    /// Its tags (validated): jobs that require tags go only to workers with all of them.
+    pub tags: Vec<String>,
 }
 
 /// A scene loaded once for every task of its key, or why it failed (shared by those tasks).
@@ -171,6 +173,7 @@ impl Worker {
                 threads: self.cfg.threads.min(u32::MAX as usize) as u32,
                 version: env!("CARGO_PKG_VERSION").to_string(),
                 id: (!prev.is_empty()).then_some(prev),
+                tags: self.cfg.tags.clone(),
             };
             match self
                 .req(reqwest::Method::POST, "/v1/worker/register")
@@ -189,6 +192,12 @@ impl Worker {
                 Ok(r) if r.status() == StatusCode::UNAUTHORIZED => {
                     anyhow::bail!(
                         "the coordinator refused the worker token: {}",
+                        r.text().await.unwrap_or_default()
+                    );
+                }
+                Ok(r) if r.status() == StatusCode::BAD_REQUEST => {
+                    anyhow::bail!(
+                        "the coordinator refused the registration: {}",
                         r.text().await.unwrap_or_default()
                     );
                 }
@@ -483,6 +492,14 @@ impl Worker {
                 Ok(r) if r.status().is_success() => {
                     if let Ok(v) = r.json::<HeartbeatAnswer>().await {
                         lock(&self.lost).extend(v.lost);
+                        if v.drain && !*self.drain.borrow() {
+                            let n = lock(&self.held).len();
+                            tracing::info!(
+                                "the coordinator asks this worker to drain: finishing the {n} \
+                                 task(s) in hand, then exiting"
+                            );
+                            let _ = self.drain.send(true);
+                        }
                     }
                 }
                 Ok(r) if r.status() == StatusCode::NOT_FOUND => {

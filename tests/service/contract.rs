@@ -43,7 +43,7 @@ fn the_router_and_the_openapi_contract_have_the_same_routes() {
     let (_server, url) = serve(&dir.join("data"), &[]);
     let c = http();
     for (m, p) in omis::service::api::ROUTES {
-        let u = format!("{url}{}", p.replace("{id}", "0"));
+        let u = format!("{url}{}", p.replace("{id}", "0").replace("{worker}", "0"));
         let r = match *m {
             "get" => c.get(&u),
             "post" => c.post(&u),
@@ -93,7 +93,9 @@ fn openapi_enum(name: &str) -> Vec<String> {
 
 #[test]
 fn the_protocol_enums_are_the_openapi_enums() {
-    use omis::protocol::{EventKind, JobState, TaskKind, TaskState, WorkerState};
+    use omis::protocol::{
+        AttemptOutcome, EventKind, JobState, TaskKind, TaskState, WorkerAdmin, WorkerState,
+    };
     fn names<T: serde::Serialize>(all: &[T], as_str: impl Fn(&T) -> &'static str) -> Vec<String> {
         all.iter()
             .map(|v| {
@@ -122,6 +124,14 @@ fn the_protocol_enums_are_the_openapi_enums() {
     assert_eq!(
         openapi_enum("EventKind"),
         names(EventKind::ALL, |s| s.as_str())
+    );
+    assert_eq!(
+        openapi_enum("WorkerAdmin"),
+        names(WorkerAdmin::ALL, |s| s.as_str())
+    );
+    assert_eq!(
+        openapi_enum("AttemptOutcome"),
+        names(AttemptOutcome::ALL, |s| s.as_str())
     );
 }
 

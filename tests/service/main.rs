@@ -17,3 +17,4 @@ mod pool;
 mod support;
 mod synthetic_stream;
 mod time_budget;
+mod worker_pools;

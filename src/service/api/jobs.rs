@@ -7,6 +7,8 @@ use super::{AppState, references, scenes};
 use crate::protocol::{
     JobEvent, JobLinks, JobList, JobListQuery, JobPatch, JobRequest, JobState, JobStatus,
     QueuedEvent, SceneMeta, SceneRef, SceneSource, SseData,
+    JobEvent, JobLinks, JobList, JobRequest, JobStatus, QueuedEvent, SceneMeta, SceneRef,
+    SceneSource, SseData, validate_tags,
 };
 use crate::service::store::{self, EventRow, JobRow};
 use crate::service::{App, jobs, runtime};
@@ -32,6 +34,11 @@ pub(crate) async fn create_job(
     {
         return Err(bad("name", "at most 200 characters, no control characters"));
     }
+    let require_tags = validate_tags(&req.require_tags).map_err(|e| bad("require_tags", e))?;
+    let req = JobRequest {
+        require_tags,
+        ..req
+    };
     // Loading the scene, resolving the settings (the automatic D_opt's pilot renders) and
     // reading the reference take memory and time in proportion to the job: a few at once.
     let _permit = app.validation().await?;
@@ -123,6 +130,7 @@ fn create_job_with(
         accum_bytes: accum,
         priority: req.priority,
         retry_of: retry.as_ref().map(|r| r.id),
+        require_tags: &req.require_tags,
     })?;
     app.event(
         &id,
@@ -171,6 +179,21 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
     } else {
         budget_left
     };
+    // Each read of the store on its own line: a guard held to the end of the status's
+    // expression would lock the store twice.
+    let blocklisted_workers = app.db().blocklist(&job.id)?;
+    let waiting_for = if active && !job.require_tags.is_empty() {
+        let workers = app.db().workers()?;
+        super::pools::waiting_for(
+            &job.id,
+            &job.require_tags,
+            &workers,
+            now,
+            app.cfg.lease_s * 2.0,
+        )
+    } else {
+        None
+    };
     Ok(JobStatus {
         id: job.id.clone(),
         name: job.name.clone(),
@@ -210,7 +233,15 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         priority: job.priority,
         paused_s: job.paused_until(job.finished_at.unwrap_or(now)),
         retry_of: job.retry_of.clone(),
+        require_tags: job.require_tags.clone(),
+        blocklisted_workers,
+        waiting_for,
     })
+}
+
+/// The status document of job `id` (404 if there is none).
+pub(crate) fn status_of(app: &App, id: &str) -> ApiResult<JobStatus> {
+    job_status(app, &find_job(app, id)?)
 }
 
 fn find_job(app: &App, id: &str) -> ApiResult<JobRow> {

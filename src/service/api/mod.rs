@@ -6,6 +6,7 @@ mod auth;
 mod errors;
 mod jobs;
 mod metrics;
+mod pools;
 mod references;
 mod scenes;
 mod workers;
@@ -18,7 +19,7 @@ use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post, put};
+use axum::routing::{delete, get, post, put};
 pub(crate) use errors::ApiError;
 use std::sync::Arc;
 use tokio::sync::Semaphore;
@@ -57,6 +58,13 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("get", "/v1/worker/tasks/{id}/input"),
     ("put", "/v1/worker/tasks/{id}/result"),
     ("post", "/v1/worker/tasks/{id}/fail"),
+    ("post", "/v1/workers/{id}/disable"),
+    ("post", "/v1/workers/{id}/enable"),
+    ("post", "/v1/workers/{id}/drain"),
+    ("delete", "/v1/workers/{id}/unhealthy"),
+    ("get", "/v1/workers/{id}/tasks"),
+    ("delete", "/v1/jobs/{id}/blocklist/{worker}"),
+    ("get", "/v1/jobs/{id}/tasks"),
 ];
 
 /// The coordinator's router: client routes (client token), worker routes (worker token),
@@ -87,6 +95,16 @@ pub(crate) fn router(app: AppState) -> Router {
         )
         .route("/v1/references", post(references::upload_reference))
         .route("/v1/workers", get(workers::list_workers))
+        .route("/v1/workers/{id}/disable", post(pools::disable_worker))
+        .route("/v1/workers/{id}/enable", post(pools::enable_worker))
+        .route("/v1/workers/{id}/drain", post(pools::drain_worker))
+        .route("/v1/workers/{id}/unhealthy", delete(pools::clear_unhealthy))
+        .route("/v1/workers/{id}/tasks", get(pools::worker_tasks))
+        .route(
+            "/v1/jobs/{id}/blocklist/{worker}",
+            delete(pools::clear_blocklist),
+        )
+        .route("/v1/jobs/{id}/tasks", get(pools::job_tasks))
         .route_layer(middleware::from_fn_with_state(app.clone(), admit_client))
         .route_layer(middleware::from_fn_with_state(
             app.clone(),

@@ -7,11 +7,12 @@ use crate::film::Tile;
 use crate::protocol::{
     DeregisterAnswer, DeregisterRequest, FailRequest, HeartbeatAnswer, HeartbeatRequest, JobState,
     Lease, LeaseRequest, LeasedJob, LeasedTask, OkAnswer, RegisterRequest, Registration,
-    ResultAnswer, ResultQuery, TaskKind, TaskState, WorkerList, WorkerState,
+    ResultAnswer, ResultQuery, TaskKind, TaskState, WorkerAdmin, WorkerList, WorkerState,
+    validate_tags,
 };
 use crate::service::accept::{self, Accepted};
 use crate::service::buffers::{self, Pooled};
-use crate::service::store::{JobRow, TaskRow};
+use crate::service::store::{JobRow, Outcome, TaskRow};
 use crate::service::{Metrics, jobs, runtime, upload};
 use axum::Json;
 use axum::body::{Body, Bytes};
@@ -50,8 +51,9 @@ pub(crate) async fn register(
         .filter(|c| !c.is_control())
         .take(200)
         .collect();
+    let tags = validate_tags(&r.tags).map_err(|e| bad("tags", e))?;
     app.db()
-        .register_worker(&id, &name, r.threads.clamp(1, 4096), &r.version)?;
+        .register_worker(&id, &name, r.threads.clamp(1, 4096), &r.version, &tags)?;
     tracing::info!("worker {name} ({id}) registered with {} threads", r.threads);
     Ok(Json(Registration {
         worker_id: id,
@@ -158,7 +160,8 @@ pub(crate) async fn heartbeat(
             lost.push(t.id);
         }
     }
-    Ok(Json(HeartbeatAnswer { lost }))
+    let drain = db.worker_admin(&r.worker_id)? == Some(WorkerAdmin::Draining);
+    Ok(Json(HeartbeatAnswer { lost, drain }))
 }
 
 /// POST /v1/worker/deregister: the worker is `left`, its leases go back to the queue.
@@ -365,7 +368,7 @@ pub(crate) async fn fail_task(
     let error: String = r.error.chars().take(2000).collect();
     let a = app.clone();
     let w = r.worker_id.clone();
-    tokio::task::spawn_blocking(move || jobs::task_failed(&a, &task, &w, &error))
+    tokio::task::spawn_blocking(move || jobs::task_failed(&a, &task, &w, &error, Outcome::Failed))
         .await
         .map_err(ApiError::internal)??;
     Ok(Json(OkAnswer { ok: true }))

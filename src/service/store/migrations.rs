@@ -144,6 +144,30 @@ pub(super) const MIGRATIONS: &[&str] = &[
      CREATE INDEX jobs_lease_order ON jobs (state, priority DESC, seq);
      CREATE INDEX jobs_seq ON jobs (seq);
      CREATE INDEX jobs_finished ON jobs (finished_at);",
+    // 6: worker pools and task history: a worker's tags and what an operator allows it
+    // (enabled, disabled, draining), the tags a job requires (both a sorted, comma-separated
+    // list; '' for none), and every attempt at every task, kept after its task row is deleted.
+    "ALTER TABLE workers ADD COLUMN tags TEXT NOT NULL DEFAULT '';
+     ALTER TABLE workers ADD COLUMN admin TEXT NOT NULL DEFAULT 'enabled';
+     ALTER TABLE jobs ADD COLUMN require_tags TEXT NOT NULL DEFAULT '';
+     CREATE TABLE task_attempts (
+       task_id INTEGER NOT NULL,
+       attempt INTEGER NOT NULL,
+       job_id TEXT NOT NULL,
+       kind TEXT NOT NULL,
+       pass INTEGER NOT NULL,
+       tile INTEGER NOT NULL,
+       worker_id TEXT NOT NULL,
+       leased_at REAL NOT NULL,
+       ended_at REAL,
+       outcome TEXT NOT NULL,
+       error TEXT,
+       PRIMARY KEY (task_id, attempt)
+     );
+     CREATE INDEX task_attempts_job ON task_attempts (job_id, leased_at);
+     CREATE INDEX task_attempts_job_outcome ON task_attempts (job_id, outcome, leased_at);
+     CREATE INDEX task_attempts_worker ON task_attempts (worker_id, leased_at);
+     CREATE INDEX task_attempts_worker_outcome ON task_attempts (worker_id, outcome, leased_at);",
 ];
 
 /// The version whose schema `PRAGMA user_version` 0 stood for before `schema_version` existed:
@@ -322,6 +346,15 @@ mod tests {
             let workers = db.workers().expect("workers");
             assert_eq!(workers.len(), 1, "from {from}");
             assert_eq!(workers[0].unhealthy, None);
+            // Pools: an old worker is enabled and untagged; an old job requires no tag.
+            assert_eq!(workers[0].admin, crate::protocol::WorkerAdmin::Enabled);
+            assert!(workers[0].tags.is_empty());
+            assert!(job.require_tags.is_empty());
+            assert!(
+                db.task_attempts(super::super::AttemptsOf::Job("j"), None, 10, 0)
+                    .expect("history")
+                    .is_empty()
+            );
             drop(db);
             // Opening it again changes nothing.
             drop(SqliteStore::open(&path).expect("opens again"));

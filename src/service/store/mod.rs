@@ -15,7 +15,8 @@ pub(crate) use result_logs::ResultLogs;
 pub(crate) use sqlite::SqliteStore;
 
 use crate::protocol::{
-    EventKind, JobState, SeriesPoint, TaskKind, TaskState, WorkerInfo, WorkerState,
+    AttemptOutcome, BlocklistEntry, EventKind, JobState, SeriesPoint, TaskAttempt, TaskKind,
+    TaskState, WorkerAdmin, WorkerInfo, WorkerState,
 };
 use std::time::{SystemTime, UNIX_EPOCH};
 
@@ -60,6 +61,8 @@ pub(crate) struct JobRow {
     pub paused_s: f64,
     /// The job this one retries.
     pub retry_of: Option<String>,
+    /// Worker tags the job needs (sorted).
+    pub require_tags: Vec<String>,
 }
 
 impl JobRow {
@@ -184,6 +187,8 @@ pub(crate) struct NewJob<'a> {
     pub accum_bytes: i64,
     pub priority: i32,
     pub retry_of: Option<&'a str>,
+    /// Worker tags the job needs (validated, sorted).
+    pub require_tags: &'a [String],
 }
 
 /// Failed tasks of one job (distinct) after which a worker gets none of its tasks any more
@@ -210,6 +215,15 @@ pub(crate) struct Failure {
     pub outcome: Outcome,
 }
 
+/// Whose task attempts [`JobStore::task_attempts`] lists.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum AttemptsOf<'a> {
+    /// A job's.
+    Job(&'a str),
+    /// A worker's.
+    Worker(&'a str),
+}
+
 /// How an attempt ended without a result.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) enum Outcome {
@@ -217,6 +231,8 @@ pub(crate) enum Outcome {
     Failed,
     /// The worker went silent: its lease expired.
     Lost,
+    /// The worker's result was refused as invalid.
+    Refused,
 }
 
 impl Outcome {
@@ -225,6 +241,7 @@ impl Outcome {
         match self {
             Outcome::Failed => "failed",
             Outcome::Lost => "lost",
+            Outcome::Refused => "refused",
         }
     }
 }
@@ -371,6 +388,7 @@ pub(crate) trait JobStore: Send {
         attempt: u32,
         worker: &str,
         error: &str,
+        outcome: Outcome,
     ) -> StoreResult<Option<Failure>>;
     /// Requeues every lease that expired, each recorded as a lost attempt of its worker with the
     /// consequences `fail` has.
@@ -384,9 +402,42 @@ pub(crate) trait JobStore: Send {
     fn stranded_tasks(&self, silent_s: f64) -> StoreResult<Vec<TaskRow>>;
     /// The error of a task's last failed or lost attempt.
     fn last_error(&self, task_id: i64) -> StoreResult<Option<String>>;
-    /// Registers a worker, or refreshes one that registers again with its id; it is `idle`.
-    fn register_worker(&self, id: &str, name: &str, threads: u32, version: &str)
-    -> StoreResult<()>;
+    /// Registers a worker with its `tags` (validated, sorted), or refreshes one that registers
+    /// again with its id; it is `idle`, and keeps what an operator allowed it.
+    fn register_worker(
+        &self,
+        id: &str,
+        name: &str,
+        threads: u32,
+        version: &str,
+        tags: &[String],
+    ) -> StoreResult<()>;
+    /// What an operator allows a worker; None when it is unknown.
+    fn worker_admin(&self, id: &str) -> StoreResult<Option<WorkerAdmin>>;
+    /// Sets what an operator allows a worker; the worker's admin state and health after it,
+    /// None when it is unknown.
+    fn set_worker_admin(
+        &self,
+        id: &str,
+        admin: WorkerAdmin,
+    ) -> StoreResult<Option<(WorkerAdmin, Option<String>)>>;
+    /// Clears a worker's unhealthy mark (the failures before now no longer count towards
+    /// another); its admin state, None when it is unknown.
+    fn clear_unhealthy(&self, id: &str) -> StoreResult<Option<WorkerAdmin>>;
+    /// Takes a worker off a job's blocklist and forgets its failed attempts of the job's tasks
+    /// (so it may take them again); false when it was not on it and had failed none.
+    fn clear_blocklist(&self, job: &str, worker: &str) -> StoreResult<bool>;
+    /// The workers blocklisted for a job, oldest first.
+    fn blocklist(&self, job: &str) -> StoreResult<Vec<BlocklistEntry>>;
+    /// A page of task attempts of a job or of a worker (`of`), failed first, then by lease
+    /// time: `limit` of them after skipping `offset`, only those ending with `outcome` if given.
+    fn task_attempts(
+        &self,
+        of: AttemptsOf<'_>,
+        outcome: Option<AttemptOutcome>,
+        limit: u32,
+        offset: u32,
+    ) -> StoreResult<Vec<TaskAttempt>>;
     /// Notes that a worker is alive, and its state when given (None keeps it, except that a
     /// worker marked gone is back); false when it is unknown.
     fn touch_worker(&self, id: &str, state: Option<WorkerState>) -> StoreResult<bool>;

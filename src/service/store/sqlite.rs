@@ -5,11 +5,12 @@
 
 use super::migrations;
 use super::{
-    BLOCKLIST_AFTER, Completed, Deleted, EventRow, Failure, JobQuery, JobRow, JobStore, NewJob,
-    Outcome, StoreError, StoreResult, TaskRow, UNHEALTHY_AFTER_JOBS, now,
+    AttemptsOf, BLOCKLIST_AFTER, Completed, Deleted, EventRow, Failure, JobQuery, JobRow,
+    JobStore, NewJob, Outcome, StoreError, StoreResult, TaskRow, UNHEALTHY_AFTER_JOBS, now,
 };
 use crate::protocol::{
-    EventKind, JobState, SeriesPoint, TaskKind, TaskState, WorkerInfo, WorkerState, WorkerTask,
+    AttemptOutcome, BlocklistEntry, EventKind, JobState, SeriesPoint, TaskAttempt, TaskKind,
+    TaskState, WorkerAdmin, WorkerInfo, WorkerState, WorkerTask,
 };
 use rusqlite::types::{FromSql, FromSqlError, FromSqlResult, ToSql, ToSqlOutput, ValueRef};
 use rusqlite::{Connection, OptionalExtension, params};
@@ -46,7 +47,28 @@ macro_rules! stored_as_name {
     )+};
 }
 
-stored_as_name!(JobState, TaskState, TaskKind, WorkerState, EventKind);
+stored_as_name!(
+    JobState,
+    TaskState,
+    TaskKind,
+    WorkerState,
+    EventKind,
+    WorkerAdmin,
+    AttemptOutcome
+);
+
+/// A list of tags as stored: sorted, comma-separated ('' for none).
+fn tags_text(tags: &[String]) -> String {
+    tags.join(",")
+}
+
+/// The tags of their stored text.
+fn tags_of(text: &str) -> Vec<String> {
+    text.split(',')
+        .filter(|t| !t.is_empty())
+        .map(str::to_string)
+        .collect()
+}
 
 /// The database of a coordinator.
 pub(crate) struct SqliteStore {
@@ -55,7 +77,8 @@ pub(crate) struct SqliteStore {
 
 const JOB_COLS: &str = "id, name, state, error, settings, resolved, scene_id, scene_main, \
     reference, created_at, started_at, finished_at, passes_done, spp_done, samples, rays, \
-    non_finite, accum_bytes, result_bytes, seq, priority, paused_at, paused_s, retry_of";
+    non_finite, accum_bytes, result_bytes, seq, priority, paused_at, paused_s, retry_of, \
+    require_tags";
 
 const TASK_COLS: &str =
     "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, result_at, result_len, kind";
@@ -86,6 +109,7 @@ fn job_row(r: &rusqlite::Row) -> rusqlite::Result<JobRow> {
         paused_at: r.get(21)?,
         paused_s: r.get(22)?,
         retry_of: r.get(23)?,
+        require_tags: tags_of(&r.get::<_, String>(24)?),
     })
 }
 
@@ -174,6 +198,12 @@ fn record_failure(
     error: &str,
 ) -> StoreResult<Failure> {
     let t = now();
+    let ended = match outcome {
+        Outcome::Failed => AttemptOutcome::Failed,
+        Outcome::Lost => AttemptOutcome::Expired,
+        Outcome::Refused => AttemptOutcome::Refused,
+    };
+    end_attempt(conn, task.id, task.attempt, ended, Some(error), t)?;
     cached_exec(
         conn,
         "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL, \
@@ -247,6 +277,75 @@ fn record_failure(
     })
 }
 
+/// A task attempt of its row (`task_attempts`' columns in order, as `task_attempts` reads them).
+fn attempt_row(r: &rusqlite::Row) -> rusqlite::Result<TaskAttempt> {
+    let leased_at: f64 = r.get(7)?;
+    let ended_at: Option<f64> = r.get(8)?;
+    Ok(TaskAttempt {
+        task_id: r.get(0)?,
+        job_id: r.get(1)?,
+        kind: r.get(2)?,
+        pass: r.get(3)?,
+        tile: r.get(4)?,
+        attempt: r.get(5)?,
+        worker_id: r.get(6)?,
+        leased_at,
+        ended_at,
+        outcome: r.get(9)?,
+        error: r.get(10)?,
+        seconds: ended_at.map(|e| (e - leased_at).max(0.0)),
+    })
+}
+
+/// Records how attempt `attempt` of task `task_id` ended (inside the caller's transaction).
+fn end_attempt(
+    conn: &Connection,
+    task_id: i64,
+    attempt: u32,
+    outcome: AttemptOutcome,
+    error: Option<&str>,
+    at: f64,
+) -> rusqlite::Result<usize> {
+    cached_exec(
+        conn,
+        "UPDATE task_attempts SET outcome = ?3, error = ?4, ended_at = ?5 \
+         WHERE task_id = ?1 AND attempt = ?2 AND outcome = ?6",
+        params![
+            task_id,
+            attempt,
+            outcome,
+            error,
+            at,
+            AttemptOutcome::Running
+        ],
+    )
+}
+
+/// Records every running attempt of the tasks chosen by `which` (an SQL condition on
+/// `task_attempts` with ?1 its one parameter) as cancelled with `error` (inside the caller's
+/// transaction).
+fn cancel_attempts(
+    conn: &Connection,
+    which: &str,
+    key: &dyn ToSql,
+    error: &str,
+) -> rusqlite::Result<usize> {
+    cached_exec(
+        conn,
+        &format!(
+            "UPDATE task_attempts SET outcome = ?2, error = ?3, ended_at = ?4 \
+             WHERE {which} AND outcome = ?5"
+        ),
+        params![
+            key,
+            AttemptOutcome::Cancelled,
+            error,
+            now(),
+            AttemptOutcome::Running
+        ],
+    )
+}
+
 impl SqliteStore {
     /// Opens (creating if needed) the database at `path`.
     pub fn open(path: &Path) -> StoreResult<SqliteStore> {
@@ -271,7 +370,7 @@ impl SqliteStore {
             )));
         }
         // Every query of the store is a cached statement (parsed once, not per result).
-        conn.set_prepared_statement_cache_capacity(64);
+        conn.set_prepared_statement_cache_capacity(96);
         // And kept: without the query planner stability guarantee, SQLite (built with STAT4)
         // re-prepares a statement whenever a value bound to it could change its plan, which
         // the lease query's did on every lease (BENCHMARKS.md, "The render service"). Every query here
@@ -299,8 +398,8 @@ impl JobStore for SqliteStore {
         cached_exec(
             &self.conn,
             "INSERT INTO jobs (id, seq, name, state, settings, resolved, scene_id, scene_main, \
-             reference, created_at, accum_bytes, priority, retry_of) \
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13)",
+             reference, created_at, accum_bytes, priority, retry_of, require_tags) \
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
             params![
                 j.id,
                 seq,
@@ -314,7 +413,8 @@ impl JobStore for SqliteStore {
                 now(),
                 j.accum_bytes,
                 j.priority,
-                j.retry_of
+                j.retry_of,
+                tags_text(j.require_tags)
             ],
         )?;
         Ok(())
@@ -475,13 +575,18 @@ impl JobStore for SqliteStore {
     }
     fn set_job_state(&self, id: &str, state: JobState, error: Option<&str>) -> StoreResult<bool> {
         let finished = (!state.is_active()).then(now);
+        let tx = self.conn.unchecked_transaction()?;
         let n = cached_exec(
-            &self.conn,
+            &tx,
             "UPDATE jobs SET state = ?2, error = COALESCE(?3, error), \
              finished_at = COALESCE(?4, finished_at) WHERE id = ?1 \
              AND state IN (?5, ?6, ?7)",
             params![id, state, error, finished, J_QUEUED, J_RUNNING, J_PAUSED],
         )?;
+        if n == 1 && finished.is_some() {
+            cancel_attempts(&tx, "job_id = ?1", &id, &format!("the job is {state}"))?;
+        }
+        tx.commit()?;
         Ok(n == 1)
     }
     fn set_job_resolved(&self, id: &str, resolved: &str) -> StoreResult<bool> {
@@ -493,13 +598,20 @@ impl JobStore for SqliteStore {
         Ok(n == 1)
     }
     fn release_worker(&self, worker: &str) -> StoreResult<usize> {
-        self.conn
-            .execute(
-                "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL \
+        let tx = self.conn.unchecked_transaction()?;
+        cancel_attempts(
+            &tx,
+            "worker_id = ?1",
+            &worker,
+            "the worker left and gave its lease back",
+        )?;
+        let n = tx.execute(
+            "UPDATE tasks SET state = ?2, worker_id = NULL, lease_expires = NULL \
              WHERE worker_id = ?1 AND state = ?3",
-                params![worker, T_QUEUED, T_LEASED],
-            )
-            .map_err(StoreError::from)
+            params![worker, T_QUEUED, T_LEASED],
+        )?;
+        tx.commit()?;
+        Ok(n)
     }
     fn task_existed(&self, task_id: i64) -> StoreResult<bool> {
         let max: Option<i64> = self
@@ -626,19 +738,23 @@ impl JobStore for SqliteStore {
         Ok(())
     }
     fn complete_merge(&self, task_id: i64, attempt: u32, worker: &str) -> StoreResult<bool> {
+        let tx = self.conn.unchecked_transaction()?;
         let n = cached_exec(
-            &self.conn,
+            &tx,
             "UPDATE tasks SET state = ?4, lease_expires = NULL \
              WHERE id = ?1 AND attempt = ?2 AND worker_id = ?3 AND state = ?5 AND kind = ?6",
             params![task_id, attempt, worker, T_DONE, T_LEASED, K_MERGE],
         )?;
         if n == 1 {
+            let t = now();
             cached_exec(
-                &self.conn,
+                &tx,
                 "UPDATE workers SET last_done_at = ?2 WHERE id = ?1",
-                params![worker, now()],
+                params![worker, t],
             )?;
+            end_attempt(&tx, task_id, attempt, AttemptOutcome::Done, None, t)?;
         }
+        tx.commit()?;
         Ok(n == 1)
     }
     fn last_tile(&self, id: &str, pass: u32) -> StoreResult<Option<u32>> {
@@ -699,36 +815,56 @@ impl JobStore for SqliteStore {
         .map_err(StoreError::from)
     }
     fn requeue(&self, task_id: i64) -> StoreResult<()> {
+        let tx = self.conn.unchecked_transaction()?;
+        cancel_attempts(
+            &tx,
+            "task_id = ?1",
+            &task_id,
+            "requeued: its result could not be merged",
+        )?;
         cached_exec(
-            &self.conn,
+            &tx,
             "UPDATE tasks SET state = ?2, worker_id = NULL WHERE id = ?1",
             params![task_id, T_QUEUED],
         )?;
+        tx.commit()?;
         Ok(())
     }
     fn lease(&self, worker: &str, lease_s: f64) -> StoreResult<Option<TaskRow>> {
         let tx = self.conn.unchecked_transaction()?;
-        let unhealthy: Option<String> = cached_row(
+        let me: Option<(Option<String>, WorkerAdmin, String)> = cached_row(
             &tx,
-            "SELECT unhealthy FROM workers WHERE id = ?1",
+            "SELECT unhealthy, admin, tags FROM workers WHERE id = ?1",
             [worker],
-            |r| r.get(0),
+            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
         )
-        .optional()?
-        .flatten();
-        if unhealthy.is_some() {
-            return Ok(None);
-        }
+        .optional()?;
+        let tags = match me {
+            Some((None, WorkerAdmin::Enabled, tags)) => tags_of(&tags),
+            // Unhealthy, disabled or draining: nothing.
+            Some(_) => return Ok(None),
+            None => Vec::new(),
+        };
         // Job by job (few), each an index lookup of (state, job, pass, tile): no sort of the
-        // queue, however many tasks it holds.
+        // queue, however many tasks it holds. A job that requires tags the worker lacks is
+        // passed over.
         let jobs: Vec<String> = {
             let mut st = tx.prepare_cached(
-                "SELECT id FROM jobs WHERE state IN (?1, ?2) AND NOT EXISTS \
+                "SELECT id, require_tags FROM jobs WHERE state IN (?1, ?2) AND NOT EXISTS \
                  (SELECT 1 FROM blocklist b WHERE b.job_id = jobs.id AND b.worker_id = ?3) \
                  ORDER BY priority DESC, seq",
             )?;
-            st.query_map(params![J_QUEUED, J_RUNNING, worker], |r| r.get(0))?
-                .collect::<rusqlite::Result<_>>()?
+            let rows = st.query_map(params![J_QUEUED, J_RUNNING, worker], |r| {
+                Ok((r.get::<_, String>(0)?, r.get::<_, String>(1)?))
+            })?;
+            let mut jobs = Vec::new();
+            for row in rows {
+                let (job, required) = row?;
+                if tags_of(&required).iter().all(|t| tags.contains(t)) {
+                    jobs.push(job);
+                }
+            }
+            jobs
         };
         let mut id: Option<i64> = None;
         for job in &jobs {
@@ -760,6 +896,14 @@ impl JobStore for SqliteStore {
             &tx,
             "UPDATE workers SET last_seen = ?2, state = ?3 WHERE id = ?1",
             params![worker, t, WorkerState::Busy],
+        )?;
+        cached_exec(
+            &tx,
+            "INSERT OR REPLACE INTO task_attempts (task_id, attempt, job_id, kind, pass, tile, \
+             worker_id, leased_at, outcome) \
+             SELECT id, attempt, job_id, kind, pass, tile, worker_id, ?2, ?3 FROM tasks \
+             WHERE id = ?1",
+            params![id, t, AttemptOutcome::Running],
         )?;
         let row = cached_row(
             &tx,
@@ -817,11 +961,13 @@ impl JobStore for SqliteStore {
                 "UPDATE jobs SET result_bytes = result_bytes + ?2 WHERE id = (SELECT job_id FROM tasks WHERE id = ?1)",
                 params![task_id, bytes as i64],
             )?;
+            let t = now();
             cached_exec(
                 &tx,
                 "UPDATE workers SET tasks_done = tasks_done + 1, last_done_at = ?2 WHERE id = ?1",
-                params![worker, now()],
+                params![worker, t],
             )?;
+            end_attempt(&tx, task_id, attempt, AttemptOutcome::Done, None, t)?;
         }
         if n != 1 {
             return Ok(None);
@@ -837,6 +983,7 @@ impl JobStore for SqliteStore {
         attempt: u32,
         worker: &str,
         error: &str,
+        outcome: Outcome,
     ) -> StoreResult<Option<Failure>> {
         let tx = self.conn.unchecked_transaction()?;
         let task = cached_row(
@@ -852,7 +999,7 @@ impl JobStore for SqliteStore {
         let Some(task) = task else {
             return Ok(None);
         };
-        let f = record_failure(&tx, &task, worker, Outcome::Failed, error)?;
+        let f = record_failure(&tx, &task, worker, outcome, error)?;
         tx.commit()?;
         Ok(Some(f))
     }
@@ -923,16 +1070,143 @@ impl JobStore for SqliteStore {
         name: &str,
         threads: u32,
         version: &str,
+        tags: &[String],
     ) -> StoreResult<()> {
         let t = now();
         cached_exec(
             &self.conn,
-            "INSERT INTO workers (id, name, threads, version, registered_at, last_seen, state) \
-             VALUES (?1, ?2, ?3, ?4, ?5, ?5, ?6) ON CONFLICT (id) DO UPDATE SET \
-             name = ?2, threads = ?3, version = ?4, last_seen = ?5, state = ?6",
-            params![id, name, threads, version, t, WorkerState::Idle],
+            "INSERT INTO workers (id, name, threads, version, registered_at, last_seen, state, \
+             tags) VALUES (?1, ?2, ?3, ?4, ?5, ?5, ?6, ?7) ON CONFLICT (id) DO UPDATE SET \
+             name = ?2, threads = ?3, version = ?4, last_seen = ?5, state = ?6, tags = ?7",
+            params![
+                id,
+                name,
+                threads,
+                version,
+                t,
+                WorkerState::Idle,
+                tags_text(tags)
+            ],
         )?;
         Ok(())
+    }
+    fn worker_admin(&self, id: &str) -> StoreResult<Option<WorkerAdmin>> {
+        Ok(cached_row(
+            &self.conn,
+            "SELECT admin FROM workers WHERE id = ?1",
+            [id],
+            |r| r.get(0),
+        )
+        .optional()?)
+    }
+    fn set_worker_admin(
+        &self,
+        id: &str,
+        admin: WorkerAdmin,
+    ) -> StoreResult<Option<(WorkerAdmin, Option<String>)>> {
+        Ok(cached_row(
+            &self.conn,
+            "UPDATE workers SET admin = ?2 WHERE id = ?1 RETURNING admin, unhealthy",
+            params![id, admin],
+            |r| Ok((r.get(0)?, r.get(1)?)),
+        )
+        .optional()?)
+    }
+    fn clear_unhealthy(&self, id: &str) -> StoreResult<Option<WorkerAdmin>> {
+        // The mark counts failures since the worker's last result: from now on, as if it had
+        // just delivered one.
+        Ok(cached_row(
+            &self.conn,
+            "UPDATE workers SET unhealthy = NULL, last_done_at = ?2 WHERE id = ?1 RETURNING admin",
+            params![id, now()],
+            |r| r.get(0),
+        )
+        .optional()?)
+    }
+    fn clear_blocklist(&self, job: &str, worker: &str) -> StoreResult<bool> {
+        let tx = self.conn.unchecked_transaction()?;
+        let listed = tx.execute(
+            "DELETE FROM blocklist WHERE job_id = ?1 AND worker_id = ?2",
+            params![job, worker],
+        )?;
+        // Its failed attempts would keep those tasks from it, and count towards the next entry.
+        let failed = tx.execute(
+            "DELETE FROM failures WHERE job_id = ?1 AND worker_id = ?2",
+            params![job, worker],
+        )?;
+        tx.commit()?;
+        Ok(listed + failed > 0)
+    }
+    fn blocklist(&self, job: &str) -> StoreResult<Vec<BlocklistEntry>> {
+        let mut st = self.conn.prepare_cached(
+            "SELECT worker_id, since, reason FROM blocklist WHERE job_id = ?1 ORDER BY since",
+        )?;
+        st.query_map([job], |r| {
+            Ok(BlocklistEntry {
+                worker_id: r.get(0)?,
+                since: r.get(1)?,
+                reason: r.get(2)?,
+            })
+        })?
+        .collect::<rusqlite::Result<Vec<_>>>()
+        .map_err(StoreError::from)
+    }
+    fn task_attempts(
+        &self,
+        of: AttemptsOf<'_>,
+        outcome: Option<AttemptOutcome>,
+        limit: u32,
+        offset: u32,
+    ) -> StoreResult<Vec<TaskAttempt>> {
+        let (column, key) = match of {
+            AttemptsOf::Job(j) => ("job_id", j),
+            AttemptsOf::Worker(w) => ("worker_id", w),
+        };
+        let cols = "task_id, job_id, kind, pass, tile, attempt, worker_id, leased_at, ended_at, \
+             outcome, error";
+        // Each page is read from an index in order (no sort of a large job's attempts while
+        // the store is held): the failed attempts, then the others.
+        let page = |sql: &str, p: &[&dyn ToSql]| -> rusqlite::Result<Vec<TaskAttempt>> {
+            let mut st = self.conn.prepare_cached(sql)?;
+            st.query_map(p, attempt_row)?.collect()
+        };
+        let of_outcome = format!(
+            "SELECT {cols} FROM task_attempts WHERE {column} = ?1 AND outcome = ?2 \
+             ORDER BY leased_at, rowid LIMIT ?3 OFFSET ?4"
+        );
+        if let Some(o) = outcome {
+            return Ok(page(&of_outcome, params![key, o, limit, offset])?);
+        }
+        let failed: u32 = cached_row(
+            &self.conn,
+            &format!("SELECT COUNT(*) FROM task_attempts WHERE {column} = ?1 AND outcome = ?2"),
+            params![key, AttemptOutcome::Failed],
+            |r| r.get(0),
+        )?;
+        let mut rows = if offset < failed {
+            page(
+                &of_outcome,
+                params![key, AttemptOutcome::Failed, limit, offset],
+            )?
+        } else {
+            Vec::new()
+        };
+        let left = limit.saturating_sub(rows.len() as u32);
+        if left > 0 {
+            rows.extend(page(
+                &format!(
+                    "SELECT {cols} FROM task_attempts WHERE {column} = ?1 AND outcome != ?2 \
+                     ORDER BY leased_at, rowid LIMIT ?3 OFFSET ?4"
+                ),
+                params![
+                    key,
+                    AttemptOutcome::Failed,
+                    left,
+                    offset.saturating_sub(failed)
+                ],
+            )?);
+        }
+        Ok(rows)
     }
     fn touch_worker(&self, id: &str, state: Option<WorkerState>) -> StoreResult<bool> {
         let n = cached_exec(
@@ -984,7 +1258,7 @@ impl JobStore for SqliteStore {
         }
         let mut st = self.conn.prepare_cached(
             "SELECT id, name, threads, version, registered_at, last_seen, state, tasks_done, \
-             unhealthy FROM workers ORDER BY registered_at",
+             unhealthy, tags, admin FROM workers ORDER BY registered_at",
         )?;
         st.query_map([], |r| {
             let id: String = r.get(0)?;
@@ -1000,6 +1274,8 @@ impl JobStore for SqliteStore {
                 last_seen: r.get(5)?,
                 state: r.get(6)?,
                 tasks_done: r.get(7)?,
+                tags: tags_of(&r.get::<_, String>(9)?),
+                admin: r.get(10)?,
             })
         })?
         .collect::<rusqlite::Result<Vec<_>>>()
@@ -1067,11 +1343,13 @@ mod tests {
                 accum_bytes: 0,
                 priority: 0,
                 retry_of: None,
+                require_tags: &[],
             })
             .expect("job");
             db.create_tasks(job, 0, 0..tiles, 0..16).expect("tasks");
         }
-        db.register_worker("w", "w", 1, "test").expect("worker");
+        db.register_worker("w", "w", 1, "test", &[])
+            .expect("worker");
         let mut leased = Vec::new();
         for _ in 0..12 {
             let t = db.lease("w", 60.0).expect("lease").expect("a queued task");

@@ -359,6 +359,54 @@ function relmseChart(series) {
   return svg;
 }
 
+/** The job page's task history: every attempt (failed ones first, with their errors), the
+ * workers blocklisted for the job (each with a button that clears it) and why the job waits. */
+function taskHistoryPanel(id, signal) {
+  const path = `/v1/jobs/${encodeURIComponent(id)}`;
+  const body = h('tbody');
+  const blocked = h('ul', { class: 'blocklist', id: 'blocklist' });
+  const waiting = h('p', { class: 'hint', id: 'waiting-for' });
+  const panel = h('details', { class: 'panel', id: 'task-history' },
+    h('summary', {}, 'Task history'),
+    waiting, blocked,
+    h('table', { class: 'history' },
+      h('thead', {}, h('tr', {},
+        h('th', {}, 'Task'), h('th', {}, 'Worker'), h('th', {}, 'Outcome'),
+        h('th', { class: 'num' }, 'Seconds'), h('th', {}, 'Error'))),
+      body));
+  async function load() {
+    const [st, page] = await Promise.all([
+      apiJson(path, { signal }),
+      apiJson(`${path}/tasks?limit=200`, { signal }),
+    ]);
+    waiting.textContent = st.waiting_for || '';
+    blocked.replaceChildren(...(st.blocklisted_workers || []).map((b) => {
+      const btn = h('button', { type: 'button' }, 'Clear');
+      btn.addEventListener('click', async () => {
+        btn.disabled = true;
+        try {
+          await apiJson(`${path}/blocklist/${encodeURIComponent(b.worker_id)}`, { method: 'DELETE' });
+          await load();
+        } catch (e) {
+          alert(e.message);
+          btn.disabled = false;
+        }
+      });
+      return h('li', {}, 'blocklisted: ', h('span', { class: 'mono' }, short(b.worker_id)), ' ',
+        h('span', { class: 'muted' }, b.reason), ' ', btn);
+    }));
+    body.replaceChildren(...page.attempts.map((a) => h('tr', { class: `outcome-${a.outcome}` },
+      h('td', {}, a.kind === 'merge' ? `merge ${a.pass}/${a.tile}` : `pass ${a.pass} tile ${a.tile}`, ` #${a.attempt}`),
+      h('td', { class: 'mono' }, short(a.worker_id)),
+      h('td', {}, a.outcome),
+      h('td', { class: 'num' }, a.seconds === null ? '…' : a.seconds.toFixed(2)),
+      h('td', {}, a.error || ''))));
+  }
+  panel.addEventListener('toggle', () => { if (panel.open) load().catch(showError); });
+  every(5000, signal, async () => { if (panel.open) await load(); }).catch(() => {});
+  return panel;
+}
+
 async function jobView(signal, id) {
   const path = `/v1/jobs/${encodeURIComponent(id)}`;
   let st = await apiJson(path, { signal });
@@ -455,6 +503,7 @@ async function jobView(signal, id) {
         h('figure', { class: 'panel' }, h('h2', {}, 'relMSE against time'), chartBox),
         h('figure', { class: 'panel', id: 'error-pane' }, h('h2', {}, 'Error map'), errImg,
           h('figcaption', { class: 'hint' }, 'Red: brighter than the reference; green: darker. The bar under the map gives the relative error shown at full colour, fitted to this image.')),
+        taskHistoryPanel(id, signal),
         h('details', { class: 'panel' }, h('summary', {}, 'Events'), events))));
   stage.style.aspectRatio = `${st.width} / ${st.height}`;
 
@@ -642,6 +691,32 @@ async function jobView(signal, id) {
 
 // -- workers --
 
+/** Buttons of an operator's controls of worker `w`: disable, enable, drain, clear unhealthy. */
+function workerActions(w) {
+  const base = `/v1/workers/${encodeURIComponent(w.id)}`;
+  const act = (label, method, suffix) => {
+    const b = h('button', { type: 'button', class: 'small', dataset: { action: suffix } }, label);
+    b.addEventListener('click', async () => {
+      b.disabled = true;
+      try {
+        await apiJson(`${base}/${suffix}`, { method });
+        b.textContent = 'done';
+      } catch (e) {
+        alert(e.message);
+        b.disabled = false;
+      }
+    });
+    return b;
+  };
+  if (['left', 'gone'].includes(w.state)) return '';
+  const admin = w.admin || 'enabled';
+  return [
+    admin === 'enabled' ? act('Disable', 'POST', 'disable') : act('Enable', 'POST', 'enable'),
+    admin !== 'draining' ? act('Drain', 'POST', 'drain') : '',
+    w.unhealthy ? act('Clear unhealthy', 'DELETE', 'unhealthy') : '',
+  ];
+}
+
 async function workersView(signal) {
   document.title = 'omis: workers';
   const body = h('tbody');
@@ -652,7 +727,8 @@ async function workersView(signal) {
       h('thead', {}, h('tr', {},
         h('th', {}, 'Worker'), h('th', {}, 'State'), h('th', { class: 'num' }, 'Threads'), h('th', {}, 'Current task'),
         h('th', { class: 'num' }, 'Tasks done'), h('th', { class: 'num' }, 'Tiles / min (last minute)'),
-        h('th', { class: 'num' }, 'Tiles / min (overall)'), h('th', { class: 'num' }, 'Last seen'))),
+        h('th', { class: 'num' }, 'Tiles / min (overall)'), h('th', { class: 'num' }, 'Last seen'),
+        h('th', {}, 'Tags'), h('th', {}, 'Admin'))),
       body),
     h('p', { class: 'hint' }, 'A task is one tile for one pass, or the merge of a finished pass into one band group of tiles. Workers that left (drained) or went silent past twice the lease time are listed dimmed. A worker that failed tasks of 3 jobs since its last result is unhealthy and gets no task (hover for why); one that failed 3 tasks of a job is kept from that job.'));
   await every(2000, signal, async () => {
@@ -661,7 +737,7 @@ async function workersView(signal) {
     const order = { busy: 0, idle: 1, gone: 2, left: 3 };
     workers.sort((a, b) => (order[a.state] ?? 9) - (order[b.state] ?? 9) || a.name.localeCompare(b.name));
     if (!workers.length) {
-      body.replaceChildren(h('tr', {}, h('td', { colspan: 8, class: 'empty' }, 'No worker has registered. Start one with omis worker --coordinator URL.')));
+      body.replaceChildren(h('tr', {}, h('td', { colspan: 10, class: 'empty' }, 'No worker has registered. Start one with omis worker --coordinator URL.')));
       return;
     }
     body.replaceChildren(...workers.map((w) => {
@@ -688,7 +764,9 @@ async function workersView(signal) {
         h('td', { class: 'num' }, w.tasks_done),
         h('td', { class: 'num' }, recent === null ? '…' : recent.toFixed(1)),
         h('td', { class: 'num' }, ((w.tasks_done / life) * 60).toFixed(1)),
-        h('td', { class: 'num' }, `${fmtSeconds(Math.max(0, now - w.last_seen))} ago`));
+        h('td', { class: 'num' }, `${fmtSeconds(Math.max(0, now - w.last_seen))} ago`),
+        h('td', { class: 'mono' }, (w.tags || []).join(', ') || '—'),
+        h('td', {}, w.admin || 'enabled', ' ', workerActions(w)));
     }));
   });
 }
