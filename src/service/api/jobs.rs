@@ -6,9 +6,7 @@ use super::errors::{ApiError, ApiResult, JsonBody, bad, settings_error};
 use super::{AppState, references, scenes};
 use crate::protocol::{
     JobEvent, JobLinks, JobList, JobListQuery, JobPatch, JobRequest, JobState, JobStatus,
-    QueuedEvent, SceneMeta, SceneRef, SceneSource, SseData,
-    JobEvent, JobLinks, JobList, JobRequest, JobStatus, QueuedEvent, SceneMeta, SceneRef,
-    SceneSource, SseData, validate_tags,
+    QueuedEvent, SceneMeta, SceneRef, SceneSource, SseData, validate_tags,
 };
 use crate::service::store::{self, EventRow, JobRow};
 use crate::service::{App, jobs, runtime};
@@ -474,6 +472,7 @@ fn retry_blocking(app: &App, old: &JobRow) -> ApiResult<JobRow> {
         reference: None,
         name: old.name.clone(),
         priority: old.priority,
+        require_tags: old.require_tags.clone(),
     };
     create_job_with(
         app,
