@@ -74,7 +74,11 @@ fn a_user_acts_on_its_own_jobs_only_and_an_admin_on_every_job() {
         assert_eq!((s, &v), (200, &json!({ "name": name, "role": role })));
     }
     let (s, v) = call(c.get(format!("{url}/v1/whoami")), "nobody-token");
-    assert_eq!((s, v["field"].as_str()), (401, Some("Authorization")), "{v}");
+    assert_eq!(
+        (s, v["field"].as_str()),
+        (401, Some("Authorization")),
+        "{v}"
+    );
 
     let bobs = submit_as(&c, &url, "bob-token-1");
     let bobs_other = submit_as(&c, &url, "bob-token-1");
@@ -143,7 +147,10 @@ fn a_bad_users_file_stops_serve_with_one_line_naming_entry_and_field() {
         assert!(!out.status.success(), "{text}: serve started");
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(err.trim().lines().count(), 1, "{text}: {err}");
-        assert!(err.contains(want) && err.contains("--users"), "{text}: {err}");
+        assert!(
+            err.contains(want) && err.contains("--users"),
+            "{text}: {err}"
+        );
     }
 }
 

@@ -3,6 +3,7 @@
 //! the same job (the tiling-invariance property across processes), whatever dies on the way.
 //! Every process a test starts is killed when the test ends, also when it fails.
 
+mod access;
 mod bad_input;
 mod checkpoints;
 mod cli;
@@ -16,3 +17,4 @@ mod pool;
 mod support;
 mod synthetic_stream;
 mod time_budget;
+mod webhooks;
