@@ -116,7 +116,7 @@ class Client:
             except CoordinatorError:
                 self.binary = None
         if token is None and url is not None and self.coordinator is None:
-            token = os.environ.get("OMIS_TOKEN")
+            token = os.environ.get("OMIS_CLIENT_TOKEN") or os.environ.get("OMIS_TOKEN")
         self.url: str = url
         self._http = Transport(url, token, timeout)
 
