@@ -3,7 +3,9 @@
 use super::client::{self, Client};
 use super::job_args::JobArgs;
 use crate::job::Limits;
-use crate::protocol::{JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource};
+use crate::protocol::{
+    JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource, WebhookSpec,
+};
 use crate::service;
 use crate::worker;
 use anyhow::{Context, Result, bail};
@@ -80,8 +82,8 @@ fn read_users(path: &std::path::Path) -> Result<Vec<service::api::auth::User>> {
         .map_err(|e| anyhow::anyhow!("--users {}: {e}", path.display()))
 }
 
-/// The receivers of `omis serve --webhook`, all signed with the secret of
-/// `--webhook-secret-file` (if given).
+/// The receivers of `--webhook` (of `serve`: every job's; of `submit`: the job's), all signed
+/// with the secret of `--webhook-secret-file` (if given).
 fn global_webhooks(
     urls: &[String],
     secret_file: &Option<PathBuf>,
@@ -392,6 +394,13 @@ pub(crate) struct SubmitArgs {
     /// With --wait: download the EXR here.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// A receiver of the job's final event (done, failed, cancelled), POSTed as JSON; may be
+    /// given several times. http:// only.
+    #[arg(long = "webhook")]
+    pub webhooks: Vec<String>,
+    /// Signs the bodies POSTed to this job's --webhook receivers with this file's first line.
+    #[arg(long)]
+    pub webhook_secret_file: Option<PathBuf>,
     #[command(flatten)]
     pub server: ServerArgs,
 }
@@ -404,6 +413,18 @@ pub(crate) async fn submit_job(
     reference: Option<&std::path::Path>,
     name: Option<&str>,
 ) -> Result<JobStatus> {
+    submit_job_with(c, scene, job, reference, name, Vec::new()).await
+}
+
+/// `submit_job` with the job's own webhook receivers.
+async fn submit_job_with(
+    c: &Client,
+    scene: SceneSource,
+    job: &JobArgs,
+    reference: Option<&std::path::Path>,
+    name: Option<&str>,
+    webhooks: Vec<WebhookSpec>,
+) -> Result<JobStatus> {
     let settings = job.settings()?;
     let reference = match reference {
         Some(r) => Some(ReferenceSource::Upload(c.upload_reference(r).await?)),
@@ -414,7 +435,7 @@ pub(crate) async fn submit_job(
         settings,
         reference,
         name: name.map(str::to_string),
-        webhooks: Vec::new(),
+        webhooks,
     };
     c.submit(&req).await
 }
@@ -458,8 +479,23 @@ pub(crate) async fn wait_job(c: &Client, status: &JobStatus, quiet: bool) -> Res
 pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
     runtime()?.block_on(async move {
         let c = a.server.client()?;
+        let webhooks = global_webhooks(&a.webhooks, &a.webhook_secret_file)?
+            .into_iter()
+            .map(|t| WebhookSpec {
+                url: t.url,
+                secret: t.secret,
+            })
+            .collect();
         let scene = client::scene_source(&c, &a.scene, &a.job.settings()?.defines).await?;
-        let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), a.name.as_deref()).await?;
+        let st = submit_job_with(
+            &c,
+            scene,
+            &a.job,
+            a.reference.as_deref(),
+            a.name.as_deref(),
+            webhooks,
+        )
+        .await?;
         let id = st.id.clone();
         if !a.wait {
             println!("{id}");

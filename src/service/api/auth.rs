@@ -299,7 +299,7 @@ mod tests {
         assert_eq!((bob.name.as_str(), bob.role), ("bob", Role::User));
         assert_eq!(who("single-token").expect("admin"), Principal::admin());
         assert_eq!(
-            who("nobody-at-all").err().expect("refused").status,
+            who("nobody-at-all").expect_err("refused").status,
             StatusCode::UNAUTHORIZED
         );
         assert!(resolve_client(&HeaderMap::new(), &single, &users).is_err());
@@ -341,7 +341,7 @@ mod tests {
                 "entry 0 (\"a b\"): name",
             ),
         ] {
-            let e = parse_users(text).err().expect(text);
+            let e = parse_users(text).expect_err(text);
             assert!(e.contains(want), "{text}: {e}");
         }
     }
