@@ -286,6 +286,7 @@ class Client:
         *,
         reference: Optional[Reference] = None,
         name: Optional[str] = None,
+        webhooks: Optional[list[dict[str, str]]] = None,
         **settings: Any,
     ) -> "Job":
         """Submits a render job; returns it at once (`Job.wait` follows it).
@@ -293,7 +294,8 @@ class Client:
         `settings` are the job settings of proto/openapi.yaml with Python names: ``spp=64,
         integrator="bdpt", mis="optimal", resolution=(320, 180), time_budget=10, seed=1,
         max_depth=5, depth_layers=True, strategies=True, defines={"res": "64"}, ...``. A bad
-        one raises `ServiceError` whose ``field`` names it (``settings.spp``)."""
+        one raises `ServiceError` whose ``field`` names it (``settings.spp``). `webhooks`:
+        receivers of the job's end, ``[{"url": "http://...", "secret": "..."}]``."""
         s = job_settings(settings)
         request: dict[str, Any] = {
             "scene": self.scene_source(scene, s.get("defines")),
@@ -303,6 +305,8 @@ class Client:
             request["reference"] = self.reference_source(reference)
         if name is not None:
             request["name"] = name
+        if webhooks:
+            request["webhooks"] = webhooks
         doc = self._http.json("POST", "/v1/jobs", "submitting the job", request)
         return Job(self, doc["id"], doc)
 
