@@ -171,3 +171,49 @@ fn the_worker_refuses_the_old_ambiguous_token_flag_with_the_new_name() {
     assert_eq!(err.trim().lines().count(), 1, "{err}");
     assert!(err.contains("--worker-token"), "{err}");
 }
+
+#[test]
+fn client_commands_take_the_client_token_by_its_new_name_and_the_old_one_with_a_warning() {
+    let dir = folder("access-client-flags");
+    let (_server, url) = serve(&dir.join("data"), &["--client-token", "client-token-1"]);
+    let omis = |args: &[&str]| {
+        Command::new(EXE)
+            .args(args)
+            .args(["--server", &url])
+            .env("OMIS_LOG", "warn")
+            .env_remove("OMIS_TOKEN")
+            .env_remove("OMIS_CLIENT_TOKEN")
+            .output()
+            .expect("run omis")
+    };
+    let hook = "http://127.0.0.1:9/hook";
+    let out = omis(&[
+        "submit",
+        "cornell-box",
+        "--spp",
+        "64",
+        "--client-token",
+        "client-token-1",
+        "--webhook",
+        hook,
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    let id = String::from_utf8_lossy(&out.stdout).trim().to_string();
+    let st = state_of(&http(), &url, &id, "client-token-1");
+    assert_eq!(
+        (&st["owner"], &st["webhooks"]),
+        (&json!("admin"), &json!([hook]))
+    );
+
+    let out = omis(&["status", &id, "--token", "client-token-1"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("deprecated") && err.contains("--client-token"),
+        "{err}"
+    );
+
+    let out = omis(&["status", &id, "--client-token", "wrong-token"]);
+    assert!(!out.status.success());
+}
