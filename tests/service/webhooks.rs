@@ -305,6 +305,16 @@ fn each_final_event_reaches_each_receiver_once_signed_and_a_500_is_retried() {
             "{of_job:?}"
         );
     }
+    let metrics = c
+        .get(format!("{url}/metrics"))
+        .send()
+        .expect("metrics")
+        .text()
+        .expect("text");
+    assert!(
+        metrics.contains("omis_webhook_deliveries{state=\"delivered\"} 3"),
+        "{metrics}"
+    );
     let cancelled_hit = global_hits
         .iter()
         .find(|h| h.json()["job"]["id"] == cancelled.as_str())

@@ -374,7 +374,7 @@ pub(crate) trait JobStore: Send {
     ) -> StoreResult<EventRow>;
     /// A job's events after event `after`, in order.
     fn events_after(&self, job: &str, after: i64) -> StoreResult<Vec<EventRow>>;
-    /// Counts of (state, n) in a table (jobs, tasks or workers).
+    /// Counts of (state, n) in a table (jobs, tasks, workers or webhook_deliveries).
     fn state_counts(&self, table: &str) -> StoreResult<Vec<(String, i64)>>;
     /// Pending webhook deliveries due at `now`, at most `limit`, earliest first.
     fn due_deliveries(&self, now: f64, limit: u32) -> StoreResult<Vec<DeliveryRow>>;

@@ -303,9 +303,13 @@ impl SqliteStore {
             })
             .optional()?
             .flatten();
-        let own: Vec<WebhookTarget> = match own {
-            Some(json) => serde_json::from_str(&json)
-                .map_err(|e| StoreError::new(format!("job {id}: its webhooks: {e}")))?,
+        // Unreadable receivers must not keep the job from ending: they are left out, logged.
+        let own: Vec<WebhookTarget> = match own.map(|j| serde_json::from_str(&j)) {
+            Some(Ok(targets)) => targets,
+            Some(Err(e)) => {
+                tracing::error!("job {id}: its webhooks are unreadable ({e}); none is notified");
+                Vec::new()
+            }
             None => Vec::new(),
         };
         let at = now();
@@ -972,7 +976,7 @@ impl JobStore for SqliteStore {
     }
     fn state_counts(&self, table: &str) -> StoreResult<Vec<(String, i64)>> {
         let table = match table {
-            "jobs" | "tasks" | "workers" => table,
+            "jobs" | "tasks" | "workers" | "webhook_deliveries" => table,
             _ => return Ok(Vec::new()),
         };
         let mut st = self.conn.prepare_cached(&format!(
