@@ -12,10 +12,10 @@
 #   cargo build --release && .ci/base-image
 #   docker build --target prebuilt --build-arg RUNTIME_IMAGE=omis-base:bookworm -t omis .
 #
-#   docker run -e OMIS_TOKEN=... -e OMIS_WORKER_TOKEN=... -p 8570:8570 -v omis-data:/data omis
+#   docker run -e OMIS_CLIENT_TOKEN=... -e OMIS_WORKER_TOKEN=... -p 8570:8570 -v omis-data:/data omis
 #
-# Binding 0.0.0.0 needs both tokens: without OMIS_TOKEN and OMIS_WORKER_TOKEN (or
-# --token-file / --worker-token-file) the coordinator refuses to start.
+# Binding 0.0.0.0 needs both tokens: without OMIS_CLIENT_TOKEN and OMIS_WORKER_TOKEN (or
+# --client-token-file / --worker-token-file) the coordinator refuses to start.
 
 # The code uses edition 2024 and let-chains: Rust >= 1.88.
 ARG RUST_IMAGE=rust:1.95-bookworm

@@ -365,6 +365,7 @@ def main():
         serve_log = open(os.path.join(a.out, "browser-test-serve.log"), "w")
         env = dict(os.environ, OMIS_LOG="info")
         env.pop("OMIS_TOKEN", None)
+        env.pop("OMIS_CLIENT_TOKEN", None)
         env.pop("OMIS_WORKER_TOKEN", None)
         data = os.path.join(tmp, "data")
 
@@ -372,7 +373,7 @@ def main():
             p = procs.start(
                 "omis serve",
                 [a.omis, "serve", "--bind", bind, "--data", data, "--workers", "2",
-                 "--scenes", a.scenes, "--token", token, "--worker-token", worker_token],
+                 "--scenes", a.scenes, "--client-token", token, "--worker-token", worker_token],
                 stdout=subprocess.PIPE, stderr=serve_log, text=True, env=env,
             )
             line = read_first_line(p, 30)

@@ -115,7 +115,7 @@ class Stack:
         self.dc = compose_command() + ["-p", self.project, "-f", "docker-compose.yml"]
         self.env = dict(
             os.environ,
-            OMIS_TOKEN=self.token,
+            OMIS_CLIENT_TOKEN=self.token,
             OMIS_WORKER_TOKEN=self.worker_token,
             OMIS_PORT=f"127.0.0.1:{self.port}",
             OMIS_LEASE_SECONDS=str(a.lease),
@@ -190,7 +190,7 @@ def job_flags(s):
 
 def submit(st, omis, s):
     """Submits through the omis CLI and the published port; returns the job id."""
-    out = run([omis, "submit", "cornell-box", *job_flags(s), "--name", s["name"], "--server", st.base, "--token", st.token], timeout=60)
+    out = run([omis, "submit", "cornell-box", *job_flags(s), "--name", s["name"], "--server", st.base, "--client-token", st.token], timeout=60)
     job = out.strip().splitlines()[-1].strip()
     if not re.fullmatch(r"[0-9a-f-]{36}", job):
         raise Fail(f"omis submit printed {out!r}")
@@ -228,7 +228,7 @@ def check_image(st, a, job, s, tmp):
     wait_done(st, a, job, s["name"])
     got = os.path.join(tmp, f"{s['name']}-service.exr")
     want = os.path.join(tmp, f"{s['name']}-in-process.exr")
-    run([a.omis, "download", job, "--out", got, "--server", st.base, "--token", st.token], timeout=60)
+    run([a.omis, "download", job, "--out", got, "--server", st.base, "--client-token", st.token], timeout=60)
     run([a.omis, "render", os.path.join(a.scenes, "cornell-box.json"), "--in-process", *job_flags(s), "--out", want], timeout=600)
     r = subprocess.run([a.omis, "diff", got, want, "--layers", "--eps", "0"], stdout=subprocess.PIPE,
                        stderr=subprocess.STDOUT, text=True, timeout=60)

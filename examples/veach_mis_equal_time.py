@@ -34,7 +34,11 @@ def main() -> None:
                     help="tiny settings for CI: 64x36, 1 s per strategy, 512 spp reference")
     ap.add_argument("--binary", help="the omis binary (default: OMIS_BIN, else PATH)")
     ap.add_argument("--server", help="a running coordinator's URL instead of an embedded one")
-    ap.add_argument("--token", default=os.environ.get("OMIS_TOKEN"))
+    ap.add_argument(
+        "--client-token",
+        dest="token",
+        default=os.environ.get("OMIS_CLIENT_TOKEN") or os.environ.get("OMIS_TOKEN"),
+    )
     ap.add_argument("--show", action="store_true", help="open the plots in a window")
     a = ap.parse_args()
     if a.quick:

@@ -437,6 +437,10 @@ pub struct JobRequest {
     /// Worker tags the job needs: only a worker with every one of them gets its tasks.
     #[serde(default)]
     pub require_tags: Vec<String>,
+    /// Receivers of this job's final event (`done`, `failed` or `cancelled`), besides the
+    /// coordinator's own (`omis serve --webhook`).
+    #[serde(default)]
+    pub webhooks: Vec<WebhookSpec>,
 }
 
 /// The query of GET /v1/jobs (every field optional; as sent, checked by the coordinator).
@@ -465,6 +469,104 @@ impl JobListQuery {
 pub struct JobPatch {
     /// The job's new priority (higher first).
     pub priority: i32,
+}
+
+/// A webhook receiver of a job (`JobRequest::webhooks`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WebhookSpec {
+    /// Where the event is POSTed (`http://`).
+    pub url: String,
+    /// Signs each body: `X-Omis-Signature: sha256=<hex HMAC-SHA256(secret, body)>`. Never shown
+    /// back.
+    #[serde(default)]
+    pub secret: Option<String>,
+}
+
+/// The job of a webhook's body: what a receiver needs to act on the event.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct WebhookJob {
+    /// The job id.
+    pub id: String,
+    /// The client's label, if it gave one.
+    pub name: Option<String>,
+    /// The job's state after the event.
+    pub state: JobState,
+    /// Why the job failed.
+    pub error: Option<String>,
+    /// The user who submitted it (None: submitted without a user).
+    pub owner: Option<String>,
+    /// Samples per pixel of the merged passes.
+    pub spp_done: u32,
+    /// relMSE of the last merged pass against the reference.
+    pub relmse: Option<f64>,
+    /// Paths of the job's resources (relative to the coordinator's URL).
+    pub links: JobLinks,
+}
+
+/// The body POSTed to a webhook receiver.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct WebhookBody {
+    /// `done`, `failed` or `cancelled`.
+    pub event: String,
+    /// The delivery's id, the same on every attempt (also `X-Omis-Delivery`): a receiver
+    /// dedupes on it, since a delivery is made at least once.
+    pub delivery_id: String,
+    /// The job.
+    pub job: WebhookJob,
+    /// When the event happened (seconds since the Unix epoch).
+    pub at: f64,
+}
+
+/// One delivery of a job's event to one receiver (GET /v1/jobs/{id}/webhooks).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct WebhookDelivery {
+    /// The delivery id (`X-Omis-Delivery`).
+    pub id: String,
+    /// The event delivered.
+    pub event: String,
+    /// The receiver.
+    pub url: String,
+    /// `pending` (being tried), `delivered` (a 2xx answer) or `failed` (every attempt failed).
+    pub state: String,
+    /// Attempts made so far.
+    pub attempts: u32,
+    /// When the event happened.
+    pub at: f64,
+    /// When the next attempt is due (pending deliveries).
+    pub next_at: Option<f64>,
+    /// The last attempt's HTTP status, if it got an answer.
+    pub last_status: Option<u16>,
+    /// The last attempt's error (no answer, or not 2xx).
+    pub last_error: Option<String>,
+    /// When a 2xx answer came.
+    pub delivered_at: Option<f64>,
+}
+
+/// GET /v1/jobs/{id}/webhooks.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct WebhookDeliveryList {
+    /// The job's deliveries, oldest first.
+    pub deliveries: Vec<WebhookDelivery>,
+}
+
+/// A user's role: an admin may act on every job and on workers; a user on its own jobs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Role {
+    /// May act on every job and worker.
+    Admin,
+    /// May read everything, act on its own jobs.
+    User,
+}
+
+/// GET /v1/whoami: whom the client token stands for.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Whoami {
+    /// The user's name (`admin` for the single client token, or without one).
+    pub name: String,
+    /// The user's role.
+    pub role: Role,
 }
 
 /// One point of a job's relMSE series (one per merged pass).
@@ -532,6 +634,13 @@ pub struct JobStatus {
     pub state: JobState,
     /// Why the job failed.
     pub error: Option<String>,
+    /// The user who submitted it (None: submitted without a user, anyone's to act on is an
+    /// admin's).
+    #[serde(default)]
+    pub owner: Option<String>,
+    /// The job's own webhook receivers (their secrets are not shown).
+    #[serde(default)]
+    pub webhooks: Vec<String>,
     /// The scene bundle rendered.
     pub scene: SceneRef,
     /// The request's settings with every field filled in.

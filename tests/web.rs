@@ -29,7 +29,7 @@ fn the_page_and_its_assets_need_no_token_and_the_api_still_does() {
     let (_server, url) = serve(
         &dir.join("data"),
         &[
-            "--token",
+            "--client-token",
             "client-secret",
             "--worker-token",
             "worker-secret",
@@ -179,7 +179,7 @@ fn healthcheck_exits_0_for_a_live_coordinator_and_1_otherwise() {
     let (server, url) = serve(
         &dir.join("data"),
         &[
-            "--token",
+            "--client-token",
             "client-secret",
             "--worker-token",
             "worker-secret",

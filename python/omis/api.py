@@ -18,14 +18,15 @@ _lock = threading.Lock()
 def default_client(binary: Union[str, "os.PathLike[str]", None] = None) -> Client:
     """The client `render` and `compare` use without one: an embedded coordinator started on
     first use (from `binary`, ``OMIS_BIN`` or PATH) and stopped at interpreter exit; or, when
-    ``OMIS_SERVER`` is set, the coordinator at that URL (with ``OMIS_TOKEN``)."""
+    ``OMIS_SERVER`` is set, the coordinator at that URL (with ``OMIS_CLIENT_TOKEN``)."""
     global _default
     with _lock:
         if _default is None or (
             _default.coordinator is not None and not _default.coordinator.running
         ):
             server = os.environ.get("OMIS_SERVER")
-            _default = Client(server, os.environ.get("OMIS_TOKEN"), binary)
+            token = os.environ.get("OMIS_CLIENT_TOKEN") or os.environ.get("OMIS_TOKEN")
+            _default = Client(server, token, binary)
         return _default
 
 

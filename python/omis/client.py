@@ -116,7 +116,7 @@ class Client:
             except CoordinatorError:
                 self.binary = None
         if token is None and url is not None and self.coordinator is None:
-            token = os.environ.get("OMIS_TOKEN")
+            token = os.environ.get("OMIS_CLIENT_TOKEN") or os.environ.get("OMIS_TOKEN")
         self.url: str = url
         self._http = Transport(url, token, timeout)
 
@@ -311,6 +311,7 @@ class Client:
         reference: Optional[Reference] = None,
         name: Optional[str] = None,
         priority: Optional[int] = None,
+        webhooks: Optional[list[dict[str, str]]] = None,
         **settings: Any,
     ) -> "Job":
         """Submits a render job; returns it at once (`Job.wait` follows it). Workers take the
@@ -319,7 +320,8 @@ class Client:
         `settings` are the job settings of proto/openapi.yaml with Python names: ``spp=64,
         integrator="bdpt", mis="optimal", resolution=(320, 180), time_budget=10, seed=1,
         max_depth=5, depth_layers=True, strategies=True, defines={"res": "64"}, ...``. A bad
-        one raises `ServiceError` whose ``field`` names it (``settings.spp``)."""
+        one raises `ServiceError` whose ``field`` names it (``settings.spp``). `webhooks`:
+        receivers of the job's end, ``[{"url": "http://...", "secret": "..."}]``."""
         s = job_settings(settings)
         request: dict[str, Any] = {
             "scene": self.scene_source(scene, s.get("defines")),
@@ -331,6 +333,8 @@ class Client:
             request["name"] = name
         if priority is not None:
             request["priority"] = int(priority)
+        if webhooks:
+            request["webhooks"] = webhooks
         doc = self._http.json("POST", "/v1/jobs", "submitting the job", request)
         return Job(self, doc["id"], doc)
 

@@ -121,10 +121,11 @@ class EmbeddedCoordinator:
         env = dict(os.environ)
         env.setdefault("OMIS_LOG", "warn")
         env.pop("OMIS_TOKEN", None)
+        env.pop("OMIS_CLIENT_TOKEN", None)
         env.pop("OMIS_WORKER_TOKEN", None)
         if token is not None:
             # Through the environment: a command line is visible to every local user.
-            env["OMIS_TOKEN"] = token
+            env["OMIS_CLIENT_TOKEN"] = token
         self._log = tempfile.TemporaryFile()
         try:
             self.process: subprocess.Popen[bytes] = subprocess.Popen(

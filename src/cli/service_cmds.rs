@@ -6,7 +6,8 @@ use super::job_args::JobArgs;
 use super::progress::RenderProgress;
 use crate::job::Limits;
 use crate::protocol::{
-    JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource, validate_tags,
+    JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource, WebhookSpec,
+    validate_tags,
 };
 use crate::service;
 use crate::worker;
@@ -32,6 +33,80 @@ fn token(direct: &Option<String>, file: &Option<PathBuf>, what: &str) -> Result<
         }
         None => Ok(None),
     }
+}
+
+/// The client token of `serve` and the client commands: `--client-token`,
+/// `--client-token-file` or OMIS_CLIENT_TOKEN, else the deprecated `--token`, `--token-file` or
+/// OMIS_TOKEN (each with a warning on stderr).
+fn client_token(a: &ClientTokenArgs) -> Result<Option<String>> {
+    if let Some(t) = token(&a.client_token, &a.client_token_file, "--client-token-file")? {
+        return Ok(Some(t));
+    }
+    if a.token.is_some() || a.token_file.is_some() {
+        eprintln!(
+            "warning: --token and --token-file are deprecated: use --client-token and \
+             --client-token-file"
+        );
+        return token(&a.token, &a.token_file, "--token-file");
+    }
+    match std::env::var("OMIS_TOKEN") {
+        Ok(t) if !t.is_empty() => {
+            eprintln!("warning: OMIS_TOKEN is deprecated: use OMIS_CLIENT_TOKEN");
+            Ok(Some(t))
+        }
+        _ => Ok(None),
+    }
+}
+
+/// The client token's flags, shared by `serve` (the token clients must send) and the client
+/// commands (the token they send).
+#[derive(Args, Clone)]
+pub(crate) struct ClientTokenArgs {
+    /// The client bearer token (a user named "admin" of role admin).
+    #[arg(long, env = "OMIS_CLIENT_TOKEN", hide_env_values = true)]
+    pub client_token: Option<String>,
+    /// The client token, as the first line of this file.
+    #[arg(long)]
+    pub client_token_file: Option<PathBuf>,
+    /// Deprecated: --client-token.
+    #[arg(long, hide = true, conflicts_with = "client_token")]
+    pub token: Option<String>,
+    /// Deprecated: --client-token-file.
+    #[arg(long, hide = true, conflicts_with = "client_token_file")]
+    pub token_file: Option<PathBuf>,
+}
+
+/// The users of `omis serve --users FILE`.
+fn read_users(path: &std::path::Path) -> Result<Vec<service::api::auth::User>> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("--users {}", path.display()))?;
+    service::api::auth::parse_users(&text)
+        .map_err(|e| anyhow::anyhow!("--users {}: {e}", path.display()))
+}
+
+/// The receivers of `--webhook` (of `serve`: every job's; of `submit`: the job's), all signed
+/// with the secret of `--webhook-secret-file` (if given).
+fn global_webhooks(
+    urls: &[String],
+    secret_file: &Option<PathBuf>,
+) -> Result<Vec<service::store::WebhookTarget>> {
+    let secret = token(&None, secret_file, "--webhook-secret-file")?;
+    if let Some(s) = &secret {
+        service::webhooks::check_secret(s)
+            .map_err(|e| anyhow::anyhow!("--webhook-secret-file: {e}"))?;
+    }
+    if secret.is_some() && urls.is_empty() {
+        bail!("--webhook-secret-file signs the --webhook receivers: give at least one --webhook");
+    }
+    urls.iter()
+        .map(|u| {
+            service::webhooks::check_url(u).map_err(|e| anyhow::anyhow!("--webhook {u}: {e}"))?;
+            Ok(service::store::WebhookTarget {
+                url: u.clone(),
+                secret: secret.clone(),
+            })
+        })
+        .collect()
 }
 
 pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
@@ -77,16 +152,29 @@ pub(crate) struct ServeArgs {
     /// Scene library: jobs may name a scene file of this folder.
     #[arg(long, default_value = "scenes")]
     pub scenes: PathBuf,
-    /// Bearer token clients must send.
-    #[arg(long, env = "OMIS_TOKEN", hide_env_values = true)]
-    pub token: Option<String>,
-    #[arg(long)]
-    pub token_file: Option<PathBuf>,
+    // The token clients must send.
+    #[command(flatten)]
+    pub client: ClientTokenArgs,
     /// Bearer token workers must send.
     #[arg(long, env = "OMIS_WORKER_TOKEN", hide_env_values = true)]
     pub worker_token: Option<String>,
+    /// The worker token, as the first line of this file.
     #[arg(long)]
     pub worker_token_file: Option<PathBuf>,
+    /// Users of the client routes, each with its own token: a JSON file
+    /// `[{"name": "ana", "role": "admin"|"user", "token": "..."}]` ("token_sha256", the hex
+    /// SHA-256 of the token, instead of "token" keeps secrets out of the file). A user may act
+    /// on its own jobs, an admin on every job.
+    #[arg(long)]
+    pub users: Option<PathBuf>,
+    /// A receiver of every job's final event (done, failed, cancelled), POSTed as JSON; may be
+    /// given several times. http:// only.
+    #[arg(long = "webhook")]
+    pub webhooks: Vec<String>,
+    /// Signs the bodies POSTed to the --webhook receivers with this file's first line
+    /// (X-Omis-Signature: sha256=<hex HMAC-SHA256>).
+    #[arg(long)]
+    pub webhook_secret_file: Option<PathBuf>,
     /// Seconds a worker may stay silent before its task is given to another.
     #[arg(long, default_value_t = 30.0)]
     pub lease_seconds: f64,
@@ -161,8 +249,12 @@ pub(crate) fn serve(a: ServeArgs) -> Result<()> {
     let mut cfg = service::Config::new(a.bind, a.data.clone());
     cfg.init = a.init;
     cfg.library = a.scenes.is_dir().then(|| a.scenes.clone());
-    cfg.client_token = token(&a.token, &a.token_file, "--token-file")?;
+    cfg.client_token = client_token(&a.client)?;
     cfg.worker_token = token(&a.worker_token, &a.worker_token_file, "--worker-token-file")?;
+    if let Some(path) = &a.users {
+        cfg.users = read_users(path)?;
+    }
+    cfg.webhooks = global_webhooks(&a.webhooks, &a.webhook_secret_file)?;
     cfg.workers = a.workers;
     cfg.worker_threads = a.worker_threads.max(1);
     cfg.worker_tags = validate_tags(&a.tags).map_err(|e| anyhow::anyhow!("--tag: {e}"))?;
@@ -248,9 +340,17 @@ pub(crate) struct WorkerArgs {
     /// Tasks rendered at once (0 = number of cores).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
+    /// The worker token (the coordinator's --worker-token).
     #[arg(long, env = "OMIS_WORKER_TOKEN", hide_env_values = true)]
-    pub token: Option<String>,
+    pub worker_token: Option<String>,
+    /// The worker token, as the first line of this file.
     #[arg(long)]
+    pub worker_token_file: Option<PathBuf>,
+    /// Gone (it read as the client token): refused with the new name.
+    #[arg(long, hide = true)]
+    pub token: Option<String>,
+    /// Gone: refused with the new name.
+    #[arg(long, hide = true)]
     pub token_file: Option<PathBuf>,
     /// Name shown in GET /v1/workers (default: host name and pid).
     #[arg(long)]
@@ -268,6 +368,12 @@ pub(crate) struct WorkerArgs {
 }
 
 pub(crate) fn worker(a: WorkerArgs) -> Result<()> {
+    if a.token.is_some() || a.token_file.is_some() {
+        bail!(
+            "omis worker: --token and --token-file are gone (they meant the worker token, \
+             unlike everywhere else): use --worker-token or --worker-token-file"
+        );
+    }
     init_logging();
     let threads = if a.threads == 0 {
         std::thread::available_parallelism().map_or(1, |n| n.get())
@@ -280,7 +386,7 @@ pub(crate) fn worker(a: WorkerArgs) -> Result<()> {
     let cfg = worker::WorkerConfig {
         coordinator: a.coordinator.trim_end_matches('/').to_string(),
         threads,
-        token: token(&a.token, &a.token_file, "--token-file")?,
+        token: token(&a.worker_token, &a.worker_token_file, "--worker-token-file")?,
         name: a
             .name
             .unwrap_or_else(|| format!("{host}-{}", std::process::id())),
@@ -299,19 +405,14 @@ pub(crate) struct ServerArgs {
     /// The coordinator's URL.
     #[arg(long, env = "OMIS_SERVER", default_value = "http://127.0.0.1:8570")]
     pub server: String,
-    /// Client bearer token.
-    #[arg(long, env = "OMIS_TOKEN", hide_env_values = true)]
-    pub token: Option<String>,
-    #[arg(long)]
-    pub token_file: Option<PathBuf>,
+    // The client bearer token (the coordinator's --client-token, or a --users token).
+    #[command(flatten)]
+    pub token: ClientTokenArgs,
 }
 
 impl ServerArgs {
     pub(crate) fn client(&self) -> Result<Client> {
-        Client::new(
-            &self.server,
-            token(&self.token, &self.token_file, "--token-file")?,
-        )
+        Client::new(&self.server, client_token(&self.token)?)
     }
 }
 
@@ -336,6 +437,13 @@ pub(crate) struct SubmitArgs {
     /// With --wait: download the EXR here.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// A receiver of the job's final event (done, failed, cancelled), POSTed as JSON; may be
+    /// given several times. http:// only.
+    #[arg(long = "webhook")]
+    pub webhooks: Vec<String>,
+    /// Signs the bodies POSTed to this job's --webhook receivers with this file's first line.
+    #[arg(long)]
+    pub webhook_secret_file: Option<PathBuf>,
     #[command(flatten)]
     pub server: ServerArgs,
 }
@@ -348,6 +456,19 @@ pub(crate) async fn submit_job(
     reference: Option<&std::path::Path>,
     name: Option<&str>,
     priority: i32,
+) -> Result<JobStatus> {
+    submit_job_with(c, scene, job, reference, name, priority, Vec::new()).await
+}
+
+/// `submit_job` with the job's own webhook receivers.
+async fn submit_job_with(
+    c: &Client,
+    scene: SceneSource,
+    job: &JobArgs,
+    reference: Option<&std::path::Path>,
+    name: Option<&str>,
+    priority: i32,
+    webhooks: Vec<WebhookSpec>,
 ) -> Result<JobStatus> {
     let settings = job.settings()?;
     let reference = match reference {
@@ -362,6 +483,7 @@ pub(crate) async fn submit_job(
         priority,
         require_tags: validate_tags(&job.require_tags)
             .map_err(|e| anyhow::anyhow!("--require-tag: {e}"))?,
+        webhooks,
     };
     c.submit(&req).await
 }
@@ -393,14 +515,22 @@ pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
             super::out_path::check_writable(out, "--out")?;
         }
         let c = a.server.client()?;
+        let webhooks = global_webhooks(&a.webhooks, &a.webhook_secret_file)?
+            .into_iter()
+            .map(|t| WebhookSpec {
+                url: t.url,
+                secret: t.secret,
+            })
+            .collect();
         let scene = client::scene_source(&c, &a.scene, &a.job.settings()?.defines).await?;
-        let st = submit_job(
+        let st = submit_job_with(
             &c,
             scene,
             &a.job,
             a.reference.as_deref(),
             a.name.as_deref(),
             a.priority,
+            webhooks,
         )
         .await?;
         let id = st.id.clone();

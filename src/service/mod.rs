@@ -17,6 +17,7 @@ pub(crate) mod server;
 pub(crate) mod store;
 pub(crate) mod upload;
 pub(crate) mod web;
+pub(crate) mod webhooks;
 
 use crate::job::Limits;
 use crate::protocol::JobEvent;
@@ -43,6 +44,11 @@ pub(crate) struct Config {
     pub client_token: Option<String>,
     /// Bearer token of the worker routes (None: not checked; loopback only).
     pub worker_token: Option<String>,
+    /// Users of the client routes, each with its own token (`omis serve --users`); the client
+    /// token, if any, stays the admin's.
+    pub users: Vec<api::auth::User>,
+    /// Receivers of every job's final event (`omis serve --webhook`).
+    pub webhooks: Vec<store::WebhookTarget>,
     /// Local worker processes to spawn and keep alive.
     pub workers: usize,
     /// Threads (concurrent tasks) of each local worker.
@@ -108,6 +114,8 @@ impl Config {
             library: None,
             client_token: None,
             worker_token: None,
+            users: Vec::new(),
+            webhooks: Vec::new(),
             workers: 0,
             worker_threads: 1,
             lease_s: 30.0,
@@ -187,6 +195,8 @@ pub(crate) struct App {
     /// Uploads checked at once (a scene loaded, a reference read): each takes memory in
     /// proportion to what it checks, so their number bounds the coordinator's peak.
     pub validations: Arc<tokio::sync::Semaphore>,
+    /// Woken when a webhook delivery may have been queued (`webhooks::dispatch`).
+    pub deliveries: Notify,
 }
 
 impl App {
@@ -219,6 +229,10 @@ impl App {
         match db.add_event(job, kind, &event.data()) {
             Ok(row) => self.publish(&db, row),
             Err(e) => tracing::error!("cannot record event {kind} of job {job}: {e}"),
+        }
+        if kind.is_terminal() {
+            // Its webhook deliveries were queued with the job's final state.
+            self.deliveries.notify_one();
         }
     }
 
@@ -278,10 +292,12 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
         libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 20);
         libc::mallopt(libc::M_TRIM_THRESHOLD, 64 << 20);
     }
-    if (cfg.client_token.is_none() || cfg.worker_token.is_none()) && !is_loopback(&cfg.bind) {
+    let client_checked = cfg.client_token.is_some() || !cfg.users.is_empty();
+    if (!client_checked || cfg.worker_token.is_none()) && !is_loopback(&cfg.bind) {
         anyhow::bail!(
-            "refusing to serve {} without both a client token and a worker token (--token, \
-             --worker-token); without tokens bind a loopback address such as 127.0.0.1",
+            "refusing to serve {} without both client tokens (--client-token or --users) and a \
+             worker token (--worker-token); without tokens bind a loopback address such as \
+             127.0.0.1",
             cfg.bind
         );
     }
@@ -304,13 +320,15 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
             paths.root.display()
         );
     }
-    let store = SqliteStore::open(&db).with_context(|| {
-        format!(
-            "cannot open the database {}: restore it from a backup, or move it away and start \
-             with --init",
-            db.display()
-        )
-    })?;
+    let store = SqliteStore::open(&db)
+        .with_context(|| {
+            format!(
+                "cannot open the database {}: restore it from a backup, or move it away and \
+                 start with --init",
+                db.display()
+            )
+        })?
+        .with_webhooks(cfg.webhooks.clone());
     // Leases are the workers' to renew: after a stop, they get a lease's time to report back
     // before their tasks count as lost.
     store.extend_all_leases(cfg.lease_s)?;
@@ -341,8 +359,9 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
         worker_requests: Arc::new(tokio::sync::Semaphore::new(cfg.max_worker_requests.max(1))),
         server: Arc::new(server::ServerStats::default()),
         validations: Arc::new(tokio::sync::Semaphore::new(VALIDATIONS)),
+        deliveries: Notify::new(),
     });
-    if cfg.client_token.is_none() && cfg.worker_token.is_none() {
+    if !client_checked && cfg.worker_token.is_none() {
         tracing::warn!("no tokens given: serving {addr} (loopback only) without authentication");
     }
     // Recovery runs in the background: the API answers at once, also with a large backlog.
@@ -363,6 +382,7 @@ pub(crate) async fn start(cfg: Config) -> anyhow::Result<Running> {
     });
     tokio::spawn(jobs::reaper(app.clone()));
     tokio::spawn(retention::sweeper(app.clone()));
+    tokio::spawn(webhooks::dispatch(app.clone()));
     let pool = (cfg.workers > 0).then(|| pool::Pool::spawn(app.clone(), &url));
     Ok(Running {
         app,

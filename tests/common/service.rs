@@ -57,6 +57,7 @@ pub fn serve_command(
         .args(extra)
         .env("OMIS_LOG", "warn")
         .env_remove("OMIS_TOKEN")
+        .env_remove("OMIS_CLIENT_TOKEN")
         .env_remove("OMIS_WORKER_TOKEN")
         .stdout(Stdio::piped())
         .stderr(stderr)

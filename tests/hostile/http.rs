@@ -166,7 +166,7 @@ fn bearer_tokens_follow_the_contract() {
     let dir = folder("tokens");
     let (_server, url) = serve(
         &dir.join("data"),
-        &["--token", "s3cret", "--worker-token", "w0rker"],
+        &["--client-token", "s3cret", "--worker-token", "w0rker"],
     );
     let c = http();
     let with = |auth: &str| {

@@ -171,7 +171,7 @@ fn the_good_job_still_finishes(g: &Guarded, id: &str) {
     let (c, url) = (&g.c, &g.url);
     let ok = c.get(format!("{url}/healthz")).send().expect("healthz");
     assert!(ok.status().is_success());
-    let _w = worker(url, "w", &["--token", "worker-secret"]);
+    let _w = worker(url, "w", &["--worker-token", "worker-secret"]);
     let start = Instant::now();
     loop {
         let st: Value = g
@@ -196,7 +196,7 @@ fn bad_inputs_get_4xx_naming_the_problem_and_the_server_keeps_serving() {
     let (_server, url) = serve(
         &dir.join("data"),
         &[
-            "--token",
+            "--client-token",
             "client-secret",
             "--worker-token",
             "worker-secret",
@@ -218,6 +218,7 @@ fn a_non_loopback_bind_without_tokens_is_refused() {
         .args(["serve", "--bind", "0.0.0.0:0", "--data"])
         .arg(dir.join("data"))
         .env_remove("OMIS_TOKEN")
+        .env_remove("OMIS_CLIENT_TOKEN")
         .env_remove("OMIS_WORKER_TOKEN")
         .output()
         .expect("run");

@@ -3,6 +3,7 @@
 //! the same job (the tiling-invariance property across processes), whatever dies on the way.
 //! Every process a test starts is killed when the test ends, also when it fails.
 
+mod access;
 mod bad_input;
 mod checkpoints;
 mod cli;
@@ -18,3 +19,4 @@ mod support;
 mod synthetic_stream;
 mod time_budget;
 mod worker_pools;
+mod webhooks;

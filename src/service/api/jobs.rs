@@ -2,19 +2,21 @@
 //! resume, requeue, retry, priority, delete), the event stream (Server-Sent Events) and the
 //! job's files (EXR, preview, error map, convergence plot).
 
+use super::auth::{self, Principal};
 use super::errors::{ApiError, ApiResult, JsonBody, bad, settings_error};
 use super::{AppState, references, scenes};
 use crate::protocol::{
     JobEvent, JobLinks, JobList, JobListQuery, JobPatch, JobRequest, JobState, JobStatus,
-    QueuedEvent, SceneMeta, SceneRef, SceneSource, SseData, validate_tags,
+    QueuedEvent, SceneMeta, SceneRef, SceneSource, SseData, WebhookDelivery, WebhookDeliveryList,
+    Whoami, validate_tags,
 };
 use crate::service::store::{self, EventRow, JobRow};
-use crate::service::{App, jobs, runtime};
-use axum::Json;
+use crate::service::{App, jobs, runtime, webhooks};
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
+use axum::{Extension, Json};
 use futures_util::stream::{self, Stream, StreamExt};
 use std::convert::Infallible;
 use std::time::Duration;
@@ -22,11 +24,13 @@ use std::time::Duration;
 /// POST /v1/jobs.
 pub(crate) async fn create_job(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     JsonBody(req): JsonBody<JobRequest>,
 ) -> ApiResult<Response> {
     req.settings
         .validate(&app.cfg.limits)
         .map_err(settings_error)?;
+    let hooks = webhooks::job_targets(&req.webhooks).map_err(|(field, e)| bad(&field, &e))?;
     if let Some(n) = &req.name
         && (n.chars().count() > 200 || n.chars().any(|c| c.is_control()))
     {
@@ -41,7 +45,7 @@ pub(crate) async fn create_job(
     // reading the reference take memory and time in proportion to the job: a few at once.
     let _permit = app.validation().await?;
     let a = app.clone();
-    let job = tokio::task::spawn_blocking(move || create_job_blocking(&a, req))
+    let job = tokio::task::spawn_blocking(move || create_job_blocking(&a, req, &who, hooks))
         .await
         .map_err(ApiError::internal)??;
     // Its tasks are created in the background, chunk by chunk (the first ones are leased while
@@ -58,14 +62,27 @@ pub(crate) async fn create_job(
         .into_response())
 }
 
-fn create_job_blocking(app: &App, req: JobRequest) -> ApiResult<JobRow> {
+fn create_job_blocking(
+    app: &App,
+    req: JobRequest,
+    owner: &Principal,
+    hooks: Option<String>,
+) -> ApiResult<JobRow> {
     let (meta, scene) = match &req.scene {
         SceneSource::Library(name) => scenes::store_library(app, name)?,
         SceneSource::Bundle(id) => scenes::load_bundle(app, id)?,
         SceneSource::Inline(v) => scenes::store_inline(app, v)?,
     };
     let made_here = !matches!(req.scene, SceneSource::Bundle(_));
-    let created = create_job_with(app, &req, &meta, scene, None);
+    let created = create_job_with(
+        app,
+        &req,
+        &meta,
+        scene,
+        None,
+        Some(&owner.name),
+        hooks.as_deref(),
+    );
     // A bundle this request made for a job it did not create is of no use to anyone.
     if created.is_err() && made_here {
         scenes::remove_bundle(app, &meta.id);
@@ -89,6 +106,8 @@ fn create_job_with(
     meta: &SceneMeta,
     mut scene: crate::scene::Scene,
     retry: Option<RetryOf>,
+    owner: Option<&str>,
+    hooks: Option<&str>,
 ) -> ApiResult<JobRow> {
     if !req.settings.defines.is_empty() {
         // The bundle was checked with the file's own defaults; the job renders it with its
@@ -129,6 +148,8 @@ fn create_job_with(
         priority: req.priority,
         retry_of: retry.as_ref().map(|r| r.id),
         require_tags: &req.require_tags,
+        owner,
+        webhooks: hooks,
     })?;
     app.event(
         &id,
@@ -197,6 +218,8 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         name: job.name.clone(),
         state: job.state,
         error: job.error.clone(),
+        owner: job.owner.clone(),
+        webhooks: webhooks::job_urls(job.webhooks.as_deref()),
         scene: SceneRef {
             id: job.scene_id.clone(),
             main: job.scene_main.clone(),
@@ -473,6 +496,8 @@ fn retry_blocking(app: &App, old: &JobRow) -> ApiResult<JobRow> {
         name: old.name.clone(),
         priority: old.priority,
         require_tags: old.require_tags.clone(),
+        // The receivers (with their secrets) are the old job's, carried over as stored.
+        webhooks: Vec::new(),
     };
     create_job_with(
         app,
@@ -483,6 +508,8 @@ fn retry_blocking(app: &App, old: &JobRow) -> ApiResult<JobRow> {
             id: &old.id,
             reference: old.reference.as_deref(),
         }),
+        old.owner.as_deref(),
+        old.webhooks.as_deref(),
     )
 }
 
@@ -521,12 +548,14 @@ pub(crate) async fn get_job(
     Ok(Json(job_status(&app, &job)?))
 }
 
-/// POST /v1/jobs/{id}/cancel.
+/// POST /v1/jobs/{id}/cancel: the job's owner's, or an admin's.
 pub(crate) async fn cancel_job(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
 ) -> ApiResult<Json<JobStatus>> {
     let job = find_job(&app, &id)?;
+    auth::require_owner(&who, &id, job.owner.as_deref())?;
     let a = app.clone();
     let i = id.clone();
     let cancelled = tokio::task::spawn_blocking(move || jobs::cancel(&a, &i))
@@ -541,6 +570,39 @@ pub(crate) async fn cancel_job(
     }
     let job = find_job(&app, &id)?;
     Ok(Json(job_status(&app, &job)?))
+}
+
+/// GET /v1/jobs/{id}/webhooks: the deliveries of the job's final event, oldest first.
+pub(crate) async fn job_webhooks(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Json<WebhookDeliveryList>> {
+    find_job(&app, &id)?;
+    let rows = app.db().deliveries(&id)?;
+    let deliveries = rows
+        .into_iter()
+        .map(|d| WebhookDelivery {
+            next_at: (d.state == "pending").then_some(d.next_at),
+            id: d.id,
+            event: d.event,
+            url: d.url,
+            state: d.state,
+            attempts: d.attempts,
+            at: d.at,
+            last_status: d.last_status,
+            last_error: d.last_error,
+            delivered_at: d.delivered_at,
+        })
+        .collect();
+    Ok(Json(WebhookDeliveryList { deliveries }))
+}
+
+/// GET /v1/whoami: whom the request's client token stands for.
+pub(crate) async fn whoami(Extension(who): Extension<Principal>) -> Json<Whoami> {
+    Json(Whoami {
+        name: who.name,
+        role: who.role,
+    })
 }
 
 fn sse_event(row: &EventRow) -> Event {

@@ -27,6 +27,10 @@ pub(crate) async fn metrics(State(app): State<AppState>) -> ApiResult<Response> 
             ("jobs", "Jobs by state."),
             ("tasks", "Tasks of unmerged passes by state."),
             ("workers", "Registered workers by state."),
+            (
+                "webhook_deliveries",
+                "Webhook deliveries by state (pending, delivered, failed).",
+            ),
         ] {
             let _ = writeln!(out, "# HELP omis_{table} {help}\n# TYPE omis_{table} gauge");
             for (state, n) in db.state_counts(table)? {

@@ -2,7 +2,7 @@
 //! /metrics: the router and what its handlers share; one module per resource. Errors are JSON
 //! `{"error": "...", "field": "..."}` with a 4xx status (errors.rs).
 
-mod auth;
+pub(crate) mod auth;
 mod errors;
 mod jobs;
 mod metrics;
@@ -65,6 +65,8 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("get", "/v1/workers/{id}/tasks"),
     ("delete", "/v1/jobs/{id}/blocklist/{worker}"),
     ("get", "/v1/jobs/{id}/tasks"),
+    ("get", "/v1/jobs/{id}/webhooks"),
+    ("get", "/v1/whoami"),
 ];
 
 /// The coordinator's router: client routes (client token), worker routes (worker token),
@@ -89,6 +91,8 @@ pub(crate) fn router(app: AppState) -> Router {
         .route("/v1/jobs/{id}/preview.png", get(jobs::job_preview))
         .route("/v1/jobs/{id}/error.png", get(jobs::job_error_map))
         .route("/v1/jobs/{id}/convergence.svg", get(jobs::job_convergence))
+        .route("/v1/jobs/{id}/webhooks", get(jobs::job_webhooks))
+        .route("/v1/whoami", get(jobs::whoami))
         .route(
             "/v1/scenes",
             post(scenes::upload_scene).get(scenes::list_scenes),

@@ -168,6 +168,28 @@ pub(super) const MIGRATIONS: &[&str] = &[
      CREATE INDEX task_attempts_job_outcome ON task_attempts (job_id, outcome, leased_at);
      CREATE INDEX task_attempts_worker ON task_attempts (worker_id, leased_at);
      CREATE INDEX task_attempts_worker_outcome ON task_attempts (worker_id, outcome, leased_at);",
+    // 7: who submitted a job (NULL: no user, as before users existed), the job's own webhook
+    // receivers (JSON), and the webhook outbox: a delivery row is written in the transaction
+    // that ends its job, so a restart resumes every delivery not yet made.
+    "ALTER TABLE jobs ADD COLUMN owner TEXT;
+     ALTER TABLE jobs ADD COLUMN webhooks TEXT;
+     CREATE TABLE webhook_deliveries (
+       seq INTEGER PRIMARY KEY AUTOINCREMENT,
+       id TEXT NOT NULL UNIQUE,
+       job_id TEXT NOT NULL,
+       event TEXT NOT NULL,
+       url TEXT NOT NULL,
+       secret TEXT,
+       at REAL NOT NULL,
+       state TEXT NOT NULL,
+       attempts INTEGER NOT NULL DEFAULT 0,
+       next_at REAL NOT NULL,
+       last_status INTEGER,
+       last_error TEXT,
+       delivered_at REAL
+     );
+     CREATE INDEX webhook_deliveries_due ON webhook_deliveries (state, next_at);
+     CREATE INDEX webhook_deliveries_job ON webhook_deliveries (job_id, seq);",
 ];
 
 /// The version whose schema `PRAGMA user_version` 0 stood for before `schema_version` existed:
@@ -343,6 +365,8 @@ mod tests {
             );
             let result = (from >= 2).then_some(4096..4196);
             assert_eq!(task.result, result, "from {from}");
+            // A job from before users has no owner: anyone's (an admin's) to act on.
+            assert_eq!(job.owner, None, "from {from}");
             let workers = db.workers().expect("workers");
             assert_eq!(workers.len(), 1, "from {from}");
             assert_eq!(workers[0].unhealthy, None);

@@ -63,6 +63,10 @@ pub(crate) struct JobRow {
     pub retry_of: Option<String>,
     /// Worker tags the job needs (sorted).
     pub require_tags: Vec<String>,
+    /// The user who submitted it (None: no user, i.e. the single client token or none).
+    pub owner: Option<String>,
+    /// The job's own webhook receivers: `protocol::WebhookSpec`s as JSON (None: none).
+    pub webhooks: Option<String>,
 }
 
 impl JobRow {
@@ -189,6 +193,49 @@ pub(crate) struct NewJob<'a> {
     pub retry_of: Option<&'a str>,
     /// Worker tags the job needs (validated, sorted).
     pub require_tags: &'a [String],
+    /// The submitter's user name.
+    pub owner: Option<&'a str>,
+    /// The job's own webhook receivers (JSON of `protocol::WebhookSpec`s).
+    pub webhooks: Option<&'a str>,
+}
+
+/// A webhook receiver: where a job's final event is POSTed, and the secret that signs it.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub(crate) struct WebhookTarget {
+    pub url: String,
+    pub secret: Option<String>,
+}
+
+/// One delivery of a job's final event to one receiver (the webhook outbox).
+#[derive(Clone, Debug)]
+pub(crate) struct DeliveryRow {
+    /// The delivery id (`X-Omis-Delivery`), the same on every attempt.
+    pub id: String,
+    pub job_id: String,
+    /// `done`, `failed` or `cancelled`.
+    pub event: String,
+    pub url: String,
+    pub secret: Option<String>,
+    /// When the event happened.
+    pub at: f64,
+    /// `pending`, `delivered` or `failed`.
+    pub state: String,
+    pub attempts: u32,
+    pub next_at: f64,
+    pub last_status: Option<u16>,
+    pub last_error: Option<String>,
+    pub delivered_at: Option<f64>,
+}
+
+/// What one attempt of a delivery came to.
+#[derive(Clone, Debug)]
+pub(crate) struct DeliveryAttempt {
+    /// The receiver's status, if it answered.
+    pub status: Option<u16>,
+    /// Why it did not count as delivered (None: a 2xx answer).
+    pub error: Option<String>,
+    /// When to try again (None: no more attempts; with an error, the delivery has failed).
+    pub retry_at: Option<f64>,
 }
 
 /// Failed tasks of one job (distinct) after which a worker gets none of its tasks any more
@@ -296,7 +343,9 @@ pub(crate) trait JobStore: Send {
     /// image (at `image`).
     fn delete_job(&self, id: &str, image: &str) -> StoreResult<Deleted>;
     /// Moves an active (queued, running or paused) job to `state`; false when the job had
-    /// already ended (a cancelled job stays cancelled).
+    /// already ended (a cancelled job stays cancelled). A final state queues, in the same transaction,
+    /// a webhook delivery of its event to each receiver: the store's global ones
+    /// (`SqliteStore::with_webhooks`) and the job's own.
     fn set_job_state(&self, id: &str, state: JobState, error: Option<&str>) -> StoreResult<bool>;
     /// Replaces an active job's resolved settings (a time-budget job's fitted last pass,
     /// `Resolved::fit_to_budget`); false when the job had ended.
@@ -454,6 +503,14 @@ pub(crate) trait JobStore: Send {
     ) -> StoreResult<EventRow>;
     /// A job's events after event `after`, in order.
     fn events_after(&self, job: &str, after: i64) -> StoreResult<Vec<EventRow>>;
-    /// Counts of (state, n) in a table (jobs, tasks or workers).
+    /// Counts of (state, n) in a table (jobs, tasks, workers or webhook_deliveries).
     fn state_counts(&self, table: &str) -> StoreResult<Vec<(String, i64)>>;
+    /// Pending webhook deliveries due at `now`, at most `limit`, earliest first.
+    fn due_deliveries(&self, now: f64, limit: u32) -> StoreResult<Vec<DeliveryRow>>;
+    /// The earliest `next_at` of a pending delivery, if any.
+    fn next_delivery_at(&self) -> StoreResult<Option<f64>>;
+    /// Records an attempt of pending delivery `id`: delivered, due again at `retry_at`, or failed.
+    fn record_delivery(&self, id: &str, attempt: &DeliveryAttempt) -> StoreResult<()>;
+    /// A job's webhook deliveries, oldest first.
+    fn deliveries(&self, job: &str) -> StoreResult<Vec<DeliveryRow>>;
 }

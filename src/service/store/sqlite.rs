@@ -5,8 +5,9 @@
 
 use super::migrations;
 use super::{
-    AttemptsOf, BLOCKLIST_AFTER, Completed, Deleted, EventRow, Failure, JobQuery, JobRow,
-    JobStore, NewJob, Outcome, StoreError, StoreResult, TaskRow, UNHEALTHY_AFTER_JOBS, now,
+    AttemptsOf, BLOCKLIST_AFTER, Completed, Deleted, DeliveryAttempt, DeliveryRow, EventRow,
+    Failure, JobQuery, JobRow, JobStore, NewJob, Outcome, StoreError, StoreResult, TaskRow,
+    UNHEALTHY_AFTER_JOBS, WebhookTarget, now,
 };
 use crate::protocol::{
     AttemptOutcome, BlocklistEntry, EventKind, JobState, SeriesPoint, TaskAttempt, TaskKind,
@@ -73,12 +74,14 @@ fn tags_of(text: &str) -> Vec<String> {
 /// The database of a coordinator.
 pub(crate) struct SqliteStore {
     conn: Connection,
+    /// Receivers of every job's final event (`omis serve --webhook`).
+    webhooks: Vec<WebhookTarget>,
 }
 
 const JOB_COLS: &str = "id, name, state, error, settings, resolved, scene_id, scene_main, \
     reference, created_at, started_at, finished_at, passes_done, spp_done, samples, rays, \
     non_finite, accum_bytes, result_bytes, seq, priority, paused_at, paused_s, retry_of, \
-    require_tags";
+    require_tags, owner, webhooks";
 
 const TASK_COLS: &str =
     "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, result_at, result_len, kind";
@@ -110,6 +113,8 @@ fn job_row(r: &rusqlite::Row) -> rusqlite::Result<JobRow> {
         paused_s: r.get(22)?,
         retry_of: r.get(23)?,
         require_tags: tags_of(&r.get::<_, String>(24)?),
+        owner: r.get(25)?,
+        webhooks: r.get(26)?,
     })
 }
 
@@ -384,8 +389,74 @@ impl SqliteStore {
             "PRAGMA journal_mode = WAL; PRAGMA synchronous = NORMAL; PRAGMA foreign_keys = ON;",
         )?;
         migrations::migrate(&conn)?;
-        Ok(SqliteStore { conn })
+        Ok(SqliteStore {
+            conn,
+            webhooks: Vec::new(),
+        })
     }
+
+    /// The store with `webhooks` as the receivers of every job's final event.
+    pub fn with_webhooks(mut self, webhooks: Vec<WebhookTarget>) -> SqliteStore {
+        self.webhooks = webhooks;
+        self
+    }
+
+    /// Queues a delivery of job `id`'s final event `event` to every receiver (the global ones,
+    /// then the job's own), within the caller's transaction.
+    fn queue_deliveries(&self, tx: &Connection, id: &str, event: &str) -> StoreResult<()> {
+        let own: Option<String> =
+            cached_row(tx, "SELECT webhooks FROM jobs WHERE id = ?1", [id], |r| {
+                r.get(0)
+            })
+            .optional()?
+            .flatten();
+        // Unreadable receivers must not keep the job from ending: they are left out, logged.
+        let own: Vec<WebhookTarget> = match own.map(|j| serde_json::from_str(&j)) {
+            Some(Ok(targets)) => targets,
+            Some(Err(e)) => {
+                tracing::error!("job {id}: its webhooks are unreadable ({e}); none is notified");
+                Vec::new()
+            }
+            None => Vec::new(),
+        };
+        let at = now();
+        for hook in self.webhooks.iter().chain(&own) {
+            cached_exec(
+                tx,
+                "INSERT INTO webhook_deliveries (id, job_id, event, url, secret, at, state, \
+                 next_at) VALUES (?1, ?2, ?3, ?4, ?5, ?6, 'pending', ?6)",
+                params![
+                    uuid::Uuid::new_v4().to_string(),
+                    id,
+                    event,
+                    hook.url,
+                    hook.secret,
+                    at
+                ],
+            )?;
+        }
+        Ok(())
+    }
+}
+
+const DELIVERY_COLS: &str = "id, job_id, event, url, secret, at, state, attempts, next_at, \
+    last_status, last_error, delivered_at";
+
+fn delivery_row(r: &rusqlite::Row) -> rusqlite::Result<DeliveryRow> {
+    Ok(DeliveryRow {
+        id: r.get(0)?,
+        job_id: r.get(1)?,
+        event: r.get(2)?,
+        url: r.get(3)?,
+        secret: r.get(4)?,
+        at: r.get(5)?,
+        state: r.get(6)?,
+        attempts: r.get(7)?,
+        next_at: r.get(8)?,
+        last_status: r.get(9)?,
+        last_error: r.get(10)?,
+        delivered_at: r.get(11)?,
+    })
 }
 
 impl JobStore for SqliteStore {
@@ -398,8 +469,9 @@ impl JobStore for SqliteStore {
         cached_exec(
             &self.conn,
             "INSERT INTO jobs (id, seq, name, state, settings, resolved, scene_id, scene_main, \
-             reference, created_at, accum_bytes, priority, retry_of, require_tags) \
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
+             reference, created_at, accum_bytes, priority, retry_of, require_tags, owner, \
+             webhooks) \
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)",
             params![
                 j.id,
                 seq,
@@ -414,7 +486,9 @@ impl JobStore for SqliteStore {
                 j.accum_bytes,
                 j.priority,
                 j.retry_of,
-                tags_text(j.require_tags)
+                tags_text(j.require_tags),
+                j.owner,
+                j.webhooks
             ],
         )?;
         Ok(())
@@ -585,6 +659,14 @@ impl JobStore for SqliteStore {
         )?;
         if n == 1 && finished.is_some() {
             cancel_attempts(&tx, "job_id = ?1", &id, &format!("the job is {state}"))?;
+        }
+        if n == 1
+            && matches!(
+                state,
+                JobState::Done | JobState::Failed | JobState::Cancelled
+            )
+        {
+            self.queue_deliveries(&tx, id, state.as_str())?;
         }
         tx.commit()?;
         Ok(n == 1)
@@ -1308,13 +1390,54 @@ impl JobStore for SqliteStore {
     }
     fn state_counts(&self, table: &str) -> StoreResult<Vec<(String, i64)>> {
         let table = match table {
-            "jobs" | "tasks" | "workers" => table,
+            "jobs" | "tasks" | "workers" | "webhook_deliveries" => table,
             _ => return Ok(Vec::new()),
         };
         let mut st = self.conn.prepare_cached(&format!(
             "SELECT state, COUNT(*) FROM {table} GROUP BY state"
         ))?;
         st.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
+    }
+    fn due_deliveries(&self, now: f64, limit: u32) -> StoreResult<Vec<DeliveryRow>> {
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {DELIVERY_COLS} FROM webhook_deliveries WHERE state = 'pending' \
+             AND next_at <= ?1 ORDER BY next_at, seq LIMIT ?2"
+        ))?;
+        st.query_map(params![now, limit], delivery_row)?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
+    }
+    fn next_delivery_at(&self) -> StoreResult<Option<f64>> {
+        Ok(cached_row(
+            &self.conn,
+            "SELECT MIN(next_at) FROM webhook_deliveries WHERE state = 'pending'",
+            [],
+            |r| r.get(0),
+        )?)
+    }
+    fn record_delivery(&self, id: &str, a: &DeliveryAttempt) -> StoreResult<()> {
+        let state = match (&a.error, a.retry_at) {
+            (None, _) => "delivered",
+            (Some(_), Some(_)) => "pending",
+            (Some(_), None) => "failed",
+        };
+        let delivered_at = a.error.is_none().then(now);
+        cached_exec(
+            &self.conn,
+            "UPDATE webhook_deliveries SET state = ?2, attempts = attempts + 1, \
+             next_at = COALESCE(?3, next_at), last_status = ?4, last_error = ?5, \
+             delivered_at = ?6 WHERE id = ?1 AND state = 'pending'",
+            params![id, state, a.retry_at, a.status, a.error, delivered_at],
+        )?;
+        Ok(())
+    }
+    fn deliveries(&self, job: &str) -> StoreResult<Vec<DeliveryRow>> {
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {DELIVERY_COLS} FROM webhook_deliveries WHERE job_id = ?1 ORDER BY seq"
+        ))?;
+        st.query_map([job], delivery_row)?
             .collect::<rusqlite::Result<Vec<_>>>()
             .map_err(StoreError::from)
     }
@@ -1344,6 +1467,8 @@ mod tests {
                 priority: 0,
                 retry_of: None,
                 require_tags: &[],
+                owner: None,
+                webhooks: None,
             })
             .expect("job");
             db.create_tasks(job, 0, 0..tiles, 0..16).expect("tasks");
@@ -1392,6 +1517,9 @@ mod tests {
                 accum_bytes: 0,
                 priority,
                 retry_of: None,
+                require_tags: &[],
+                owner: None,
+                webhooks: None,
             })
             .expect("job");
             db.create_tasks(job, 0, 0..2, 0..16).expect("tasks");
@@ -1452,6 +1580,94 @@ mod tests {
             Deleted::Missing
         ));
         drop(db);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A job's final state queues one delivery per receiver (global ones first) in the same
+    /// transaction; a change that does not end the job, or comes after its end, queues none.
+    /// A 500 keeps a delivery pending with its next attempt due later; a 2xx delivers it.
+    #[test]
+    fn a_final_state_queues_its_webhook_deliveries() {
+        let dir = std::env::temp_dir().join(format!("omis-store-{}", uuid::Uuid::new_v4()));
+        std::fs::create_dir_all(&dir).expect("temporary folder");
+        let global = WebhookTarget {
+            url: "http://127.0.0.1:9/all".into(),
+            secret: Some("s".into()),
+        };
+        let db = SqliteStore::open(&dir.join("db.sqlite"))
+            .expect("store")
+            .with_webhooks(vec![global]);
+        let own = r#"[{"url": "http://127.0.0.1:9/own", "secret": null}]"#;
+        db.insert_job(&NewJob {
+            id: "j",
+            name: None,
+            settings: "{}",
+            resolved: "{}",
+            scene_id: "s",
+            scene_main: "scene.json",
+            reference: None,
+            accum_bytes: 0,
+            priority: 0,
+            retry_of: None,
+            require_tags: &[],
+            owner: Some("ana"),
+            webhooks: Some(own),
+        })
+        .expect("job");
+        assert_eq!(
+            db.job("j").expect("job").expect("row").owner.as_deref(),
+            Some("ana")
+        );
+        assert!(
+            db.set_job_state("j", JobState::Running, None)
+                .expect("running")
+        );
+        assert!(db.deliveries("j").expect("deliveries").is_empty());
+        assert!(db.set_job_state("j", JobState::Done, None).expect("done"));
+        assert!(
+            !db.set_job_state("j", JobState::Cancelled, None)
+                .expect("ended")
+        );
+        let d = db.deliveries("j").expect("deliveries");
+        let urls: Vec<(&str, &str)> = d
+            .iter()
+            .map(|d| (d.url.as_str(), d.event.as_str()))
+            .collect();
+        assert_eq!(
+            urls,
+            [
+                ("http://127.0.0.1:9/all", "done"),
+                ("http://127.0.0.1:9/own", "done")
+            ]
+        );
+        assert_eq!(db.due_deliveries(now() + 1.0, 10).expect("due").len(), 2);
+        let later = now() + 100.0;
+        db.record_delivery(
+            &d[0].id,
+            &DeliveryAttempt {
+                status: Some(500),
+                error: Some("HTTP 500".into()),
+                retry_at: Some(later),
+            },
+        )
+        .expect("attempt");
+        db.record_delivery(
+            &d[1].id,
+            &DeliveryAttempt {
+                status: Some(204),
+                error: None,
+                retry_at: None,
+            },
+        )
+        .expect("attempt");
+        assert!(db.due_deliveries(now() + 1.0, 10).expect("due").is_empty());
+        assert_eq!(db.next_delivery_at().expect("next"), Some(later));
+        let d = db.deliveries("j").expect("deliveries");
+        assert_eq!(
+            (d[0].state.as_str(), d[0].attempts, d[0].last_status),
+            ("pending", 1, Some(500))
+        );
+        assert_eq!((d[1].state.as_str(), d[1].attempts), ("delivered", 1));
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
