@@ -6,7 +6,8 @@ workers) and chromedriver, then, in the browser: answers the token prompt (a wro
 which must be refused), submits a job through the form (a library scene with a finished job as
 the reference), watches the preview change, waits for `done`, checks the relMSE chart, the error
 map and the workers page, pauses, resumes, reprioritises and cancels a second job from its
-page, and saves screenshots under --out (job-page.png is checked not to be blank by decoding the PNG here).
+page, and saves screenshots under --out (job-page.png is checked not to be blank by decoding
+the PNG here).
 
 Python's standard library only: the WebDriver protocol is JSON over HTTP, so no Selenium (and no
 driver download) is involved. Every process it starts is stopped on the way out, on failure, on

@@ -464,3 +464,101 @@ fn time_paused_does_not_count_against_a_time_budget() {
     assert!(paused >= 2.9, "{st}");
     assert!(elapsed < 3.5, "the time paused counted as rendering: {st}");
 }
+
+#[test]
+fn the_cli_lists_summarises_and_controls_jobs_by_id_prefix() {
+    let dir = folder("cli-controls");
+    let (_server, url) = serve(&dir.join("data"), &[]);
+    let c = http();
+    let omis = |args: &[&str]| {
+        let out = std::process::Command::new(crate::common::service::EXE)
+            .args(args)
+            .args(["--server", &url])
+            .env("OMIS_LOG", "warn")
+            .output()
+            .expect("run omis");
+        let text = |b: &[u8]| String::from_utf8_lossy(b).trim().to_string();
+        (out.status.success(), text(&out.stdout), text(&out.stderr))
+    };
+    // Jobs until two ids share their first character (an ambiguous prefix).
+    let mut ids: Vec<String> = Vec::new();
+    let shared = loop {
+        let v = submit_with(
+            &c,
+            &url,
+            settings(64),
+            json!({ "name": format!("shot-{}", ids.len()) }),
+        );
+        let id = v["id"].as_str().expect("id").to_string();
+        let first = &id[..1];
+        if ids.iter().any(|o| o.starts_with(first)) {
+            ids.push(id.clone());
+            break first.to_string();
+        }
+        ids.push(id);
+    };
+    let unique = |id: &str| -> String {
+        (1..=id.len())
+            .map(|k| id[..k].to_string())
+            .find(|p| ids.iter().filter(|o| o.starts_with(p.as_str())).count() == 1)
+            .expect("a unique prefix")
+    };
+    let a = ids[0].clone();
+    let (ok, out, err) = omis(&["pause", &unique(&a)]);
+    assert!(ok, "{err}");
+    assert_eq!(out, "paused");
+    let (ok, out, err) = omis(&["priority", &unique(&a), "-3"]);
+    assert!(ok, "{err}");
+    assert_eq!(out, "-3");
+    assert_eq!(get_json(&c, &format!("{url}/v1/jobs/{a}"))["priority"], -3);
+    // An ambiguous or unknown prefix is a one-line error naming the problem.
+    let (ok, _, err) = omis(&["resume", &shared]);
+    assert!(!ok);
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(err.contains("ambiguous"), "{err}");
+    let (ok, _, err) = omis(&["resume", "zzzz"]);
+    assert!(!ok && err.contains("no job"), "{err}");
+    // The table, filtered; the farm summary; one job, readable and raw.
+    let (ok, out, err) = omis(&["jobs", "--state", "paused"]);
+    assert!(ok, "{err}");
+    assert!(out.starts_with("ID"), "{out}");
+    assert_eq!(out.lines().count(), 2, "{out}");
+    assert!(
+        out.contains(&a[..8]) && out.contains("shot-0") && out.contains("paused"),
+        "{out}"
+    );
+    let (ok, out, err) = omis(&["status"]);
+    assert!(ok, "{err}");
+    assert!(out.contains(&format!("jobs      {}", ids.len())), "{out}");
+    assert!(out.contains("1 paused") && out.contains("queue"), "{out}");
+    let (ok, out, err) = omis(&["status", &unique(&a)]);
+    assert!(ok, "{err}");
+    assert!(
+        out.contains("paused") && out.contains("priority   -3"),
+        "{out}"
+    );
+    let (ok, out, err) = omis(&["status", &unique(&a), "--json"]);
+    assert!(ok, "{err}");
+    let v: Value = serde_json::from_str(&out).expect("JSON");
+    assert_eq!(v["id"], a.as_str());
+    let (ok, out, err) = omis(&["status", "--json"]);
+    assert!(ok, "{err}");
+    let v: Value = serde_json::from_str(&out).expect("JSON");
+    assert_eq!(v["jobs"]["paused"], 1, "{v}");
+    // Resume, cancel, retry as a new job, delete.
+    let (ok, out, err) = omis(&["resume", &unique(&a)]);
+    assert!(ok && out == "queued", "{out} {err}");
+    assert_eq!(control(&c, &url, &a, "cancel").0, 200);
+    let (ok, out, err) = omis(&["retry", &unique(&a)]);
+    assert!(ok, "{err}");
+    let again = get_json(&c, &format!("{url}/v1/jobs/{out}"));
+    assert_eq!(again["retry_of"], a.as_str());
+    let (ok, out, err) = omis(&["delete", &a]);
+    assert!(ok, "{err}");
+    assert_eq!(out, format!("deleted {a}"));
+    let (ok, _, err) = omis(&["delete", &a]);
+    assert!(
+        !ok && err.lines().count() == 1 && err.contains("no job"),
+        "{err}"
+    );
+}

@@ -118,6 +118,19 @@ async function apiJson(path, opts = {}) {
   return body;
 }
 
+// Every job `query` selects (GET /v1/jobs, page after page), oldest first.
+async function allJobs(opts = {}, query = '') {
+  const jobs = [];
+  let after = null;
+  for (;;) {
+    const q = [query, after === null ? '' : `after=${encodeURIComponent(after)}`].filter(Boolean).join('&');
+    const page = await apiJson(q ? `/v1/jobs?${q}` : '/v1/jobs', opts);
+    jobs.push(...page.jobs);
+    if (page.next == null || page.next === after) return { jobs };
+    after = page.next;
+  }
+}
+
 async function apiBlob(path, signal) {
   const r = await api(path, { signal });
   if (!r.ok) throw new ApiError(r.status, await r.json().catch(() => null));
@@ -281,7 +294,7 @@ async function jobsView(signal) {
       h('div', { class: 'actions' }, h('a', { href: '#/submit' }, h('button', { class: 'primary', type: 'button' }, 'New job')))),
     table);
   await every(2000, signal, async () => {
-    const { jobs } = await apiJson('/v1/jobs', { signal });
+    const { jobs } = await allJobs({ signal });
     jobs.sort((a, b) => b.created_at - a.created_at);
     if (!jobs.length) {
       body.replaceChildren(h('tr', {}, h('td', { colspan: 9, class: 'empty' }, 'No jobs yet. ', h('a', { href: '#/submit' }, 'Submit one.'))));
@@ -876,7 +889,7 @@ async function submitView(signal) {
 
   const [scenes, jobs] = await Promise.all([
     apiJson('/v1/scenes', { signal }).catch((e) => ({ library: [], error: e })),
-    apiJson('/v1/jobs', { signal }).catch(() => ({ jobs: [] })),
+    allJobs({ signal }, 'state=done').catch(() => ({ jobs: [] })),
   ]);
   library.replaceChildren(...(scenes.library.length
     ? scenes.library.map((n) => opt(n, n, n === 'cornell-box'))
