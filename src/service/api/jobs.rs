@@ -8,7 +8,7 @@ use super::{AppState, references, scenes};
 use crate::protocol::{
     JobEvent, JobLinks, JobList, JobListQuery, JobPatch, JobRequest, JobState, JobStatus,
     QueuedEvent, SceneMeta, SceneRef, SceneSource, SseData, WebhookDelivery, WebhookDeliveryList,
-    Whoami, validate_tags,
+    Whoami, WorkerAdmin, WorkerInfo, WorkerState, validate_tags,
 };
 use crate::service::store::{self, EventRow, JobRow};
 use crate::service::{App, jobs, runtime, webhooks};
@@ -203,7 +203,7 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
     let blocklisted_workers = app.db().blocklist(&job.id)?;
     let waiting_for = if active && !job.require_tags.is_empty() {
         let workers = app.db().workers()?;
-        super::pools::waiting_for(
+        waiting_for(
             &job.id,
             &job.require_tags,
             &workers,
@@ -736,4 +736,98 @@ pub(crate) async fn job_convergence(
         svg,
     )
         .into_response())
+}
+
+/// Why no worker serves an active job that requires `tags`, if none does: no live, enabled,
+/// healthy worker that is not blocklisted for it has them all.
+fn waiting_for(
+    job: &str,
+    tags: &[String],
+    workers: &[WorkerInfo],
+    now: f64,
+    silent_s: f64,
+) -> Option<String> {
+    if tags.is_empty() {
+        return None;
+    }
+    let live = |w: &&WorkerInfo| {
+        !matches!(w.state, WorkerState::Gone | WorkerState::Left) && w.last_seen >= now - silent_s
+    };
+    let tagged: Vec<&WorkerInfo> = workers
+        .iter()
+        .filter(live)
+        .filter(|w| tags.iter().all(|t| w.tags.contains(t)))
+        .collect();
+    let list = tags.join(", ");
+    if tagged.is_empty() {
+        return Some(format!("no live worker has tags [{list}]"));
+    }
+    let serving = tagged.iter().any(|w| {
+        w.admin == WorkerAdmin::Enabled
+            && w.unhealthy.is_none()
+            && !w.blocklisted_jobs.iter().any(|j| j == job)
+    });
+    (!serving).then(|| {
+        format!(
+            "every live worker with tags [{list}] is disabled, draining, unhealthy or \
+             blocklisted for this job"
+        )
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn worker(id: &str, tags: &[&str]) -> WorkerInfo {
+        WorkerInfo {
+            id: id.to_string(),
+            name: id.to_string(),
+            threads: 1,
+            version: String::new(),
+            registered_at: 0.0,
+            last_seen: 100.0,
+            state: WorkerState::Idle,
+            tasks_done: 0,
+            unhealthy: None,
+            blocklisted_jobs: Vec::new(),
+            tasks: Vec::new(),
+            tags: tags.iter().map(|t| t.to_string()).collect(),
+            admin: WorkerAdmin::Enabled,
+        }
+    }
+
+    #[test]
+    fn a_tagged_job_waits_for_a_live_enabled_healthy_worker_with_every_tag() {
+        let tags = vec!["fast".to_string(), "gpu".to_string()];
+        let why = |ws: &[WorkerInfo]| waiting_for("j", &tags, ws, 100.0, 60.0);
+        assert_eq!(
+            why(&[]).as_deref(),
+            Some("no live worker has tags [fast, gpu]")
+        );
+        assert!(why(&[worker("a", &["gpu"])]).is_some());
+        let mut w = worker("a", &["gpu", "fast", "big"]);
+        assert_eq!(why(std::slice::from_ref(&w)), None);
+        // Not heard from: not live.
+        w.last_seen = 10.0;
+        assert!(
+            why(std::slice::from_ref(&w))
+                .unwrap_or_default()
+                .contains("no live")
+        );
+        w.last_seen = 100.0;
+        for admin in [WorkerAdmin::Disabled, WorkerAdmin::Draining] {
+            w.admin = admin;
+            assert!(
+                why(std::slice::from_ref(&w))
+                    .unwrap_or_default()
+                    .contains("disabled")
+            );
+        }
+        w.admin = WorkerAdmin::Enabled;
+        w.blocklisted_jobs = vec!["j".to_string()];
+        assert!(why(std::slice::from_ref(&w)).is_some());
+        // An untagged job never waits for tags.
+        assert_eq!(waiting_for("j", &[], &[], 100.0, 60.0), None);
+    }
 }

@@ -4,9 +4,7 @@
 
 use super::AppState;
 use super::errors::{ApiError, ApiResult, bad};
-use crate::protocol::{
-    TaskAttemptList, TaskAttemptQuery, WorkerAdmin, WorkerAdminAnswer, WorkerInfo,
-};
+use crate::protocol::{TaskAttemptList, TaskAttemptQuery, WorkerAdmin, WorkerAdminAnswer};
 use crate::service::store::AttemptsOf;
 use axum::Json;
 use axum::extract::{Path, Query, State};
@@ -144,100 +142,4 @@ pub(crate) async fn worker_tasks(
         return Err(ApiError::not_found("worker", &id));
     }
     attempts(&app, AttemptsOf::Worker(&id), &q)
-}
-
-/// Why no worker serves an active job that requires `tags`, if none does: no live, enabled,
-/// healthy worker that is not blocklisted for it has them all.
-pub(crate) fn waiting_for(
-    job: &str,
-    tags: &[String],
-    workers: &[WorkerInfo],
-    now: f64,
-    silent_s: f64,
-) -> Option<String> {
-    use crate::protocol::WorkerState;
-    if tags.is_empty() {
-        return None;
-    }
-    let live = |w: &&WorkerInfo| {
-        !matches!(w.state, WorkerState::Gone | WorkerState::Left) && w.last_seen >= now - silent_s
-    };
-    let tagged: Vec<&WorkerInfo> = workers
-        .iter()
-        .filter(live)
-        .filter(|w| tags.iter().all(|t| w.tags.contains(t)))
-        .collect();
-    let list = tags.join(", ");
-    if tagged.is_empty() {
-        return Some(format!("no live worker has tags [{list}]"));
-    }
-    let serving = tagged.iter().any(|w| {
-        w.admin == WorkerAdmin::Enabled
-            && w.unhealthy.is_none()
-            && !w.blocklisted_jobs.iter().any(|j| j == job)
-    });
-    (!serving).then(|| {
-        format!(
-            "every live worker with tags [{list}] is disabled, draining, unhealthy or \
-             blocklisted for this job"
-        )
-    })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::protocol::WorkerState;
-
-    fn worker(id: &str, tags: &[&str]) -> WorkerInfo {
-        WorkerInfo {
-            id: id.to_string(),
-            name: id.to_string(),
-            threads: 1,
-            version: String::new(),
-            registered_at: 0.0,
-            last_seen: 100.0,
-            state: WorkerState::Idle,
-            tasks_done: 0,
-            unhealthy: None,
-            blocklisted_jobs: Vec::new(),
-            tasks: Vec::new(),
-            tags: tags.iter().map(|t| t.to_string()).collect(),
-            admin: WorkerAdmin::Enabled,
-        }
-    }
-
-    #[test]
-    fn a_tagged_job_waits_for_a_live_enabled_healthy_worker_with_every_tag() {
-        let tags = vec!["fast".to_string(), "gpu".to_string()];
-        let why = |ws: &[WorkerInfo]| waiting_for("j", &tags, ws, 100.0, 60.0);
-        assert_eq!(
-            why(&[]).as_deref(),
-            Some("no live worker has tags [fast, gpu]")
-        );
-        assert!(why(&[worker("a", &["gpu"])]).is_some());
-        let mut w = worker("a", &["gpu", "fast", "big"]);
-        assert_eq!(why(std::slice::from_ref(&w)), None);
-        // Not heard from: not live.
-        w.last_seen = 10.0;
-        assert!(
-            why(std::slice::from_ref(&w))
-                .unwrap_or_default()
-                .contains("no live")
-        );
-        w.last_seen = 100.0;
-        for admin in [WorkerAdmin::Disabled, WorkerAdmin::Draining] {
-            w.admin = admin;
-            assert!(
-                why(std::slice::from_ref(&w))
-                    .unwrap_or_default()
-                    .contains("disabled")
-            );
-        }
-        w.admin = WorkerAdmin::Enabled;
-        w.blocklisted_jobs = vec!["j".to_string()];
-        assert!(why(std::slice::from_ref(&w)).is_some());
-        // An untagged job never waits for tags.
-        assert_eq!(waiting_for("j", &[], &[], 100.0, 60.0), None);
-    }
 }
