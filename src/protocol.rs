@@ -356,6 +356,10 @@ pub struct JobRequest {
     /// A label for lists and logs.
     #[serde(default)]
     pub name: Option<String>,
+    /// A sequence: these frames of a bundle whose main file is a frame pattern
+    /// (`frame_####.xml`); each frame is a job of its own (a child of this one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frames: Option<crate::job::frames::FrameRange>,
 }
 
 /// One point of a job's relMSE series (one per merged pass).
@@ -480,6 +484,35 @@ pub struct JobStatus {
     pub optimal_depth: Option<crate::job::optimal_depth::DepthChoice>,
     /// Paths of the job's resources.
     pub links: JobLinks,
+    /// A sequence: its frames in order, each a job of its own. The counts above (spp, passes,
+    /// tiles, samples, bytes) are then sums over the frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frames: Option<Vec<FrameStatus>>,
+    /// A frame of a sequence: the sequence's job id.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub parent: Option<String>,
+    /// A frame of a sequence: its frame number.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<u32>,
+}
+
+/// One frame of a sequence job, as its status lists it.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct FrameStatus {
+    /// The frame number.
+    pub frame: u32,
+    /// The frame's own job.
+    pub job_id: String,
+    /// The frame's state.
+    pub state: JobState,
+    /// Samples per pixel merged.
+    pub spp_done: u32,
+    /// Passes merged.
+    pub passes_done: u32,
+    /// Why the frame failed.
+    pub error: Option<String>,
+    /// Seconds from its first lease to its end (or to now).
+    pub elapsed_s: f64,
 }
 
 /// GET /v1/jobs.
@@ -515,8 +548,24 @@ pub struct SceneMeta {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneUploadQuery {
-    /// The scene file inside the archive.
+    /// The scene file inside the archive, or a frame pattern (`frame_####.xml`) for a
+    /// sequence's bundle.
     pub main: Option<String>,
+}
+
+/// The query of a job's images (GET /v1/jobs/{id}/image.exr, preview.png).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct ImageQuery {
+    /// The frame of a sequence (required for one; refused for a single-frame job).
+    pub frame: Option<u32>,
+}
+
+/// The query of GET /v1/jobs.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct JobListQuery {
+    /// List the frames of sequences too (each a job of its own); hidden by default.
+    #[serde(default)]
+    pub include_frames: bool,
 }
 
 /// GET /v1/scenes: the library's scene names.

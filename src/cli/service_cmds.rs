@@ -3,6 +3,7 @@
 use super::client::{self, Client};
 use super::job_args::JobArgs;
 use crate::job::Limits;
+use crate::job::frames::FrameRange;
 use crate::protocol::{JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource};
 use crate::service;
 use crate::worker;
@@ -276,8 +277,14 @@ impl ServerArgs {
 
 #[derive(Args)]
 pub(crate) struct SubmitArgs {
-    /// A scene file (uploaded with the files it reads) or the name of a library scene.
+    /// A scene file (uploaded with the files it reads) or the name of a library scene; with
+    /// --frames, a frame pattern (frame_####.xml: a run of '#' where the zero-padded frame
+    /// number goes).
     pub scene: String,
+    /// Render a sequence: these frames of the pattern SCENE (FIRST-LAST or FIRST-LAST:STEP),
+    /// every frame file and what it reads packed into one bundle.
+    #[arg(long, value_name = "FIRST-LAST")]
+    pub frames: Option<FrameRange>,
     #[command(flatten)]
     pub job: JobArgs,
     /// Reference EXR: the job reports relMSE per pass and an error map.
@@ -289,7 +296,7 @@ pub(crate) struct SubmitArgs {
     /// Wait until the job ends, with a progress bar.
     #[arg(long)]
     pub wait: bool,
-    /// With --wait: download the EXR here.
+    /// With --wait: download the EXR here (a sequence: a pattern out_####.exr, or a folder).
     #[arg(long)]
     pub out: Option<PathBuf>,
     #[command(flatten)]
@@ -304,6 +311,19 @@ pub(crate) async fn submit_job(
     reference: Option<&std::path::Path>,
     name: Option<&str>,
 ) -> Result<JobStatus> {
+    submit_frames(c, scene, job, reference, name, None).await
+}
+
+/// Builds a job request, a sequence of `frames` when given, and submits it; returns the job's
+/// status document.
+pub(crate) async fn submit_frames(
+    c: &Client,
+    scene: SceneSource,
+    job: &JobArgs,
+    reference: Option<&std::path::Path>,
+    name: Option<&str>,
+    frames: Option<FrameRange>,
+) -> Result<JobStatus> {
     let settings = job.settings()?;
     let reference = match reference {
         Some(r) => Some(ReferenceSource::Upload(c.upload_reference(r).await?)),
@@ -314,6 +334,7 @@ pub(crate) async fn submit_job(
         settings,
         reference,
         name: name.map(str::to_string),
+        frames,
     };
     c.submit(&req).await
 }
@@ -357,8 +378,26 @@ pub(crate) async fn wait_job(c: &Client, status: &JobStatus, quiet: bool) -> Res
 pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
     runtime()?.block_on(async move {
         let c = a.server.client()?;
-        let scene = client::scene_source(&c, &a.scene, &a.job.settings()?.defines).await?;
-        let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), a.name.as_deref()).await?;
+        let defines = a.job.settings()?.defines;
+        let scene = match a.frames {
+            Some(frames) => {
+                frames.validate().map_err(|e| anyhow::anyhow!("--{e}"))?;
+                SceneSource::Bundle(
+                    c.upload_frames(std::path::Path::new(&a.scene), frames, &defines)
+                        .await?,
+                )
+            }
+            None => client::scene_source(&c, &a.scene, &defines).await?,
+        };
+        let st = submit_frames(
+            &c,
+            scene,
+            &a.job,
+            a.reference.as_deref(),
+            a.name.as_deref(),
+            a.frames,
+        )
+        .await?;
         let id = st.id.clone();
         if !a.wait {
             println!("{id}");
@@ -374,8 +413,14 @@ pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
             );
         }
         if let Some(out) = &a.out {
-            c.download(&id, "image.exr", out).await?;
-            eprintln!("{}", out.display());
+            if st.frames.is_some() {
+                for f in c.download_frames(&st, "image.exr", out).await? {
+                    eprintln!("{}", f.display());
+                }
+            } else {
+                c.download(&id, "image.exr", out).await?;
+                eprintln!("{}", out.display());
+            }
         }
         println!("{}", serde_json::to_string(&st)?);
         Ok(())
@@ -410,7 +455,8 @@ pub(crate) fn cancel(a: IdArgs) -> Result<()> {
 pub(crate) struct DownloadArgs {
     /// The job id.
     pub id: String,
-    /// Where to write the EXR.
+    /// Where to write the file (a sequence's EXRs or previews: a pattern out_####.exr, or a
+    /// folder, one file per frame).
     #[arg(long)]
     pub out: PathBuf,
     /// Which file: image.exr, preview.png, error.png or convergence.svg.
@@ -431,7 +477,15 @@ pub(crate) fn download(a: DownloadArgs) -> Result<()> {
         );
     }
     runtime()?.block_on(async move {
-        let n = a.server.client()?.download(&a.id, &a.file, &a.out).await?;
+        let c = a.server.client()?;
+        let st = c.status(&a.id).await?;
+        if st.frames.is_some() && matches!(a.file.as_str(), "image.exr" | "preview.png") {
+            for f in c.download_frames(&st, &a.file, &a.out).await? {
+                eprintln!("{}", f.display());
+            }
+            return Ok(());
+        }
+        let n = c.download(&a.id, &a.file, &a.out).await?;
         eprintln!("{}: {n} bytes", a.out.display());
         Ok(())
     })

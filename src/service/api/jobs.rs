@@ -2,15 +2,15 @@
 //! and the job's files (EXR, preview, error map, convergence plot).
 
 use super::errors::{ApiError, ApiResult, JsonBody, bad, settings_error};
-use super::{AppState, references, scenes};
+use super::{AppState, references, scenes, sequences};
 use crate::protocol::{
-    JobEvent, JobLinks, JobList, JobRequest, JobStatus, QueuedEvent, SceneMeta, SceneRef,
-    SceneSource, SseData,
+    ImageQuery, JobEvent, JobLinks, JobList, JobListQuery, JobRequest, JobStatus, QueuedEvent,
+    SceneMeta, SceneRef, SceneSource, SseData,
 };
 use crate::service::store::{self, EventRow, JobRow};
 use crate::service::{App, jobs, runtime};
 use axum::Json;
-use axum::extract::{Path, State};
+use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -35,14 +35,27 @@ pub(crate) async fn create_job(
     // reading the reference take memory and time in proportion to the job: a few at once.
     let _permit = app.validation().await?;
     let a = app.clone();
-    let job = tokio::task::spawn_blocking(move || create_job_blocking(&a, req))
-        .await
-        .map_err(ApiError::internal)??;
+    let (job, to_start) = tokio::task::spawn_blocking(move || {
+        if sequences::is_sequence_request(&a, &req) {
+            sequences::create_sequence(&a, &req)
+        } else {
+            create_job_blocking(&a, req).map(|j| {
+                let id = j.id.clone();
+                (j, vec![id])
+            })
+        }
+    })
+    .await
+    .map_err(ApiError::internal)??;
     // Its tasks are created in the background, chunk by chunk (the first ones are leased while
-    // the rest are made): a large frame does not hold up this answer or the store.
+    // the rest are made): a large frame does not hold up this answer or the store. A
+    // sequence's are its frames'.
     let a = app.clone();
-    let id = job.id.clone();
-    tokio::task::spawn_blocking(move || jobs::advance(&a, &id));
+    tokio::task::spawn_blocking(move || {
+        for id in &to_start {
+            jobs::advance(&a, id);
+        }
+    });
     let status = job_status(&app, &job)?;
     Ok((
         StatusCode::CREATED,
@@ -157,7 +170,7 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
     } else {
         budget_left
     };
-    Ok(JobStatus {
+    let mut st = JobStatus {
         id: job.id.clone(),
         name: job.name.clone(),
         state: job.state,
@@ -193,7 +206,14 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         optimal_max_depth: r.optimal_max_depth(),
         optimal_depth: r.optimal_depth.clone(),
         links: JobLinks::of(&job.id),
-    })
+        frames: None,
+        parent: job.parent_id.clone(),
+        frame: job.frame,
+    };
+    if job.is_sequence() {
+        sequences::fill_status(app, job, &mut st, |f| job_status(app, f))?;
+    }
+    Ok(st)
 }
 
 fn find_job(app: &App, id: &str) -> ApiResult<JobRow> {
@@ -203,10 +223,15 @@ fn find_job(app: &App, id: &str) -> ApiResult<JobRow> {
 }
 
 /// GET /v1/jobs.
-pub(crate) async fn list_jobs(State(app): State<AppState>) -> ApiResult<Json<JobList>> {
+pub(crate) async fn list_jobs(
+    State(app): State<AppState>,
+    Query(q): Query<JobListQuery>,
+) -> ApiResult<Json<JobList>> {
     let rows = app.db().jobs()?;
     let jobs = rows
         .iter()
+        // A sequence's frames are listed in its status.
+        .filter(|j| q.include_frames || j.parent_id.is_none())
         .map(|j| job_status(&app, j))
         .collect::<ApiResult<_>>()?;
     Ok(Json(JobList { jobs }))
@@ -307,7 +332,18 @@ pub(crate) async fn job_events(
 }
 
 async fn job_file(app: &App, id: &str, name: &str, mime: &'static str) -> ApiResult<Response> {
-    let job = find_job(app, id)?;
+    job_frame_file(app, id, None, name, mime).await
+}
+
+/// File `name` of job `id`, or of its frame `frame` for a sequence.
+async fn job_frame_file(
+    app: &App,
+    id: &str,
+    frame: Option<u32>,
+    name: &str,
+    mime: &'static str,
+) -> ApiResult<Response> {
+    let job = sequences::image_job(app, find_job(app, id)?, frame)?;
     let path = app.paths.output(&job.id, name);
     match tokio::fs::read(&path).await {
         Ok(bytes) => Ok((
@@ -326,20 +362,22 @@ async fn job_file(app: &App, id: &str, name: &str, mime: &'static str) -> ApiRes
     }
 }
 
-/// GET /v1/jobs/{id}/image.exr.
+/// GET /v1/jobs/{id}/image.exr (?frame=N of a sequence).
 pub(crate) async fn job_exr(
     State(app): State<AppState>,
     Path(id): Path<String>,
+    Query(q): Query<ImageQuery>,
 ) -> ApiResult<Response> {
-    job_file(&app, &id, "image.exr", "image/x-exr").await
+    job_frame_file(&app, &id, q.frame, "image.exr", "image/x-exr").await
 }
 
-/// GET /v1/jobs/{id}/preview.png.
+/// GET /v1/jobs/{id}/preview.png (?frame=N of a sequence).
 pub(crate) async fn job_preview(
     State(app): State<AppState>,
     Path(id): Path<String>,
+    Query(q): Query<ImageQuery>,
 ) -> ApiResult<Response> {
-    job_file(&app, &id, "preview.png", "image/png").await
+    job_frame_file(&app, &id, q.frame, "preview.png", "image/png").await
 }
 
 /// GET /v1/jobs/{id}/error.png.

@@ -8,6 +8,7 @@ mod jobs;
 mod metrics;
 mod references;
 mod scenes;
+mod sequences;
 mod workers;
 
 use super::App;

@@ -50,6 +50,20 @@ pub(crate) struct JobRow {
     pub non_finite: i64,
     pub accum_bytes: i64,
     pub result_bytes: i64,
+    /// A frame of a sequence: the sequence's job.
+    pub parent_id: Option<String>,
+    /// A frame of a sequence: its frame number.
+    pub frame: Option<u32>,
+    /// A sequence (a parent job, with no tasks of its own): its frame range
+    /// (`FrameRange`'s text).
+    pub frames: Option<String>,
+}
+
+impl JobRow {
+    /// Whether the job is a sequence: its frames are its child jobs, it has no tasks itself.
+    pub fn is_sequence(&self) -> bool {
+        self.frames.is_some()
+    }
 }
 
 /// A task (one tile of one pass) as stored.
@@ -195,6 +209,17 @@ impl Outcome {
 pub(crate) trait JobStore: Send {
     /// Adds a job, `queued`, after every earlier one.
     fn insert_job(&self, j: &NewJob) -> StoreResult<()>;
+    /// Adds a sequence job (`frames`: its range as text) and its frames' jobs (each with its
+    /// frame number), `queued`, in one transaction; the frames follow the parent in the queue
+    /// in the order given.
+    fn insert_sequence(
+        &self,
+        parent: &NewJob,
+        frames: &str,
+        children: &[(u32, NewJob)],
+    ) -> StoreResult<()>;
+    /// The frames' jobs of sequence `parent`, in frame order (empty for any other job).
+    fn frames(&self, parent: &str) -> StoreResult<Vec<JobRow>>;
     /// A job by id.
     fn job(&self, id: &str) -> StoreResult<Option<JobRow>>;
     /// Every job, oldest first.

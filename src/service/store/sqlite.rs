@@ -55,7 +55,7 @@ pub(crate) struct SqliteStore {
 
 const JOB_COLS: &str = "id, name, state, error, settings, resolved, scene_id, scene_main, \
     reference, created_at, started_at, finished_at, passes_done, spp_done, samples, rays, \
-    non_finite, accum_bytes, result_bytes";
+    non_finite, accum_bytes, result_bytes, parent_id, frame, frames";
 
 const TASK_COLS: &str =
     "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, result_at, result_len, kind";
@@ -81,6 +81,9 @@ fn job_row(r: &rusqlite::Row) -> rusqlite::Result<JobRow> {
         non_finite: r.get(16)?,
         accum_bytes: r.get(17)?,
         result_bytes: r.get(18)?,
+        parent_id: r.get(19)?,
+        frame: r.get(20)?,
+        frames: r.get(21)?,
     })
 }
 
@@ -308,6 +311,57 @@ impl JobStore for SqliteStore {
             ],
         )?;
         Ok(())
+    }
+    fn insert_sequence(
+        &self,
+        parent: &NewJob,
+        frames: &str,
+        children: &[(u32, NewJob)],
+    ) -> StoreResult<()> {
+        let tx = self.conn.unchecked_transaction()?;
+        let seq: i64 = tx.query_row("SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs", [], |r| {
+            r.get(0)
+        })?;
+        let t = now();
+        let insert = |j: &NewJob, seq: i64, parent_id: Option<&str>, frame: Option<u32>| {
+            cached_exec(
+                &tx,
+                "INSERT INTO jobs (id, seq, name, state, settings, resolved, scene_id, \
+                 scene_main, reference, created_at, accum_bytes, parent_id, frame, frames) \
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)",
+                params![
+                    j.id,
+                    seq,
+                    j.name,
+                    J_QUEUED,
+                    j.settings,
+                    j.resolved,
+                    j.scene_id,
+                    j.scene_main,
+                    j.reference,
+                    t,
+                    j.accum_bytes,
+                    parent_id,
+                    frame,
+                    parent_id.is_none().then_some(frames)
+                ],
+            )
+        };
+        insert(parent, seq, None, None)?;
+        // Consecutive after the parent: the lease order (by seq) takes the frames in order.
+        for (k, (frame, child)) in children.iter().enumerate() {
+            insert(child, seq + 1 + k as i64, Some(parent.id), Some(*frame))?;
+        }
+        tx.commit()?;
+        Ok(())
+    }
+    fn frames(&self, parent: &str) -> StoreResult<Vec<JobRow>> {
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {JOB_COLS} FROM jobs WHERE parent_id = ?1 ORDER BY frame"
+        ))?;
+        st.query_map([parent], job_row)?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
     }
     fn job(&self, id: &str) -> StoreResult<Option<JobRow>> {
         cached_row(
@@ -616,6 +670,14 @@ impl JobStore for SqliteStore {
             &tx,
             "UPDATE jobs SET state = ?3, started_at = COALESCE(started_at, ?2) \
              WHERE id = (SELECT job_id FROM tasks WHERE id = ?1) AND state = ?4",
+            params![id, t, J_RUNNING, J_QUEUED],
+        )?;
+        // A sequence runs from its first frame's first lease.
+        cached_exec(
+            &tx,
+            "UPDATE jobs SET state = ?3, started_at = COALESCE(started_at, ?2) \
+             WHERE id = (SELECT parent_id FROM jobs WHERE id = \
+             (SELECT job_id FROM tasks WHERE id = ?1)) AND state = ?4",
             params![id, t, J_RUNNING, J_QUEUED],
         )?;
         cached_exec(
@@ -949,6 +1011,70 @@ mod tests {
             "the lease query was prepared again"
         );
         drop(st);
+        drop(db);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A sequence is recorded at once, its frames in frame order right after it in the queue:
+    /// a job submitted earlier leases first, then the frames one after the other, and the first
+    /// frame's lease starts the sequence.
+    #[test]
+    fn a_sequence_queues_its_frames_in_order() {
+        let dir = std::env::temp_dir().join(format!("omis-store-{}", uuid::Uuid::new_v4()));
+        std::fs::create_dir_all(&dir).expect("temporary folder");
+        let db = SqliteStore::open(&dir.join("db.sqlite")).expect("store");
+        let job = |id: &'static str, main: &'static str| NewJob {
+            id,
+            name: None,
+            settings: "{}",
+            resolved: "{}",
+            scene_id: "s",
+            scene_main: main,
+            reference: None,
+            accum_bytes: 0,
+        };
+        db.insert_job(&job("single", "scene.json")).expect("job");
+        db.insert_sequence(
+            &job("seq", "f_#.json"),
+            "1-3",
+            &[
+                (1, job("f1", "f_1.json")),
+                (2, job("f2", "f_2.json")),
+                (3, job("f3", "f_3.json")),
+            ],
+        )
+        .expect("sequence");
+        for id in ["f3", "f1", "f2", "single"] {
+            db.create_tasks(id, 0, 0..2, 0..16).expect("tasks");
+        }
+        let frames = db.frames("seq").expect("frames");
+        let listed: Vec<(&str, Option<u32>, Option<&str>)> = frames
+            .iter()
+            .map(|j| (j.id.as_str(), j.frame, j.parent_id.as_deref()))
+            .collect();
+        assert_eq!(
+            listed,
+            vec![
+                ("f1", Some(1), Some("seq")),
+                ("f2", Some(2), Some("seq")),
+                ("f3", Some(3), Some("seq"))
+            ]
+        );
+        let parent = db.job("seq").expect("job").expect("the parent");
+        assert_eq!(parent.frames.as_deref(), Some("1-3"));
+        assert_eq!(parent.state, JobState::Queued);
+        db.register_worker("w", "w", 1, "test").expect("worker");
+        let mut leased = Vec::new();
+        while let Some(t) = db.lease("w", 60.0).expect("lease") {
+            leased.push(t.job_id);
+        }
+        assert_eq!(
+            leased,
+            ["single", "single", "f1", "f1", "f2", "f2", "f3", "f3"]
+        );
+        let parent = db.job("seq").expect("job").expect("the parent");
+        assert_eq!(parent.state, JobState::Running);
+        assert!(parent.started_at.is_some());
         drop(db);
         let _ = std::fs::remove_dir_all(&dir);
     }
