@@ -92,23 +92,11 @@ impl Client {
         frames: FrameRange,
         params: &SceneParams,
     ) -> Result<String> {
-        let text = pattern.to_string_lossy().into_owned();
-        job_frames::validate_pattern(&text, "scene").map_err(|e| anyhow::anyhow!(e.message))?;
-        let main = pattern
-            .file_name()
-            .and_then(|n| n.to_str())
-            .with_context(|| format!("{text}: not a file name"))?
-            .to_string();
-        let files: Vec<std::path::PathBuf> = frames
-            .frames()
-            .filter_map(|f| job_frames::frame_file(&text, f).map(Into::into))
-            .collect();
-        if let Some(missing) = files.iter().find(|f| !f.is_file()) {
-            bail!("{}: no such frame file", missing.display());
-        }
+        let pattern = pattern.to_path_buf();
         let params = params.clone();
-        let tar =
-            tokio::task::spawn_blocking(move || bundle::pack_frames(&files, &params)).await??;
+        let (tar, main) =
+            tokio::task::spawn_blocking(move || super::bundle::sequence(&pattern, frames, &params))
+                .await??;
         self.upload_bundle(tar, main).await
     }
 

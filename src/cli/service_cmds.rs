@@ -341,6 +341,9 @@ pub(crate) async fn submit_frames(
 
 /// Follows a job with a progress bar over its tiles; returns its final state.
 pub(crate) async fn wait_job(c: &Client, status: &JobStatus, quiet: bool) -> Result<JobState> {
+    if let Some(frames) = &status.frames {
+        return wait_sequence(c, status, frames.len() as u64, quiet).await;
+    }
     let id = &status.id;
     let tiles = status.tiles_per_pass as u64;
     let total = status.passes_total.map(|p| p as u64 * tiles);
@@ -375,18 +378,52 @@ pub(crate) async fn wait_job(c: &Client, status: &JobStatus, quiet: bool) -> Res
     Ok(state)
 }
 
+/// Follows a sequence with a progress bar over its frames (its status, twice a second); returns
+/// its final state.
+async fn wait_sequence(
+    c: &Client,
+    status: &JobStatus,
+    frames: u64,
+    quiet: bool,
+) -> Result<JobState> {
+    let bar = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(frames)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} frames {eta}",
+        )
+        .expect("valid template"),
+    );
+    loop {
+        let st = c.status(&status.id).await?;
+        let ended = st
+            .frames
+            .as_deref()
+            .unwrap_or_default()
+            .iter()
+            .filter(|f| !f.state.is_active())
+            .count();
+        bar.set_position(ended as u64);
+        if !st.state.is_active() {
+            bar.finish_and_clear();
+            return Ok(st.state);
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+    }
+}
+
 pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
     runtime()?.block_on(async move {
         let c = a.server.client()?;
         let defines = a.job.settings()?.defines;
         let scene = match a.frames {
-            Some(frames) => {
-                frames.validate().map_err(|e| anyhow::anyhow!("--{e}"))?;
-                SceneSource::Bundle(
-                    c.upload_frames(std::path::Path::new(&a.scene), frames, &defines)
-                        .await?,
-                )
-            }
+            Some(frames) => SceneSource::Bundle(
+                c.upload_frames(std::path::Path::new(&a.scene), frames, &defines)
+                    .await?,
+            ),
             None => client::scene_source(&c, &a.scene, &defines).await?,
         };
         let st = submit_frames(

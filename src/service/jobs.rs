@@ -265,14 +265,17 @@ fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> ServiceResult<()> {
 /// After job `id` ended: when it is a frame of a sequence, the sequence ends once its last
 /// frame has.
 fn frame_ended(app: &App, id: &str) {
-    let parent = match app.db().job(id) {
-        Ok(Some(job)) => job.parent_id,
-        _ => None,
-    };
-    let Some(parent) = parent else {
+    // Each guard of the store is gone before the next call locks it again.
+    let job = app.db().job(id);
+    let Ok(Some(JobRow {
+        parent_id: Some(parent),
+        ..
+    })) = job
+    else {
         return;
     };
-    let settled = match app.db().job(&parent) {
+    let sequence = app.db().job(&parent);
+    let settled = match sequence {
         Ok(Some(p)) => settle_sequence(app, &p),
         Ok(None) => Ok(()),
         Err(e) => Err(e.into()),
