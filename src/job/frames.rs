@@ -134,7 +134,7 @@ impl FrameRange {
         self.step > 0
             && frame >= self.first
             && frame <= self.last
-            && (frame - self.first) % self.step == 0
+            && (frame - self.first).is_multiple_of(self.step)
     }
 }
 
