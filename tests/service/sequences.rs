@@ -319,3 +319,47 @@ fn a_bad_frame_range_is_refused_and_cancelling_a_sequence_cancels_its_frames() {
     assert_eq!(st["state"], "cancelled");
     assert_eq!(st["spp_done"], 0, "{st}");
 }
+
+#[test]
+fn omis_render_of_a_sequence_writes_one_exr_per_frame() {
+    let dir = folder("sequence-render");
+    write_sequence(&dir.join("scene"));
+    let out = dir.join("frames");
+    let done = std::process::Command::new(EXE)
+        .arg("render")
+        .arg(dir.join("scene/frame_####.json"))
+        .args([
+            "--frames",
+            "1-3:2",
+            "--workers",
+            "1",
+            "--resolution",
+            "40x32",
+            "--spp",
+            "4",
+            "--tile-size",
+            "16",
+            "--integrator",
+            "pt",
+            "--max-depth",
+            "3",
+        ])
+        .arg("--out")
+        .arg(&out)
+        .env_remove("OMIS_LOG")
+        .output()
+        .expect("omis render");
+    assert!(
+        done.status.success(),
+        "omis render: {}",
+        String::from_utf8_lossy(&done.stderr)
+    );
+    let first = exr_io::read_exr(&out.join("frame_0001.exr")).expect("frame 1");
+    let third = exr_io::read_exr(&out.join("frame_0003.exr")).expect("frame 3");
+    assert!(first.mean()[0] > 0.01, "the image is not black");
+    assert_ne!(bits(&first), bits(&third), "the camera moves");
+    assert!(
+        !out.join("frame_0002.exr").exists(),
+        "frame 2 is not in 1-3:2"
+    );
+}
