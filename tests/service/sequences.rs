@@ -363,3 +363,36 @@ fn omis_render_of_a_sequence_writes_one_exr_per_frame() {
         "frame 2 is not in 1-3:2"
     );
 }
+
+#[test]
+fn a_sequence_killed_with_its_coordinator_finishes_after_the_restart() {
+    let dir = folder("sequence-restart");
+    write_sequence(&dir.join("scene"));
+    let data = dir.join("data");
+    let (mut server, url) = serve(&data, &[]);
+    let c = http();
+    let bundle = upload_sequence(&c, &url, &dir.join("scene"));
+    let (s, st) = post(
+        &c,
+        &format!("{url}/v1/jobs"),
+        &json!({ "scene": { "bundle": bundle }, "frames": "1-3", "settings": settings() }),
+    );
+    assert_eq!(s, 201, "{st}");
+    let id = st["id"].as_str().expect("id").to_string();
+    // Accepted, then the coordinator dies before any worker came: nothing is lost.
+    server.kill9();
+    let (_server, url) = serve(&data, &[]);
+    let _w = worker(&url, "w1", &[]);
+    let events = follow_sse(&c, &url, &id);
+    assert_eq!(
+        events.last().map(|(k, _)| k.as_str()),
+        Some("done"),
+        "{events:?}"
+    );
+    let st = get_json(&c, &format!("{url}/v1/jobs/{id}"));
+    assert_eq!(st["spp_done"], 3 * 8, "{st}");
+    for f in 1..=3 {
+        let (s, _) = get(&c, &url, &format!("/v1/jobs/{id}/image.exr?frame={f}"));
+        assert_eq!(s, 200, "frame {f}");
+    }
+}
