@@ -70,6 +70,47 @@ pub fn pack_files(scene_path: &Path, files: &[PathBuf]) -> Result<(Vec<u8>, Stri
     Ok((bytes, main))
 }
 
+/// Packs the scene files of a sequence's frames (`scenes`, in one folder; each loaded with
+/// `params` to learn the files it reads) into one tar archive: every frame's file under its own
+/// name and the union of the files they read (shared meshes and textures once).
+pub fn pack_frames(scenes: &[PathBuf], params: &SceneParams) -> Result<Vec<u8>, PackError> {
+    let read = |path: &Path| {
+        let path = path.to_path_buf();
+        move |error: std::io::Error| PackError::Read { path, error }
+    };
+    let Some(first) = scenes.first() else {
+        return Err(PackError::NotAFileName(PathBuf::new()));
+    };
+    let base = crate::scene::json::scene_folder(first).map_err(read(first))?;
+    let mut names = std::collections::BTreeSet::new();
+    let mut tar = tar::Builder::new(Vec::new());
+    tar.sparse(false);
+    for scene_path in scenes {
+        let name = scene_path
+            .file_name()
+            .and_then(|n| n.to_str())
+            .ok_or_else(|| PackError::NotAFileName(scene_path.to_path_buf()))?
+            .to_string();
+        if crate::scene::json::scene_folder(scene_path).map_err(read(scene_path))? != base {
+            return Err(PackError::OutsideFolder(scene_path.clone()));
+        }
+        let scene = Scene::load_with(scene_path, params)?;
+        if names.insert(PathBuf::from(&name)) {
+            tar.append_path_with_name(scene_path, &name)
+                .map_err(read(scene_path))?;
+        }
+        for f in &scene.files {
+            let rel = f
+                .strip_prefix(&base)
+                .map_err(|_| PackError::OutsideFolder(f.clone()))?;
+            if names.insert(rel.to_path_buf()) {
+                tar.append_path_with_name(f, rel).map_err(read(f))?;
+            }
+        }
+    }
+    tar.into_inner().map_err(PackError::Finish)
+}
+
 /// Most entries (files and folders) of a bundle: a scene with its meshes and textures needs far
 /// fewer, and every entry costs a file on the server.
 pub(crate) const MAX_ENTRIES: usize = 10_000;

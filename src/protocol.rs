@@ -441,6 +441,10 @@ pub struct JobRequest {
     /// coordinator's own (`omis serve --webhook`).
     #[serde(default)]
     pub webhooks: Vec<WebhookSpec>,
+    /// A sequence: these frames of a bundle whose main file is a frame pattern
+    /// (`frame_####.xml`); each frame is a job of its own (a child of this one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frames: Option<crate::job::frames::FrameRange>,
 }
 
 /// The query of GET /v1/jobs (every field optional; as sent, checked by the coordinator).
@@ -456,6 +460,8 @@ pub struct JobListQuery {
     pub limit: Option<String>,
     /// The `next` of the page before.
     pub after: Option<String>,
+    /// `true`: list the frames of sequences too (each a job of its own); hidden by default.
+    pub include_frames: Option<String>,
 }
 
 impl JobListQuery {
@@ -718,6 +724,35 @@ pub struct JobStatus {
     /// Why an active job gets no worker (e.g. no live worker has its tags), or null.
     #[serde(default)]
     pub waiting_for: Option<String>,
+    /// A sequence: its frames in order, each a job of its own. The counts above (spp, passes,
+    /// tiles, samples, bytes) are then sums over the frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frames: Option<Vec<FrameStatus>>,
+    /// A frame of a sequence: the sequence's job id.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub parent: Option<String>,
+    /// A frame of a sequence: its frame number.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<u32>,
+}
+
+/// One frame of a sequence job, as its status lists it.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct FrameStatus {
+    /// The frame number.
+    pub frame: u32,
+    /// The frame's own job.
+    pub job_id: String,
+    /// The frame's state.
+    pub state: JobState,
+    /// Samples per pixel merged.
+    pub spp_done: u32,
+    /// Passes merged.
+    pub passes_done: u32,
+    /// Why the frame failed.
+    pub error: Option<String>,
+    /// Seconds from its first lease to its end (or to now).
+    pub elapsed_s: f64,
 }
 
 /// A worker blocklisted for a job.
@@ -767,8 +802,16 @@ pub struct SceneMeta {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneUploadQuery {
-    /// The scene file inside the archive.
+    /// The scene file inside the archive, or a frame pattern (`frame_####.xml`) for a
+    /// sequence's bundle.
     pub main: Option<String>,
+}
+
+/// The query of a job's images (GET /v1/jobs/{id}/image.exr, preview.png).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct ImageQuery {
+    /// The frame of a sequence (required for one; refused for a single-frame job).
+    pub frame: Option<u32>,
 }
 
 /// GET /v1/scenes: the library's scene names.

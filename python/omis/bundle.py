@@ -116,6 +116,57 @@ def pack(scene: Union[str, os.PathLike[str]], files: Iterable[Path]) -> tuple[by
     return buf.getvalue(), main
 
 
+def frame_file(pattern: str, frame: int) -> str:
+    """The file of `frame` in a frame pattern (``frame_####.xml``): its file name's run of
+    ``#`` replaced by the frame number, zero-padded to the run's length."""
+    head, sep, name = pattern.rpartition("/")
+    m = re.fullmatch(r"([^#]*)(#+)([^#]*)", name)
+    if m is None:
+        raise ValueError(f"{pattern!r} is not a frame pattern (one run of '#' in its file name)")
+    width = len(m.group(2))
+    return f"{head}{sep}{m.group(1)}{frame:0{width}d}{m.group(3)}"
+
+
+def frame_range(frames: Union[str, tuple[int, ...]]) -> tuple[str, list[int]]:
+    """A sequence's frames, ``"1-100"``, ``"1-100:2"``, ``(1, 100)`` or ``(1, 100, 2)``, as the
+    request's text and the frame numbers."""
+    if isinstance(frames, str):
+        m = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*(?::\s*(\d+)\s*)?)?", frames)
+        if m is None:
+            raise ValueError(f"{frames!r} is not a frame range (FIRST-LAST or FIRST-LAST:STEP)")
+        first = int(m.group(1))
+        last = int(m.group(2)) if m.group(2) else first
+        step = int(m.group(3)) if m.group(3) else 1
+    else:
+        parts = tuple(int(x) for x in frames)
+        if len(parts) not in (2, 3):
+            raise ValueError(f"{frames!r}: (first, last) or (first, last, step)")
+        first, last = parts[0], parts[1]
+        step = parts[2] if len(parts) == 3 else 1
+    if step < 1 or first > last:
+        raise ValueError(f"{frames!r}: an empty frame range")
+    return f"{first}-{last}:{step}", list(range(first, last + 1, step))
+
+
+def pack_frames(
+    pattern: Union[str, os.PathLike[str]],
+    frames: list[int],
+    defines: Optional[Mapping[str, str]] = None,
+) -> tuple[bytes, str]:
+    """A tar archive of the scene files of `frames` of `pattern` and the files their text
+    names (shared ones once); returns the archive and the pattern's file name (its main)."""
+    text = os.fspath(pattern)
+    scenes = [Path(frame_file(text, f)) for f in frames]
+    for s in scenes:
+        if not s.is_file():
+            raise FileNotFoundError(f"{s}: no such frame file")
+    files: set[Path] = set(scenes[1:])
+    for s in scenes:
+        files |= set(named_files(s, defines))
+    tar, _ = pack(scenes[0], files)
+    return tar, Path(text).name
+
+
 def _add(tar: tarfile.TarFile, path: Path, name: str) -> None:
     # A link is packed as the file it points at (the coordinator refuses links in bundles).
     with open(path, "rb") as fh:

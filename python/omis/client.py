@@ -238,14 +238,42 @@ class Client:
                 files |= more
         raise ServiceError(400, f"{path}: the coordinator kept naming missing files", "body")
 
+    def upload_frames(
+        self,
+        pattern: Union[str, "os.PathLike[str]"],
+        frames: list[int],
+        defines: Optional[Mapping[str, str]] = None,
+    ) -> dict[str, Any]:
+        """Uploads the scene files of `frames` of frame pattern `pattern` (``frame_####.xml``)
+        with the files they read as one bundle whose main file is the pattern; returns the
+        coordinator's description of it. ``omis bundle --frames`` packs it when an `omis`
+        binary is at hand, else the files the scenes' text names are packed."""
+        if self.binary is not None:
+            first, last = frames[0], frames[-1]
+            step = frames[1] - frames[0] if len(frames) > 1 else 1
+            tar, main = self._pack_with_binary(
+                Path(pattern), defines, ["--frames", f"{first}-{last}:{step}"]
+            )
+        else:
+            tar, main = _bundle.pack_frames(pattern, frames, defines)
+        meta: dict[str, Any] = self._http.json(
+            "POST",
+            "/v1/scenes",
+            "uploading the sequence",
+            query={"main": main},
+            body=tar,
+            content_type="application/x-tar",
+        )
+        return meta
+
     def _pack_with_binary(
-        self, path: Path, defines: Optional[Mapping[str, str]]
+        self, path: Path, defines: Optional[Mapping[str, str]], extra: Optional[list[str]] = None
     ) -> tuple[bytes, str]:
         """The bundle ``omis bundle`` packs for `path`, and its main file's name."""
         assert self.binary is not None
         with tempfile.TemporaryDirectory(prefix="omis-bundle-") as d:
             out = Path(d) / "bundle.tar"
-            cmd = [self.binary, "bundle", str(path), "--out", str(out)]
+            cmd = [self.binary, "bundle", str(path), "--out", str(out), *(extra or [])]
             for k, v in (defines or {}).items():
                 cmd += ["--define", f"{k}={v}"]
             try:
@@ -312,6 +340,7 @@ class Client:
         name: Optional[str] = None,
         priority: Optional[int] = None,
         webhooks: Optional[list[dict[str, str]]] = None,
+        frames: Optional[Union[str, tuple[int, ...]]] = None,
         **settings: Any,
     ) -> "Job":
         """Submits a render job; returns it at once (`Job.wait` follows it). Workers take the
@@ -321,12 +350,27 @@ class Client:
         integrator="bdpt", mis="optimal", resolution=(320, 180), time_budget=10, seed=1,
         max_depth=5, depth_layers=True, strategies=True, defines={"res": "64"}, ...``. A bad
         one raises `ServiceError` whose ``field`` names it (``settings.spp``). `webhooks`:
-        receivers of the job's end, ``[{"url": "http://...", "secret": "..."}]``."""
+        receivers of the job's end, ``[{"url": "http://...", "secret": "..."}]``.
+
+        A sequence: `scene` a frame pattern (``frame_####.xml``) and ``frames=(1, 100)`` (or
+        ``(1, 100, 2)``, ``"1-100"``); every frame file is uploaded in one bundle, each frame
+        renders as a job of its own, and ``Job.download(path, frame=n)`` fetches one."""
         s = job_settings(settings)
-        request: dict[str, Any] = {
-            "scene": self.scene_source(scene, s.get("defines")),
-            "settings": s,
-        }
+        if frames is not None:
+            if isinstance(scene, Mapping):
+                raise ValueError("a sequence's scene is a frame pattern (frame_####.xml)")
+            text, numbers = _bundle.frame_range(frames)
+            bundle = self.upload_frames(scene, numbers, s.get("defines"))
+            request: dict[str, Any] = {
+                "scene": {"bundle": bundle["id"]},
+                "settings": s,
+                "frames": text,
+            }
+        else:
+            request = {
+                "scene": self.scene_source(scene, s.get("defines")),
+                "settings": s,
+            }
         if reference is not None:
             request["reference"] = self.reference_source(reference)
         if name is not None:
@@ -479,11 +523,18 @@ class Job:
     # ---- results ----
 
     def download(
-        self, path: Union[str, "os.PathLike[str]"], file: str = "image.exr"
+        self,
+        path: Union[str, "os.PathLike[str]"],
+        file: str = "image.exr",
+        frame: Optional[int] = None,
     ) -> Path:
         """Writes one of the job's files (``image.exr``, ``preview.png``, ``error.png``,
-        ``convergence.svg``) to `path`; returns the path."""
-        data = self._http.read("GET", f"/v1/jobs/{self.id}/{file}", f"downloading {file}")
+        ``convergence.svg``) to `path`; returns the path. A sequence's image and preview are
+        per frame: `frame` says which."""
+        kw: dict[str, Any] = {} if frame is None else {"query": {"frame": str(frame)}}
+        data = self._http.read(
+            "GET", f"/v1/jobs/{self.id}/{file}", f"downloading {file}", **kw
+        )
         out = Path(path)
         out.write_bytes(data)
         return out

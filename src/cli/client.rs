@@ -2,6 +2,7 @@
 //! controls (`jobs`, `pause`, `resume`, ...) and the embedded service behind `omis render`.
 
 use crate::bundle;
+use crate::job::frames::{self as job_frames, FrameRange};
 use crate::protocol::{
     ErrorBody, EventKind, JobEvent, JobList, JobPatch, JobRequest, JobState, JobStatus,
     ReferenceInfo, SceneMeta, SceneSource, WorkerList,
@@ -80,6 +81,22 @@ impl Client {
         let s = scene.to_path_buf();
         let params = params.clone();
         let (tar, main) = tokio::task::spawn_blocking(move || bundle::pack(&s, &params)).await??;
+        self.upload_bundle(tar, main).await
+    }
+
+    /// Uploads the scene files of `frames` of frame pattern `pattern` (`frame_####.xml`) and
+    /// everything they read as one bundle whose main file is the pattern; returns the bundle id.
+    pub(crate) async fn upload_frames(
+        &self,
+        pattern: &Path,
+        frames: FrameRange,
+        params: &SceneParams,
+    ) -> Result<String> {
+        let pattern = pattern.to_path_buf();
+        let params = params.clone();
+        let (tar, main) =
+            tokio::task::spawn_blocking(move || super::bundle::sequence(&pattern, frames, &params))
+                .await??;
         self.upload_bundle(tar, main).await
     }
 
@@ -238,6 +255,50 @@ impl Client {
         Ok(bytes.len())
     }
 
+    /// Downloads frame `frame` of a sequence's file (image.exr, preview.png) to `out`.
+    pub(crate) async fn download_frame(
+        &self,
+        id: &str,
+        file: &str,
+        frame: u32,
+        out: &Path,
+    ) -> Result<usize> {
+        let r = self
+            .send(
+                self.req(reqwest::Method::GET, &format!("/v1/jobs/{id}/{file}"))
+                    .query(&[("frame", frame)]),
+                "downloading",
+            )
+            .await?;
+        let bytes = r.bytes().await.context("downloading")?;
+        tokio::fs::write(out, &bytes)
+            .await
+            .with_context(|| format!("{}", out.display()))?;
+        Ok(bytes.len())
+    }
+
+    /// Downloads file `file` of every frame of sequence `st` to `out`: a pattern
+    /// (`out_####.exr`), or a folder (made if needed) that gets `frame_####.<ext>`. Returns the
+    /// files written.
+    pub(crate) async fn download_frames(
+        &self,
+        st: &JobStatus,
+        file: &str,
+        out: &Path,
+    ) -> Result<Vec<std::path::PathBuf>> {
+        let frames = st.frames.as_deref().unwrap_or_default();
+        let pattern = frame_pattern(out, file)?;
+        let mut written = Vec::with_capacity(frames.len());
+        for f in frames {
+            let path: std::path::PathBuf = job_frames::frame_file(&pattern, f.frame)
+                .with_context(|| format!("{pattern}: not a frame pattern"))?
+                .into();
+            self.download_frame(&st.id, file, f.frame, &path).await?;
+            written.push(path);
+        }
+        Ok(written)
+    }
+
     /// Follows a job's events until it ends; calls `on_event` for each (events of kinds this
     /// build does not know are skipped). Reconnects (with Last-Event-ID) when the stream
     /// breaks. Returns the job's final state.
@@ -308,6 +369,30 @@ impl Client {
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
     }
+}
+
+/// Where the frames of a sequence's `file` go for `--out out`: `out` itself when it is a
+/// pattern with a run of `#`, else `frame_####.<ext of file>` in folder `out` (made here).
+pub(crate) fn frame_pattern(out: &Path, file: &str) -> Result<String> {
+    let text = out.to_string_lossy().into_owned();
+    if job_frames::is_pattern(&text) {
+        job_frames::validate_pattern(&text, "--out").map_err(|e| anyhow::anyhow!("{e}"))?;
+        return Ok(text);
+    }
+    std::fs::create_dir_all(out).with_context(|| {
+        format!(
+            "{text}: a sequence is written as one file per frame: give a pattern \
+             (out_####.exr) or a folder"
+        )
+    })?;
+    let ext = Path::new(file)
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("exr");
+    Ok(out
+        .join(format!("frame_####.{ext}"))
+        .to_string_lossy()
+        .into_owned())
 }
 
 /// Refuses what this build cannot reach: only plain http:// (no TLS is built in; put a TLS

@@ -55,19 +55,30 @@ impl RenderProgress {
                 },
             ),
         };
-        let target = if shown {
-            ProgressDrawTarget::stderr()
-        } else {
-            ProgressDrawTarget::hidden()
-        };
-        let bar = ProgressBar::with_draw_target(Some(len), target);
-        bar.set_style(ProgressStyle::with_template(template).expect("valid template"));
         let p = RenderProgress {
-            bar,
+            bar: bar(len, template, shown),
             measure: Mutex::new(measure),
         };
         p.refresh();
         p
+    }
+
+    /// The bar of a sequence: its frames that have ended out of `total`.
+    pub(crate) fn frames(total: u64, quiet: bool) -> RenderProgress {
+        let shown = !quiet && std::io::IsTerminal::is_terminal(&std::io::stderr());
+        RenderProgress {
+            bar: bar(
+                total,
+                "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} frames ETA {eta}",
+                shown,
+            ),
+            measure: Mutex::new(Measure::Tiles),
+        }
+    }
+
+    /// `n` frames of a sequence have ended.
+    pub(crate) fn frames_ended(&self, n: u64) {
+        self.bar.set_position(n);
     }
 
     /// `n` more tiles finished.
@@ -127,6 +138,18 @@ impl RenderProgress {
     pub(crate) fn finish(&self) {
         self.bar.finish_and_clear();
     }
+}
+
+/// A bar of `len` steps drawn with `template` on stderr, or hidden.
+fn bar(len: u64, template: &str, shown: bool) -> ProgressBar {
+    let target = if shown {
+        ProgressDrawTarget::stderr()
+    } else {
+        ProgressDrawTarget::hidden()
+    };
+    let bar = ProgressBar::with_draw_target(Some(len), target);
+    bar.set_style(ProgressStyle::with_template(template).expect("valid template"));
+    bar
 }
 
 #[cfg(test)]

@@ -6,7 +6,7 @@
 use super::client::Client;
 use super::job_args::JobArgs;
 use super::progress::RenderProgress;
-use super::service_cmds::{init_logging, runtime, submit_job, wait_job};
+use super::service_cmds::{JobExtras, init_logging, runtime, submit_job, submit_request, wait_job};
 use crate::film::RayStats;
 use crate::film::image::{Image, exr_io, metrics, png};
 use crate::job::optimal_depth::DepthChoice;
@@ -21,8 +21,14 @@ use std::path::{Path, PathBuf};
 
 #[derive(Args)]
 pub struct RenderArgs {
-    /// Scene file (.json, .pbrt or .xml).
+    /// Scene file (.json, .pbrt or .xml); with --frames, a frame pattern (frame_####.xml: a
+    /// run of '#' where the zero-padded frame number goes).
     pub scene: PathBuf,
+    /// Render a sequence through the service: these frames of the pattern SCENE (FIRST-LAST
+    /// or FIRST-LAST:STEP), one EXR per frame (--out: a pattern out_####.exr or a folder;
+    /// default <pattern's name>.exr with its run of '#').
+    #[arg(long, value_name = "FIRST-LAST", conflicts_with_all = ["in_process", "reference", "png"])]
+    pub frames: Option<crate::job::frames::FrameRange>,
     #[command(flatten)]
     pub job: JobArgs,
     /// Threads (0 = all cores): rayon threads in-process, else the number of local worker
@@ -83,6 +89,9 @@ fn cores() -> usize {
 }
 
 pub fn run(a: RenderArgs) -> Result<()> {
+    if let Some(frames) = a.frames {
+        return sequence(&a, frames);
+    }
     let settings = a.job.settings()?;
     let mut scene = Scene::load_with(&a.scene, &settings.defines).map_err(anyhow::Error::msg)?;
     for w in &scene.warnings {
@@ -231,6 +240,72 @@ fn through_service(a: &RenderArgs, (tar, main): (Vec<u8>, String), out: &Path) -
         bytes_per_pixel: st.accum_bytes_per_pixel.max(0) as usize,
         optimal: st.optimal_max_depth.map(|d| (d, st.optimal_depth.clone())),
     })
+}
+
+/// `omis render --frames`: the sequence through the embedded service, one EXR per frame.
+fn sequence(a: &RenderArgs, frames: crate::job::frames::FrameRange) -> Result<()> {
+    let settings = a.job.settings()?;
+    let (tar, main) = super::bundle::sequence(&a.scene, frames, &settings.defines)?;
+    let out = match &a.out {
+        Some(o) => o.clone(),
+        None => PathBuf::from(
+            Path::new(&main)
+                .with_extension("exr")
+                .to_string_lossy()
+                .into_owned(),
+        ),
+    };
+    let workers = a
+        .workers
+        .unwrap_or(if a.threads > 0 { a.threads } else { cores() })
+        .max(1);
+    if std::env::var_os("OMIS_LOG").is_some() {
+        init_logging();
+    }
+    let data = std::env::temp_dir().join(format!("omis-render-{}", uuid::Uuid::new_v4()));
+    let result = runtime()?.block_on(async {
+        let mut cfg =
+            service::Config::new("127.0.0.1:0".parse().expect("valid address"), data.clone());
+        cfg.workers = workers;
+        cfg.worker_threads = 1;
+        cfg.lease_s = 30.0;
+        if std::env::var_os("OMIS_LOG").is_none() {
+            cfg.worker_log = Some("warn".into());
+        }
+        let running = service::start(cfg).await?;
+        let result = async {
+            let c = Client::new(&running.url, None)?;
+            let scene = SceneSource::Bundle(c.upload_bundle(tar, main).await?);
+            let extras = JobExtras {
+                frames: Some(frames),
+                ..JobExtras::default()
+            };
+            let st = submit_request(&c, scene, &a.job, None, None, extras).await?;
+            let id = st.id.clone();
+            let state = wait_job(&c, &st, false).await?;
+            let st = c.status(&id).await?;
+            if state != JobState::Done {
+                bail!(
+                    "the render {state}: {}",
+                    st.error.as_deref().unwrap_or("no error given")
+                );
+            }
+            let written = c.download_frames(&st, "image.exr", &out).await?;
+            Ok((st, written))
+        }
+        .await;
+        running.stop().await;
+        result
+    });
+    let _ = std::fs::remove_dir_all(&data);
+    let (st, written) = result?;
+    for w in &written {
+        eprintln!("{}", w.display());
+    }
+    if a.json {
+        println!("{}", serde_json::to_string(&st)?);
+    }
+    Ok(())
 }
 
 fn summary(

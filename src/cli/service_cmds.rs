@@ -5,6 +5,7 @@ use super::client::{self, Client};
 use super::job_args::JobArgs;
 use super::progress::RenderProgress;
 use crate::job::Limits;
+use crate::job::frames::FrameRange;
 use crate::protocol::{
     JobEvent, JobRequest, JobState, JobStatus, ReferenceSource, SceneSource, WebhookSpec,
     validate_tags,
@@ -418,8 +419,14 @@ impl ServerArgs {
 
 #[derive(Args)]
 pub(crate) struct SubmitArgs {
-    /// A scene file (uploaded with the files it reads) or the name of a library scene.
+    /// A scene file (uploaded with the files it reads) or the name of a library scene; with
+    /// --frames, a frame pattern (frame_####.xml: a run of '#' where the zero-padded frame
+    /// number goes).
     pub scene: String,
+    /// Render a sequence: these frames of the pattern SCENE (FIRST-LAST or FIRST-LAST:STEP),
+    /// every frame file and what it reads packed into one bundle.
+    #[arg(long, value_name = "FIRST-LAST")]
+    pub frames: Option<FrameRange>,
     #[command(flatten)]
     pub job: JobArgs,
     /// Reference EXR: the job reports relMSE per pass and an error map.
@@ -434,7 +441,7 @@ pub(crate) struct SubmitArgs {
     /// Wait until the job ends, with a progress bar.
     #[arg(long)]
     pub wait: bool,
-    /// With --wait: download the EXR here.
+    /// With --wait: download the EXR here (a sequence: a pattern out_####.exr, or a folder).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// A receiver of the job's final event (done, failed, cancelled), POSTed as JSON; may be
@@ -457,18 +464,33 @@ pub(crate) async fn submit_job(
     name: Option<&str>,
     priority: i32,
 ) -> Result<JobStatus> {
-    submit_job_with(c, scene, job, reference, name, priority, Vec::new()).await
+    let extras = JobExtras {
+        priority,
+        ..JobExtras::default()
+    };
+    submit_request(c, scene, job, reference, name, extras).await
 }
 
-/// `submit_job` with the job's own webhook receivers.
-async fn submit_job_with(
+/// What a job request may carry beyond its scene, settings, reference and name.
+#[derive(Default)]
+pub(crate) struct JobExtras {
+    /// Higher first in the lease order.
+    pub priority: i32,
+    /// The job's own receivers of its final event.
+    pub webhooks: Vec<WebhookSpec>,
+    /// A sequence: its frames.
+    pub frames: Option<FrameRange>,
+}
+
+/// Builds a job request (a sequence when `extras` has frames) and submits it; returns the
+/// job's status document.
+pub(crate) async fn submit_request(
     c: &Client,
     scene: SceneSource,
     job: &JobArgs,
     reference: Option<&std::path::Path>,
     name: Option<&str>,
-    priority: i32,
-    webhooks: Vec<WebhookSpec>,
+    extras: JobExtras,
 ) -> Result<JobStatus> {
     let settings = job.settings()?;
     let reference = match reference {
@@ -480,16 +502,20 @@ async fn submit_job_with(
         settings,
         reference,
         name: name.map(str::to_string),
-        priority,
+        priority: extras.priority,
         require_tags: validate_tags(&job.require_tags)
             .map_err(|e| anyhow::anyhow!("--require-tag: {e}"))?,
-        webhooks,
+        webhooks: extras.webhooks,
+        frames: extras.frames,
     };
     c.submit(&req).await
 }
 
 /// Follows a job with a progress bar over its tiles; returns its final state.
 pub(crate) async fn wait_job(c: &Client, status: &JobStatus, quiet: bool) -> Result<JobState> {
+    if let Some(frames) = &status.frames {
+        return wait_sequence(c, status, frames.len() as u64, quiet).await;
+    }
     let id = &status.id;
     let tiles = status.tiles_per_pass as u64;
     let bar = RenderProgress::new(
@@ -509,9 +535,39 @@ pub(crate) async fn wait_job(c: &Client, status: &JobStatus, quiet: bool) -> Res
     Ok(state)
 }
 
+/// Follows a sequence with a progress bar over its frames (its status, twice a second); returns
+/// its final state.
+async fn wait_sequence(
+    c: &Client,
+    status: &JobStatus,
+    frames: u64,
+    quiet: bool,
+) -> Result<JobState> {
+    let bar = RenderProgress::frames(frames, quiet);
+    loop {
+        let st = c.status(&status.id).await?;
+        let ended = st
+            .frames
+            .as_deref()
+            .unwrap_or_default()
+            .iter()
+            .filter(|f| !f.state.is_active())
+            .count();
+        bar.frames_ended(ended as u64);
+        if !st.state.is_active() {
+            bar.finish();
+            return Ok(st.state);
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+    }
+}
+
 pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
     runtime()?.block_on(async move {
-        if let Some(out) = &a.out {
+        // A sequence's --out is a folder or a frame pattern, written frame by frame.
+        if let Some(out) = &a.out
+            && a.frames.is_none()
+        {
             super::out_path::check_writable(out, "--out")?;
         }
         let c = a.server.client()?;
@@ -522,15 +578,26 @@ pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
                 secret: t.secret,
             })
             .collect();
-        let scene = client::scene_source(&c, &a.scene, &a.job.settings()?.defines).await?;
-        let st = submit_job_with(
+        let defines = a.job.settings()?.defines;
+        let scene = match a.frames {
+            Some(frames) => SceneSource::Bundle(
+                c.upload_frames(std::path::Path::new(&a.scene), frames, &defines)
+                    .await?,
+            ),
+            None => client::scene_source(&c, &a.scene, &defines).await?,
+        };
+        let extras = JobExtras {
+            priority: a.priority,
+            webhooks,
+            frames: a.frames,
+        };
+        let st = submit_request(
             &c,
             scene,
             &a.job,
             a.reference.as_deref(),
             a.name.as_deref(),
-            a.priority,
-            webhooks,
+            extras,
         )
         .await?;
         let id = st.id.clone();
@@ -548,8 +615,14 @@ pub(crate) fn submit(a: SubmitArgs) -> Result<()> {
             );
         }
         if let Some(out) = &a.out {
-            c.download(&id, "image.exr", out).await?;
-            eprintln!("{}", out.display());
+            if st.frames.is_some() {
+                for f in c.download_frames(&st, "image.exr", out).await? {
+                    eprintln!("{}", f.display());
+                }
+            } else {
+                c.download(&id, "image.exr", out).await?;
+                eprintln!("{}", out.display());
+            }
         }
         println!("{}", serde_json::to_string(&st)?);
         Ok(())
@@ -576,7 +649,8 @@ pub(crate) fn cancel(a: IdArgs) -> Result<()> {
 pub(crate) struct DownloadArgs {
     /// The job id.
     pub id: String,
-    /// Where to write the EXR.
+    /// Where to write the file (a sequence's EXRs or previews: a pattern out_####.exr, or a
+    /// folder, one file per frame).
     #[arg(long)]
     pub out: PathBuf,
     /// Which file: image.exr, preview.png, error.png or convergence.svg.
@@ -597,8 +671,16 @@ pub(crate) fn download(a: DownloadArgs) -> Result<()> {
         );
     }
     runtime()?.block_on(async move {
+        let c = a.server.client()?;
+        let st = c.status(&a.id).await?;
+        if st.frames.is_some() && matches!(a.file.as_str(), "image.exr" | "preview.png") {
+            for f in c.download_frames(&st, &a.file, &a.out).await? {
+                eprintln!("{}", f.display());
+            }
+            return Ok(());
+        }
         super::out_path::check_writable(&a.out, "--out")?;
-        let n = a.server.client()?.download(&a.id, &a.file, &a.out).await?;
+        let n = c.download(&a.id, &a.file, &a.out).await?;
         eprintln!("{}: {n} bytes", a.out.display());
         Ok(())
     })

@@ -3,6 +3,7 @@
 //! service refuse the same inputs with the same words, and resolve them to the same
 //! `RenderSettings` (the in-process and distributed renders of a job must be equal).
 
+pub mod frames;
 pub mod optimal_depth;
 mod resolve;
 mod schedule;

@@ -142,6 +142,7 @@ pub(crate) fn fail_job(app: &App, id: &str, error: &str) {
         );
         // Its result logs stay: a requeue goes on from them (deleting the job removes them).
         app.result_logs.forget(id);
+        frame_ended(app, id);
     }
     drop_runtime(app, id);
 }
@@ -193,6 +194,11 @@ fn advance_inner(app: &App, id: &str) -> ServiceResult<()> {
         return Ok(());
     };
     if !job.state.is_active() {
+        return Ok(());
+    }
+    if job.is_sequence() {
+        // Its frames do the work; it ends with them (after a restart too).
+        settle_sequence(app, &job)?;
         return Ok(());
     }
     let rt = runtime(app, &job)?;
@@ -253,6 +259,85 @@ fn finish(app: &App, job: &JobRow, rt: &mut Runtime) -> ServiceResult<()> {
         let _ = std::fs::remove_dir_all(app.paths.tiles_dir(&job.id));
         app.result_logs.remove(&app.paths, &job.id);
         app.event(&job.id, JobEvent::Done(DoneEvent { spp: job.spp_done }));
+        frame_ended(app, &job.id);
+    }
+    Ok(())
+}
+
+/// After job `id` ended: when it is a frame of a sequence, the sequence ends once its last
+/// frame has.
+fn frame_ended(app: &App, id: &str) {
+    // Each guard of the store is gone before the next call locks it again.
+    let job = app.db().job(id);
+    let Ok(Some(JobRow {
+        parent_id: Some(parent),
+        ..
+    })) = job
+    else {
+        return;
+    };
+    let sequence = app.db().job(&parent);
+    let settled = match sequence {
+        Ok(Some(p)) => settle_sequence(app, &p),
+        Ok(None) => Ok(()),
+        Err(e) => Err(e.into()),
+    };
+    if let Err(e) = settled {
+        tracing::error!("sequence {parent}: {e}");
+    }
+}
+
+/// The state a sequence takes from its frames: active while any frame is, else failed if one
+/// failed, else cancelled if one was, else done.
+pub(crate) fn sequence_state(frames: &[JobRow]) -> JobState {
+    if frames.iter().any(|f| f.state.is_active()) {
+        if frames.iter().any(|f| f.started_at.is_some()) {
+            JobState::Running
+        } else {
+            JobState::Queued
+        }
+    } else if frames.iter().any(|f| f.state == JobState::Failed) {
+        JobState::Failed
+    } else if frames.iter().any(|f| f.state == JobState::Cancelled) {
+        JobState::Cancelled
+    } else {
+        JobState::Done
+    }
+}
+
+/// Ends active sequence `job` once none of its frames is active, in the state its frames give
+/// it (`sequence_state`), with its event.
+fn settle_sequence(app: &App, job: &JobRow) -> ServiceResult<()> {
+    let frames = app.db().frames(&job.id)?;
+    let state = sequence_state(&frames);
+    if state.is_active() {
+        return Ok(());
+    }
+    let failed: Vec<String> = frames
+        .iter()
+        .filter(|f| f.state == JobState::Failed)
+        .map(|f| {
+            format!(
+                "frame {}: {}",
+                f.frame.unwrap_or_default(),
+                f.error.as_deref().unwrap_or("failed")
+            )
+        })
+        .collect();
+    let error = (!failed.is_empty()).then(|| failed.join("; "));
+    let ended = app.db().set_job_state(&job.id, state, error.as_deref())?;
+    if ended {
+        let spp = frames.iter().map(|f| f.spp_done).min().unwrap_or(0);
+        app.event(
+            &job.id,
+            match state {
+                JobState::Failed => JobEvent::Failed(FailedEvent {
+                    error: error.unwrap_or_default(),
+                }),
+                JobState::Cancelled => JobEvent::Cancelled(CancelledEvent {}),
+                _ => JobEvent::Done(DoneEvent { spp }),
+            },
+        );
     }
     Ok(())
 }
@@ -321,13 +406,26 @@ fn task_name(task: &TaskRow) -> String {
     }
 }
 
-/// Cancels a job that has not ended; false when it had.
+/// Cancels a job that has not ended (a sequence: with every frame not ended); false when it
+/// had.
 pub(crate) fn cancel(app: &App, id: &str) -> ServiceResult<bool> {
     let Some(job) = app.db().job(id)? else {
         return Ok(false);
     };
     if !job.state.is_active() {
         return Ok(false);
+    }
+    if job.is_sequence() {
+        // The sequence first: its frames' ends then leave it cancelled.
+        let ended = app.db().set_job_state(id, JobState::Cancelled, None)?;
+        if ended {
+            app.event(id, JobEvent::Cancelled(CancelledEvent {}));
+        }
+        let frames = app.db().frames(id)?;
+        for f in frames.iter().filter(|f| f.state.is_active()) {
+            cancel(app, &f.id)?;
+        }
+        return Ok(ended);
     }
     // Taken before the job ends: a merge that sees it ended drops the job's runtime, and a new
     // one would not have the last pass's beauty (`Runtime::frame`) that the EXR below may need.
@@ -336,6 +434,7 @@ pub(crate) fn cancel(app: &App, id: &str) -> ServiceResult<bool> {
     let ended = app.db().set_job_state(id, JobState::Cancelled, None)?;
     if ended {
         app.event(id, JobEvent::Cancelled(CancelledEvent {}));
+        frame_ended(app, id);
         app.work.notify_waiters();
         let rt = early.or_else(|_| runtime(app, &job))?;
         // The passes merged so far as image.exr (`merge::write_cancelled`): a pass rewrites it
@@ -495,6 +594,10 @@ fn reconcile(app: &App, id: &str) -> anyhow::Result<()> {
     let Some(job) = app.db().job(id)? else {
         return Ok(());
     };
+    if job.is_sequence() {
+        // No tasks of its own: its frames are reconciled as jobs of their own.
+        return Ok(());
+    }
     let r = resolved_of(&job)?;
     let tiles = tile_count(&r) as u64;
     if tiles > app.cfg.limits.max_tasks_per_pass as u64 {

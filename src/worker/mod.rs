@@ -124,6 +124,10 @@ pub(crate) struct WorkerConfig {
 /// A scene loaded once for every task of its key, or why it failed (shared by those tasks).
 type SceneCell = Arc<OnceCell<Result<Arc<Scene>, Arc<WorkerError>>>>;
 
+/// Loaded scenes a worker keeps (a sequence's frames are a scene each; tasks in hand keep
+/// theirs alive past a clear).
+const SCENES_KEPT: usize = 8;
+
 struct Worker {
     cfg: WorkerConfig,
     http: reqwest::Client,
@@ -216,12 +220,20 @@ impl Worker {
     async fn scene(&self, job: &LeasedJob) -> Result<Arc<Scene>, Arc<WorkerError>> {
         // The same bundle with other parameter values is another scene.
         let defines = serde_json::to_string(&job.resolved.defines).unwrap_or_default();
+        // The frames of a sequence share a bundle, each its own scene file.
         let key = (
-            format!("{}{defines}", job.scene_id),
+            format!("{}/{}{defines}", job.scene_id, job.scene_main),
             job.resolved.width,
             job.resolved.height,
         );
-        let cell = lock(&self.scenes).entry(key).or_default().clone();
+        let cell = {
+            let mut scenes = lock(&self.scenes);
+            // A sequence's frames would otherwise keep every frame's scene loaded.
+            if !scenes.contains_key(&key) && scenes.len() >= SCENES_KEPT {
+                scenes.clear();
+            }
+            scenes.entry(key).or_default().clone()
+        };
         cell.get_or_init(|| async { self.load_scene(job).await.map_err(Arc::new) })
             .await
             .clone()

@@ -15,6 +15,7 @@ mod jobs;
 mod leases;
 mod limits;
 mod pool;
+mod sequences;
 mod support;
 mod synthetic_stream;
 mod time_budget;

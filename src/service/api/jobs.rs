@@ -4,11 +4,11 @@
 
 use super::auth::{self, Principal};
 use super::errors::{ApiError, ApiResult, JsonBody, bad, settings_error};
-use super::{AppState, references, scenes};
+use super::{AppState, references, scenes, sequences};
 use crate::protocol::{
     JobEvent, JobLinks, JobList, JobListQuery, JobPatch, JobRequest, JobState, JobStatus,
     QueuedEvent, SceneMeta, SceneRef, SceneSource, SseData, WebhookDelivery, WebhookDeliveryList,
-    Whoami, WorkerAdmin, WorkerInfo, WorkerState, validate_tags,
+    Whoami, WorkerAdmin, WorkerInfo, WorkerState, validate_tags, ImageQuery,
 };
 use crate::service::store::{self, EventRow, JobRow};
 use crate::service::{App, jobs, runtime, webhooks};
@@ -45,14 +45,27 @@ pub(crate) async fn create_job(
     // reading the reference take memory and time in proportion to the job: a few at once.
     let _permit = app.validation().await?;
     let a = app.clone();
-    let job = tokio::task::spawn_blocking(move || create_job_blocking(&a, req, &who, hooks))
-        .await
-        .map_err(ApiError::internal)??;
+    let (job, to_start) = tokio::task::spawn_blocking(move || {
+        if sequences::is_sequence_request(&a, &req) {
+            sequences::create_sequence(&a, &req, Some(&who.name), hooks.as_deref())
+        } else {
+            create_job_blocking(&a, req, &who, hooks).map(|j| {
+                let id = j.id.clone();
+                (j, vec![id])
+            })
+        }
+    })
+    .await
+    .map_err(ApiError::internal)??;
     // Its tasks are created in the background, chunk by chunk (the first ones are leased while
-    // the rest are made): a large frame does not hold up this answer or the store.
+    // the rest are made): a large frame does not hold up this answer or the store. A
+    // sequence's are its frames'.
     let a = app.clone();
-    let id = job.id.clone();
-    tokio::task::spawn_blocking(move || jobs::advance(&a, &id));
+    tokio::task::spawn_blocking(move || {
+        for id in &to_start {
+            jobs::advance(&a, id);
+        }
+    });
     let status = job_status(&app, &job)?;
     Ok((
         StatusCode::CREATED,
@@ -213,7 +226,7 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
     } else {
         None
     };
-    Ok(JobStatus {
+    let mut st = JobStatus {
         id: job.id.clone(),
         name: job.name.clone(),
         state: job.state,
@@ -257,7 +270,14 @@ fn job_status(app: &App, job: &JobRow) -> ApiResult<JobStatus> {
         require_tags: job.require_tags.clone(),
         blocklisted_workers,
         waiting_for,
-    })
+        frames: None,
+        parent: job.parent_id.clone(),
+        frame: job.frame,
+    };
+    if job.is_sequence() {
+        sequences::fill_status(app, job, &mut st, |f| job_status(app, f))?;
+    }
+    Ok(st)
 }
 
 /// The status document of job `id` (404 if there is none).
@@ -325,17 +345,23 @@ fn job_query(q: &JobListQuery) -> ApiResult<store::JobQuery> {
                 .min(i64::MAX as u64) as i64,
         ),
     };
+    let include_frames = match q.include_frames.as_deref() {
+        None | Some("") | Some("false") => false,
+        Some("true") => true,
+        Some(_) => return Err(bad("include_frames", "true or false")),
+    };
     Ok(store::JobQuery {
         states,
         name,
         since,
         after,
         limit,
+        include_frames,
     })
 }
 
 /// GET /v1/jobs: one page of the jobs the query selects, oldest first, and the cursor of the
-/// next page.
+/// next page. A sequence's frames are listed in its status (or with `include_frames=true`).
 pub(crate) async fn list_jobs(
     State(app): State<AppState>,
     Query(q): Query<JobListQuery>,
@@ -498,6 +524,7 @@ fn retry_blocking(app: &App, old: &JobRow) -> ApiResult<JobRow> {
         require_tags: old.require_tags.clone(),
         // The receivers (with their secrets) are the old job's, carried over as stored.
         webhooks: Vec::new(),
+        frames: None,
     };
     create_job_with(
         app,
@@ -669,7 +696,18 @@ pub(crate) async fn job_events(
 }
 
 async fn job_file(app: &App, id: &str, name: &str, mime: &'static str) -> ApiResult<Response> {
-    let job = find_job(app, id)?;
+    job_frame_file(app, id, None, name, mime).await
+}
+
+/// File `name` of job `id`, or of its frame `frame` for a sequence.
+async fn job_frame_file(
+    app: &App,
+    id: &str,
+    frame: Option<u32>,
+    name: &str,
+    mime: &'static str,
+) -> ApiResult<Response> {
+    let job = sequences::image_job(app, find_job(app, id)?, frame)?;
     let path = app.paths.output(&job.id, name);
     match tokio::fs::read(&path).await {
         Ok(bytes) => Ok((
@@ -688,20 +726,22 @@ async fn job_file(app: &App, id: &str, name: &str, mime: &'static str) -> ApiRes
     }
 }
 
-/// GET /v1/jobs/{id}/image.exr.
+/// GET /v1/jobs/{id}/image.exr (?frame=N of a sequence).
 pub(crate) async fn job_exr(
     State(app): State<AppState>,
     Path(id): Path<String>,
+    Query(q): Query<ImageQuery>,
 ) -> ApiResult<Response> {
-    job_file(&app, &id, "image.exr", "image/x-exr").await
+    job_frame_file(&app, &id, q.frame, "image.exr", "image/x-exr").await
 }
 
-/// GET /v1/jobs/{id}/preview.png.
+/// GET /v1/jobs/{id}/preview.png (?frame=N of a sequence).
 pub(crate) async fn job_preview(
     State(app): State<AppState>,
     Path(id): Path<String>,
+    Query(q): Query<ImageQuery>,
 ) -> ApiResult<Response> {
-    job_file(&app, &id, "preview.png", "image/png").await
+    job_frame_file(&app, &id, q.frame, "preview.png", "image/png").await
 }
 
 /// GET /v1/jobs/{id}/error.png.

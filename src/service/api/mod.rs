@@ -9,6 +9,7 @@ mod metrics;
 mod pools;
 mod references;
 mod scenes;
+mod sequences;
 mod workers;
 
 use super::App;

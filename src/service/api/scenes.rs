@@ -4,6 +4,7 @@
 use super::errors::{ApiError, ApiResult, bad};
 use super::{AppState, is_safe_id};
 use crate::bundle;
+use crate::job::frames;
 use crate::protocol::{SceneLibrary, SceneMeta, SceneUploadQuery};
 use crate::scene::Scene;
 use crate::service::upload;
@@ -113,7 +114,7 @@ fn library_file(app: &App, name: &str) -> ApiResult<std::path::PathBuf> {
 }
 
 /// `msg` without the server's folder `dir` (errors name files relative to it).
-fn hide_folder(msg: &str, dir: &std::path::Path) -> String {
+pub(crate) fn hide_folder(msg: &str, dir: &std::path::Path) -> String {
     let d = dir.display().to_string();
     msg.replace(&format!("{d}/"), "").replace(&d, ".")
 }
@@ -247,8 +248,31 @@ fn store_bundle(
                 ApiError::disk(&format!("cannot unpack '{path}' of the bundle"), source)
             }
         })?;
-        let main = bundle::choose_main(&files, main).map_err(|e| bad(field, e.to_string()))?;
-        let scene = Scene::load(&files_dir.join(&main))
+        let (main, loaded) = match main.filter(|m| frames::is_pattern(m)) {
+            // A sequence's bundle: checked with its first frame's scene (the job checks every
+            // frame it renders).
+            Some(pattern) => {
+                frames::validate_pattern(pattern, field).map_err(|e| bad(field, e.message))?;
+                let first = files
+                    .iter()
+                    .filter_map(|f| frames::frame_of(pattern, f).map(|n| (n, f)))
+                    .min()
+                    .map(|(_, f)| f.clone())
+                    .ok_or_else(|| {
+                        bad(
+                            field,
+                            format!("no file of the bundle is a frame of '{pattern}'"),
+                        )
+                    })?;
+                (pattern.to_string(), first)
+            }
+            None => {
+                let main =
+                    bundle::choose_main(&files, main).map_err(|e| bad(field, e.to_string()))?;
+                (main.clone(), main)
+            }
+        };
+        let scene = Scene::load(&files_dir.join(&loaded))
             // Name the file inside the bundle, not the server's path.
             .map_err(|e| bad(field, hide_folder(&e.to_string(), &files_dir)))?;
         if scene.stats.triangles > app.cfg.limits.max_triangles {

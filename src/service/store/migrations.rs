@@ -190,6 +190,12 @@ pub(super) const MIGRATIONS: &[&str] = &[
      );
      CREATE INDEX webhook_deliveries_due ON webhook_deliveries (state, next_at);
      CREATE INDEX webhook_deliveries_job ON webhook_deliveries (job_id, seq);",
+    // 8: sequences. A sequence is a parent job (`frames`: its frame range, as text) whose frames
+    // are ordinary jobs, its children (`parent_id`, `frame`).
+    "ALTER TABLE jobs ADD COLUMN parent_id TEXT;
+     ALTER TABLE jobs ADD COLUMN frame INTEGER;
+     ALTER TABLE jobs ADD COLUMN frames TEXT;
+     CREATE INDEX jobs_parent ON jobs (parent_id, frame);",
 ];
 
 /// The version whose schema `PRAGMA user_version` 0 stood for before `schema_version` existed:
@@ -354,6 +360,11 @@ mod tests {
                 ),
                 (0, None, 0.0, None),
                 "from {from}"
+            );
+            assert_eq!(
+                (job.parent_id.as_deref(), job.frame, job.frames.as_deref()),
+                (None, None, None),
+                "an older job is no sequence, from {from}"
             );
             let task: TaskRow = db.task(7).expect("task").expect("the task is there");
             assert_eq!(

@@ -67,9 +67,21 @@ pub(crate) struct JobRow {
     pub owner: Option<String>,
     /// The job's own webhook receivers: `protocol::WebhookSpec`s as JSON (None: none).
     pub webhooks: Option<String>,
+    /// A frame of a sequence: the sequence's job.
+    pub parent_id: Option<String>,
+    /// A frame of a sequence: its frame number.
+    pub frame: Option<u32>,
+    /// A sequence (a parent job, with no tasks of its own): its frame range
+    /// (`FrameRange`'s text).
+    pub frames: Option<String>,
 }
 
 impl JobRow {
+    /// Whether the job is a sequence: its frames are its child jobs, it has no tasks itself.
+    pub fn is_sequence(&self) -> bool {
+        self.frames.is_some()
+    }
+
     /// Seconds the job has spent paused up to time `at`.
     pub fn paused_until(&self, at: f64) -> f64 {
         self.paused_s + self.paused_at.map_or(0.0, |p| (at - p).max(0.0))
@@ -97,6 +109,8 @@ pub(crate) struct JobQuery {
     pub after: Option<i64>,
     /// At most this many.
     pub limit: u32,
+    /// The frames of sequences too (else only single jobs and sequences).
+    pub include_frames: bool,
 }
 
 /// What [`JobStore::delete_job`] did.
@@ -314,6 +328,17 @@ impl Outcome {
 pub(crate) trait JobStore: Send {
     /// Adds a job, `queued`, after every earlier one.
     fn insert_job(&self, j: &NewJob) -> StoreResult<()>;
+    /// Adds a sequence job (`frames`: its range as text) and its frames' jobs (each with its
+    /// frame number), `queued`, in one transaction; the frames follow the parent in the queue
+    /// in the order given.
+    fn insert_sequence(
+        &self,
+        parent: &NewJob,
+        frames: &str,
+        children: &[(u32, NewJob)],
+    ) -> StoreResult<()>;
+    /// The frames' jobs of sequence `parent`, in frame order (empty for any other job).
+    fn frames(&self, parent: &str) -> StoreResult<Vec<JobRow>>;
     /// A job by id.
     fn job(&self, id: &str) -> StoreResult<Option<JobRow>>;
     /// One page of the jobs `q` selects, in submission order.

@@ -81,7 +81,7 @@ pub(crate) struct SqliteStore {
 const JOB_COLS: &str = "id, name, state, error, settings, resolved, scene_id, scene_main, \
     reference, created_at, started_at, finished_at, passes_done, spp_done, samples, rays, \
     non_finite, accum_bytes, result_bytes, seq, priority, paused_at, paused_s, retry_of, \
-    require_tags, owner, webhooks";
+    require_tags, owner, webhooks, parent_id, frame, frames";
 
 const TASK_COLS: &str =
     "id, job_id, pass, tile, s0, s1, state, attempt, worker_id, result_at, result_len, kind";
@@ -115,6 +115,9 @@ fn job_row(r: &rusqlite::Row) -> rusqlite::Result<JobRow> {
         require_tags: tags_of(&r.get::<_, String>(24)?),
         owner: r.get(25)?,
         webhooks: r.get(26)?,
+        parent_id: r.get(27)?,
+        frame: r.get(28)?,
+        frames: r.get(29)?,
     })
 }
 
@@ -150,6 +153,43 @@ fn cached_row<T>(
 /// Runs `sql` (a statement prepared once per connection and cached); rows changed.
 fn cached_exec(conn: &Connection, sql: &str, p: impl rusqlite::Params) -> rusqlite::Result<usize> {
     conn.prepare_cached(sql)?.execute(p)
+}
+
+/// Inserts a queued job at place `seq` of the queue; `frame_of`: the sequence and frame number
+/// of a sequence's frame.
+fn insert_job_row(
+    conn: &Connection,
+    j: &NewJob,
+    seq: i64,
+    frame_of: Option<(&str, u32)>,
+) -> rusqlite::Result<usize> {
+    cached_exec(
+        conn,
+        "INSERT INTO jobs (id, seq, name, state, settings, resolved, scene_id, scene_main, \
+         reference, created_at, accum_bytes, priority, retry_of, require_tags, owner, \
+         webhooks, parent_id, frame) \
+         VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16, ?17, ?18)",
+        params![
+            j.id,
+            seq,
+            j.name,
+            J_QUEUED,
+            j.settings,
+            j.resolved,
+            j.scene_id,
+            j.scene_main,
+            j.reference,
+            now(),
+            j.accum_bytes,
+            j.priority,
+            j.retry_of,
+            tags_text(j.require_tags),
+            j.owner,
+            j.webhooks,
+            frame_of.map(|f| f.0),
+            frame_of.map(|f| f.1)
+        ],
+    )
 }
 
 /// Inserts an event of `job` (inside the caller's transaction, if any).
@@ -466,32 +506,39 @@ impl JobStore for SqliteStore {
                 .query_row("SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs", [], |r| {
                     r.get(0)
                 })?;
-        cached_exec(
-            &self.conn,
-            "INSERT INTO jobs (id, seq, name, state, settings, resolved, scene_id, scene_main, \
-             reference, created_at, accum_bytes, priority, retry_of, require_tags, owner, \
-             webhooks) \
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15, ?16)",
-            params![
-                j.id,
-                seq,
-                j.name,
-                J_QUEUED,
-                j.settings,
-                j.resolved,
-                j.scene_id,
-                j.scene_main,
-                j.reference,
-                now(),
-                j.accum_bytes,
-                j.priority,
-                j.retry_of,
-                tags_text(j.require_tags),
-                j.owner,
-                j.webhooks
-            ],
-        )?;
+        insert_job_row(&self.conn, j, seq, None)?;
         Ok(())
+    }
+    fn insert_sequence(
+        &self,
+        parent: &NewJob,
+        frames: &str,
+        children: &[(u32, NewJob)],
+    ) -> StoreResult<()> {
+        let tx = self.conn.unchecked_transaction()?;
+        let seq: i64 = tx.query_row("SELECT COALESCE(MAX(seq), 0) + 1 FROM jobs", [], |r| {
+            r.get(0)
+        })?;
+        insert_job_row(&tx, parent, seq, None)?;
+        cached_exec(
+            &tx,
+            "UPDATE jobs SET frames = ?2 WHERE id = ?1",
+            params![parent.id, frames],
+        )?;
+        // Consecutive after the parent: the lease order (by seq) takes the frames in order.
+        for (k, (frame, child)) in children.iter().enumerate() {
+            insert_job_row(&tx, child, seq + 1 + k as i64, Some((parent.id, *frame)))?;
+        }
+        tx.commit()?;
+        Ok(())
+    }
+    fn frames(&self, parent: &str) -> StoreResult<Vec<JobRow>> {
+        let mut st = self.conn.prepare_cached(&format!(
+            "SELECT {JOB_COLS} FROM jobs WHERE parent_id = ?1 ORDER BY frame"
+        ))?;
+        st.query_map([parent], job_row)?
+            .collect::<rusqlite::Result<Vec<_>>>()
+            .map_err(StoreError::from)
     }
     fn job(&self, id: &str) -> StoreResult<Option<JobRow>> {
         cached_row(
@@ -517,6 +564,7 @@ impl JobStore for SqliteStore {
              AND (?2 IS NULL OR instr(',' || ?2 || ',', ',' || state || ',') > 0) \
              AND (?3 IS NULL OR instr(lower(COALESCE(name, '')), lower(?3)) > 0) \
              AND (?4 IS NULL OR created_at >= ?4) \
+             AND (?6 OR parent_id IS NULL) \
              ORDER BY seq LIMIT ?5"
         ))?;
         st.query_map(
@@ -525,7 +573,8 @@ impl JobStore for SqliteStore {
                 states,
                 q.name,
                 q.since,
-                q.limit
+                q.limit,
+                q.include_frames
             ],
             job_row,
         )?
@@ -534,7 +583,7 @@ impl JobStore for SqliteStore {
     }
     fn finished_jobs(&self) -> StoreResult<Vec<JobRow>> {
         let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {JOB_COLS} FROM jobs WHERE state NOT IN (?1, ?2, ?3) \
+            "SELECT {JOB_COLS} FROM jobs WHERE state NOT IN (?1, ?2, ?3) AND parent_id IS NULL \
              ORDER BY COALESCE(finished_at, created_at), seq"
         ))?;
         st.query_map(params![J_QUEUED, J_RUNNING, J_PAUSED], job_row)?
@@ -972,6 +1021,14 @@ impl JobStore for SqliteStore {
             &tx,
             "UPDATE jobs SET state = ?3, started_at = COALESCE(started_at, ?2) \
              WHERE id = (SELECT job_id FROM tasks WHERE id = ?1) AND state = ?4",
+            params![id, t, J_RUNNING, J_QUEUED],
+        )?;
+        // A sequence runs from its first frame's first lease.
+        cached_exec(
+            &tx,
+            "UPDATE jobs SET state = ?3, started_at = COALESCE(started_at, ?2) \
+             WHERE id = (SELECT parent_id FROM jobs WHERE id = \
+             (SELECT job_id FROM tasks WHERE id = ?1)) AND state = ?4",
             params![id, t, J_RUNNING, J_QUEUED],
         )?;
         cached_exec(
@@ -1668,6 +1725,75 @@ mod tests {
             ("pending", 1, Some(500))
         );
         assert_eq!((d[1].state.as_str(), d[1].attempts), ("delivered", 1));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A sequence is recorded at once, its frames in frame order right after it in the queue:
+    /// a job submitted earlier leases first, then the frames one after the other, and the first
+    /// frame's lease starts the sequence.
+    #[test]
+    fn a_sequence_queues_its_frames_in_order() {
+        let dir = std::env::temp_dir().join(format!("omis-store-{}", uuid::Uuid::new_v4()));
+        std::fs::create_dir_all(&dir).expect("temporary folder");
+        let db = SqliteStore::open(&dir.join("db.sqlite")).expect("store");
+        let job = |id: &'static str, main: &'static str| NewJob {
+            id,
+            name: None,
+            settings: "{}",
+            resolved: "{}",
+            scene_id: "s",
+            scene_main: main,
+            reference: None,
+            accum_bytes: 0,
+            priority: 0,
+            retry_of: None,
+            require_tags: &[],
+            owner: None,
+            webhooks: None,
+        };
+        db.insert_job(&job("single", "scene.json")).expect("job");
+        db.insert_sequence(
+            &job("seq", "f_#.json"),
+            "1-3",
+            &[
+                (1, job("f1", "f_1.json")),
+                (2, job("f2", "f_2.json")),
+                (3, job("f3", "f_3.json")),
+            ],
+        )
+        .expect("sequence");
+        for id in ["f3", "f1", "f2", "single"] {
+            db.create_tasks(id, 0, 0..2, 0..16).expect("tasks");
+        }
+        let frames = db.frames("seq").expect("frames");
+        let listed: Vec<(&str, Option<u32>, Option<&str>)> = frames
+            .iter()
+            .map(|j| (j.id.as_str(), j.frame, j.parent_id.as_deref()))
+            .collect();
+        assert_eq!(
+            listed,
+            vec![
+                ("f1", Some(1), Some("seq")),
+                ("f2", Some(2), Some("seq")),
+                ("f3", Some(3), Some("seq"))
+            ]
+        );
+        let parent = db.job("seq").expect("job").expect("the parent");
+        assert_eq!(parent.frames.as_deref(), Some("1-3"));
+        assert_eq!(parent.state, JobState::Queued);
+        db.register_worker("w", "w", 1, "test").expect("worker");
+        let mut leased = Vec::new();
+        while let Some(t) = db.lease("w", 60.0).expect("lease") {
+            leased.push(t.job_id);
+        }
+        assert_eq!(
+            leased,
+            ["single", "single", "f1", "f1", "f2", "f2", "f3", "f3"]
+        );
+        let parent = db.job("seq").expect("job").expect("the parent");
+        assert_eq!(parent.state, JobState::Running);
+        assert!(parent.started_at.is_some());
+        drop(db);
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
