@@ -462,18 +462,36 @@ pub(crate) fn cancel(app: &App, id: &str) -> ServiceResult<bool> {
 
 /// Pauses a queued or running job: it leases nothing more; the tasks in hand finish and their
 /// results are kept. False when it was not queued or running.
+/// A sequence's frames go with it.
 pub(crate) fn pause(app: &App, id: &str) -> ServiceResult<bool> {
     let paused = app.db().pause(id)?;
     if paused {
         tracing::info!("job {id}: paused");
+        for f in frames_of(app, id)? {
+            pause(app, &f.id)?;
+        }
     }
     Ok(paused)
 }
 
-/// Resumes a paused job; false when it was not paused.
+/// The frames of job `id` when it is a sequence (its controls act on them too); else none.
+fn frames_of(app: &App, id: &str) -> ServiceResult<Vec<JobRow>> {
+    let job = app.db().job(id)?;
+    match job {
+        Some(j) if j.is_sequence() => Ok(app.db().frames(id)?),
+        _ => Ok(Vec::new()),
+    }
+}
+
+/// Resumes a paused job (a sequence with its paused frames); false when it was not paused.
 pub(crate) fn resume(app: &App, id: &str) -> ServiceResult<bool> {
     let resumed = app.db().resume(id)?;
     if resumed {
+        for f in frames_of(app, id)? {
+            if f.state == JobState::Paused {
+                resume(app, &f.id)?;
+            }
+        }
         tracing::info!("job {id}: resumed");
         app.work.notify_waiters();
         // A pass whose results all came in while paused is merged now.
@@ -484,10 +502,15 @@ pub(crate) fn resume(app: &App, id: &str) -> ServiceResult<bool> {
 
 /// Makes a failed job active again: its failed tasks are queued afresh (every worker may take
 /// them again), its error is cleared, and it goes on from its checkpoints and the results it
-/// kept, as after a restart. False when it had not failed.
+/// kept, as after a restart; a sequence with its failed frames. False when it had not failed.
 pub(crate) fn requeue(app: &App, id: &str) -> ServiceResult<bool> {
     let requeued = app.db().requeue_failed(id)?;
     if requeued {
+        for f in frames_of(app, id)? {
+            if f.state == JobState::Failed {
+                requeue(app, &f.id)?;
+            }
+        }
         tracing::info!("job {id}: requeued");
         drop_runtime(app, id);
         app.work.notify_waiters();
@@ -496,10 +519,13 @@ pub(crate) fn requeue(app: &App, id: &str) -> ServiceResult<bool> {
     Ok(requeued)
 }
 
-/// Sets the priority of a job that has not ended; false when it had.
+/// Sets the priority of a job that has not ended (a sequence's frames' too); false when it had.
 pub(crate) fn set_priority(app: &App, id: &str, priority: i32) -> ServiceResult<bool> {
     let set = app.db().set_priority(id, priority)?;
     if set {
+        for f in frames_of(app, id)? {
+            app.db().set_priority(&f.id, priority)?;
+        }
         app.work.notify_waiters();
     }
     Ok(set)
@@ -508,7 +534,20 @@ pub(crate) fn set_priority(app: &App, id: &str, priority: i32) -> ServiceResult<
 /// Deletes a job that has ended: its rows (`JobStore::delete_job`), then its files
 /// (`delete_files`); not one that is active, nor one whose image another job uses as its
 /// reference (the answer says which).
+/// A sequence is deleted with its frames, each as a job of its own first.
 pub(crate) fn delete(app: &App, id: &str) -> ServiceResult<store::Deleted> {
+    let job = app.db().job(id)?;
+    if let Some(j) = &job
+        && j.is_sequence()
+        && !j.state.is_active()
+    {
+        for f in app.db().frames(id)? {
+            let d = delete(app, &f.id)?;
+            if !matches!(d, store::Deleted::Removed(_) | store::Deleted::Missing) {
+                return Ok(d);
+            }
+        }
+    }
     let image = app.paths.output(id, "image.exr").display().to_string();
     let deleted = app.db().delete_job(id, &image)?;
     if let store::Deleted::Removed(row) = &deleted {

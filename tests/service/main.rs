@@ -19,5 +19,5 @@ mod sequences;
 mod support;
 mod synthetic_stream;
 mod time_budget;
-mod worker_pools;
 mod webhooks;
+mod worker_pools;

@@ -229,10 +229,6 @@ pub(crate) fn require_owner(p: &Principal, id: &str, owner: Option<&str>) -> Res
 }
 
 /// 403 unless `p` is an admin (worker actions, and whatever acts on every job).
-#[allow(
-    dead_code,
-    reason = "the check of the admin-only routes (worker actions)"
-)]
 pub(crate) fn require_admin(p: &Principal) -> Result<(), ApiError> {
     if p.role == Role::Admin {
         return Ok(());

@@ -6,9 +6,9 @@ use super::auth::{self, Principal};
 use super::errors::{ApiError, ApiResult, JsonBody, bad, settings_error};
 use super::{AppState, references, scenes, sequences};
 use crate::protocol::{
-    JobEvent, JobLinks, JobList, JobListQuery, JobPatch, JobRequest, JobState, JobStatus,
-    QueuedEvent, SceneMeta, SceneRef, SceneSource, SseData, WebhookDelivery, WebhookDeliveryList,
-    Whoami, WorkerAdmin, WorkerInfo, WorkerState, validate_tags, ImageQuery,
+    ImageQuery, JobEvent, JobLinks, JobList, JobListQuery, JobPatch, JobRequest, JobState,
+    JobStatus, QueuedEvent, SceneMeta, SceneRef, SceneSource, SseData, WebhookDelivery,
+    WebhookDeliveryList, Whoami, WorkerAdmin, WorkerInfo, WorkerState, validate_tags,
 };
 use crate::service::store::{self, EventRow, JobRow};
 use crate::service::{App, jobs, runtime, webhooks};
@@ -389,15 +389,17 @@ fn wrong_state(id: &str, state: JobState, wants: &str) -> ApiError {
     )
 }
 
-/// Runs control `f` on job `id` on a blocking thread; its `false` answers 409 (`wants`: the
-/// states it needs), else the job's status after it.
+/// Runs control `f` on job `id` on a blocking thread, for its owner or an admin (`who`); its
+/// `false` answers 409 (`wants`: the states it needs), else the job's status after it.
 async fn control(
     app: AppState,
+    who: &Principal,
     id: String,
     wants: &'static str,
     f: fn(&App, &str) -> crate::service::error::ServiceResult<bool>,
 ) -> ApiResult<Json<JobStatus>> {
-    find_job(&app, &id)?;
+    let job = find_job(&app, &id)?;
+    auth::require_owner(who, &id, job.owner.as_deref())?;
     let a = app.clone();
     let i = id.clone();
     let done = tokio::task::spawn_blocking(move || f(&a, &i))
@@ -413,10 +415,12 @@ async fn control(
 /// POST /v1/jobs/{id}/pause.
 pub(crate) async fn pause_job(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
 ) -> ApiResult<Json<JobStatus>> {
     control(
         app,
+        &who,
         id,
         "only a queued or running job can be paused",
         jobs::pause,
@@ -427,18 +431,28 @@ pub(crate) async fn pause_job(
 /// POST /v1/jobs/{id}/resume.
 pub(crate) async fn resume_job(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
 ) -> ApiResult<Json<JobStatus>> {
-    control(app, id, "only a paused job can be resumed", jobs::resume).await
+    control(
+        app,
+        &who,
+        id,
+        "only a paused job can be resumed",
+        jobs::resume,
+    )
+    .await
 }
 
 /// POST /v1/jobs/{id}/requeue.
 pub(crate) async fn requeue_job(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
 ) -> ApiResult<Json<JobStatus>> {
     control(
         app,
+        &who,
         id,
         "only a failed job can be requeued (retry makes a new job of a cancelled one)",
         jobs::requeue,
@@ -449,10 +463,12 @@ pub(crate) async fn requeue_job(
 /// PATCH /v1/jobs/{id}: its priority.
 pub(crate) async fn patch_job(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
     JsonBody(patch): JsonBody<JobPatch>,
 ) -> ApiResult<Json<JobStatus>> {
-    find_job(&app, &id)?;
+    let job = find_job(&app, &id)?;
+    auth::require_owner(&who, &id, job.owner.as_deref())?;
     let set = jobs::set_priority(&app, &id, patch.priority)?;
     let job = find_job(&app, &id)?;
     if !set {
@@ -469,9 +485,18 @@ pub(crate) async fn patch_job(
 /// settings, reference, name and priority); 201 with the new job's status.
 pub(crate) async fn retry_job(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
 ) -> ApiResult<Response> {
     let old = find_job(&app, &id)?;
+    auth::require_owner(&who, &id, old.owner.as_deref())?;
+    if old.is_sequence() {
+        return Err(wrong_state(
+            &id,
+            old.state,
+            "a sequence is not retried as a whole: requeue it (its failed frames go on) or submit it again",
+        ));
+    }
     if !matches!(old.state, JobState::Failed | JobState::Cancelled) {
         return Err(wrong_state(
             &id,
@@ -543,8 +568,18 @@ fn retry_blocking(app: &App, old: &JobRow) -> ApiResult<JobRow> {
 /// DELETE /v1/jobs/{id}: a job that has ended, with every file it stored; 204.
 pub(crate) async fn delete_job(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
 ) -> ApiResult<StatusCode> {
+    let job = find_job(&app, &id)?;
+    auth::require_owner(&who, &id, job.owner.as_deref())?;
+    if let Some(parent) = &job.parent_id {
+        return Err(ApiError::field(
+            StatusCode::CONFLICT,
+            "id",
+            format!("job '{id}' is a frame of sequence '{parent}': delete the sequence"),
+        ));
+    }
     let a = app.clone();
     let i = id.clone();
     let deleted = tokio::task::spawn_blocking(move || jobs::delete(&a, &i))

@@ -3,12 +3,13 @@
 //! every task) of a job or of a worker.
 
 use super::AppState;
+use super::auth::{self, Principal};
 use super::errors::{ApiError, ApiResult, bad};
 use crate::protocol::{TaskAttemptList, TaskAttemptQuery, WorkerAdmin, WorkerAdminAnswer};
 use crate::service::store::AttemptsOf;
-use axum::Json;
 use axum::extract::{Path, Query, State};
 use axum::http::StatusCode;
+use axum::{Extension, Json};
 
 /// Attempts per page of the task history when the query names no limit.
 const DEFAULT_ATTEMPTS: u32 = 100;
@@ -17,7 +18,14 @@ const MAX_ATTEMPTS: u32 = 1000;
 
 /// Sets worker `id`'s admin state; waiting lease requests look again (an enabled worker may
 /// now lease, a disabled one stops being offered tasks at its next look).
-fn set_admin(app: &AppState, id: &str, admin: WorkerAdmin) -> ApiResult<Json<WorkerAdminAnswer>> {
+/// Admins only, as every worker action.
+fn set_admin(
+    app: &AppState,
+    who: &Principal,
+    id: &str,
+    admin: WorkerAdmin,
+) -> ApiResult<Json<WorkerAdminAnswer>> {
+    auth::require_admin(who)?;
     let (admin, unhealthy) = app
         .db()
         .set_worker_admin(id, admin)?
@@ -34,33 +42,38 @@ fn set_admin(app: &AppState, id: &str, admin: WorkerAdmin) -> ApiResult<Json<Wor
 /// POST /v1/workers/{id}/disable: the worker leases nothing; the tasks in hand finish.
 pub(crate) async fn disable_worker(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
 ) -> ApiResult<Json<WorkerAdminAnswer>> {
-    set_admin(&app, &id, WorkerAdmin::Disabled)
+    set_admin(&app, &who, &id, WorkerAdmin::Disabled)
 }
 
 /// POST /v1/workers/{id}/enable: the worker leases again.
 pub(crate) async fn enable_worker(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
 ) -> ApiResult<Json<WorkerAdminAnswer>> {
-    set_admin(&app, &id, WorkerAdmin::Enabled)
+    set_admin(&app, &who, &id, WorkerAdmin::Enabled)
 }
 
 /// POST /v1/workers/{id}/drain: the worker leases nothing, finishes the tasks in hand and
 /// exits (its heartbeat's answer tells it).
 pub(crate) async fn drain_worker(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
 ) -> ApiResult<Json<WorkerAdminAnswer>> {
-    set_admin(&app, &id, WorkerAdmin::Draining)
+    set_admin(&app, &who, &id, WorkerAdmin::Draining)
 }
 
 /// DELETE /v1/workers/{id}/unhealthy: the worker leases again (if enabled).
 pub(crate) async fn clear_unhealthy(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
 ) -> ApiResult<Json<WorkerAdminAnswer>> {
+    auth::require_admin(&who)?;
     let admin = app
         .db()
         .clear_unhealthy(&id)?
@@ -78,15 +91,15 @@ pub(crate) async fn clear_unhealthy(
 /// those it failed included.
 pub(crate) async fn clear_blocklist(
     State(app): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path((id, worker)): Path<(String, String)>,
 ) -> ApiResult<Json<crate::protocol::JobStatus>> {
-    let cleared = {
-        let db = app.db();
-        if db.job(&id)?.is_none() {
-            return Err(ApiError::not_found("job", &id));
-        }
-        db.clear_blocklist(&id, &worker)?
+    let job = app.db().job(&id)?;
+    let Some(job) = job else {
+        return Err(ApiError::not_found("job", &id));
     };
+    auth::require_owner(&who, &id, job.owner.as_deref())?;
+    let cleared = app.db().clear_blocklist(&id, &worker)?;
     if !cleared {
         return Err(ApiError::field(
             StatusCode::NOT_FOUND,
