@@ -114,6 +114,49 @@ fn a_user_acts_on_its_own_jobs_only_and_an_admin_on_every_job() {
     assert_eq!(s, 403);
     let (s, _) = cancel_as(&c, &url, &roots, "ana-token-1");
     assert_eq!(s, 200);
+
+    // Every job control is the owner's or an admin's; every worker action an admin's.
+    let cyds = submit_as(&c, &url, "cyd-token-1");
+    let controls = [
+        c.post(format!("{url}/v1/jobs/{cyds}/pause")),
+        c.post(format!("{url}/v1/jobs/{cyds}/resume")),
+        c.post(format!("{url}/v1/jobs/{cyds}/requeue")),
+        c.post(format!("{url}/v1/jobs/{cyds}/retry")),
+        c.patch(format!("{url}/v1/jobs/{cyds}"))
+            .json(&json!({ "priority": 5 })),
+        c.delete(format!("{url}/v1/jobs/{cyds}")),
+        c.delete(format!("{url}/v1/jobs/{cyds}/blocklist/w1")),
+    ];
+    for req in controls {
+        let (s, v) = call(req, "bob-token-1");
+        assert_eq!((s, v["field"].as_str()), (403, Some("id")), "{v}");
+    }
+    assert_eq!(state_of(&c, &url, &cyds, "cyd-token-1")["priority"], 0);
+    let (s, v) = call(
+        c.patch(format!("{url}/v1/jobs/{cyds}"))
+            .json(&json!({ "priority": 5 })),
+        "cyd-token-1",
+    );
+    assert_eq!((s, v["priority"].as_i64()), (200, Some(5)), "{v}");
+    let (s, v) = call(c.post(format!("{url}/v1/jobs/{cyds}/pause")), "ana-token-1");
+    assert_eq!((s, v["state"].as_str()), (200, Some("paused")), "{v}");
+    for action in ["disable", "enable", "drain"] {
+        let (s, v) = call(
+            c.post(format!("{url}/v1/workers/no-such-worker/{action}")),
+            "bob-token-1",
+        );
+        assert_eq!(s, 403, "{action}: {v}");
+        let (s, v) = call(
+            c.post(format!("{url}/v1/workers/no-such-worker/{action}")),
+            "ana-token-1",
+        );
+        assert_eq!(s, 404, "{action}: an admin gets as far as the worker: {v}");
+    }
+    let (s, _) = call(
+        c.delete(format!("{url}/v1/workers/no-such-worker/unhealthy")),
+        "bob-token-1",
+    );
+    assert_eq!(s, 403);
 }
 
 #[test]

@@ -295,6 +295,44 @@ fn a_bad_frame_range_is_refused_and_cancelling_a_sequence_cancels_its_frames() {
     let st: Value = serde_json::from_slice(&v).expect("JSON");
     let id = st["id"].as_str().expect("id").to_string();
     assert_eq!(st["frames"].as_array().map(Vec::len), Some(2), "{st}");
+    // Pause, priority and resume act on every frame with the sequence.
+    let frame_states = |want: &str, priority: i64| {
+        let st = get_json(&c, &format!("{url}/v1/jobs/{id}"));
+        for f in st["frames"].as_array().expect("frames") {
+            let child = get_json(
+                &c,
+                &format!("{url}/v1/jobs/{}", f["job_id"].as_str().unwrap_or("")),
+            );
+            assert_eq!(
+                (child["state"].as_str(), child["priority"].as_i64()),
+                (Some(want), Some(priority)),
+                "{child}"
+            );
+        }
+    };
+    let (s, v) = post(&c, &format!("{url}/v1/jobs/{id}/pause"), &json!({}));
+    assert_eq!((s, v["state"].as_str()), (200, Some("paused")), "{v}");
+    frame_states("paused", 0);
+    let r = c
+        .patch(format!("{url}/v1/jobs/{id}"))
+        .json(&json!({ "priority": 7 }))
+        .send()
+        .expect("patch");
+    assert_eq!(r.status().as_u16(), 200);
+    frame_states("paused", 7);
+    let (s, v) = post(&c, &format!("{url}/v1/jobs/{id}/resume"), &json!({}));
+    assert_eq!((s, v["state"].as_str()), (200, Some("queued")), "{v}");
+    frame_states("queued", 7);
+    // A frame is deleted with its sequence, not alone.
+    let frame = st["frames"][0]["job_id"]
+        .as_str()
+        .expect("frame id")
+        .to_string();
+    let r = c
+        .delete(format!("{url}/v1/jobs/{frame}"))
+        .send()
+        .expect("delete");
+    assert_eq!(r.status().as_u16(), 409);
     let (s, v) = post(&c, &format!("{url}/v1/jobs/{id}/cancel"), &json!({}));
     assert_eq!((s, v["state"].as_str()), (200, Some("cancelled")), "{v}");
     let st = get_json(&c, &format!("{url}/v1/jobs/{id}"));
@@ -318,6 +356,14 @@ fn a_bad_frame_range_is_refused_and_cancelling_a_sequence_cancels_its_frames() {
     let st = get_json(&c, &format!("{url}/v1/jobs/{id}"));
     assert_eq!(st["state"], "cancelled");
     assert_eq!(st["spp_done"], 0, "{st}");
+    // Deleting the sequence deletes its frames.
+    let r = c
+        .delete(format!("{url}/v1/jobs/{id}"))
+        .send()
+        .expect("delete");
+    assert_eq!(r.status().as_u16(), 204);
+    let list = get_json(&c, &format!("{url}/v1/jobs?include_frames=true"));
+    assert_eq!(list["jobs"].as_array().map(Vec::len), Some(0), "{list}");
 }
 
 #[test]

@@ -287,17 +287,25 @@ async function jobsView(signal) {
     h('thead', {}, h('tr', {},
       h('th', {}, 'Job'), h('th', {}, 'Scene'), h('th', {}, 'State'), h('th', { class: 'num' }, 'spp'),
       h('th', { class: 'num' }, 'Passes'), h('th', { class: 'num' }, 'Elapsed'), h('th', { class: 'num' }, 'ETA'),
-      h('th', { class: 'num' }, 'relMSE'), h('th', {}, 'Created'))),
+      h('th', { class: 'num' }, 'relMSE'), h('th', { class: 'num' }, 'Priority'), h('th', {}, 'Created'))),
     body);
-  view().replaceChildren(
-    h('div', { class: 'job-head' }, h('h1', {}, 'Jobs'),
-      h('div', { class: 'actions' }, h('a', { href: '#/submit' }, h('button', { class: 'primary', type: 'button' }, 'New job')))),
-    table);
-  await every(2000, signal, async () => {
-    const { jobs } = await allJobs({ signal });
+  // The filter is the list's query (GET /v1/jobs?state=...&name=...): the coordinator selects.
+  const stateFilter = h('select', { id: 'filter-state', 'aria-label': 'state' },
+    h('option', { value: '' }, 'every state'),
+    ...['queued', 'running', 'paused', 'done', 'failed', 'cancelled'].map((s) => h('option', { value: s }, s)),
+    h('option', { value: 'queued,running,paused' }, 'not ended'));
+  const nameFilter = h('input', { id: 'filter-name', type: 'search', placeholder: 'name contains', 'aria-label': 'name' });
+  const query = () => {
+    const q = new URLSearchParams();
+    if (stateFilter.value) q.set('state', stateFilter.value);
+    if (nameFilter.value.trim()) q.set('name', nameFilter.value.trim());
+    return q.toString();
+  };
+  const refresh = async () => {
+    const { jobs } = await allJobs({ signal }, query());
     jobs.sort((a, b) => b.created_at - a.created_at);
     if (!jobs.length) {
-      body.replaceChildren(h('tr', {}, h('td', { colspan: 9, class: 'empty' }, 'No jobs yet. ', h('a', { href: '#/submit' }, 'Submit one.'))));
+      body.replaceChildren(h('tr', {}, h('td', { colspan: 10, class: 'empty' }, query() ? 'No job matches the filter.' : 'No jobs yet. ', query() ? '' : h('a', { href: '#/submit' }, 'Submit one.'))));
       return;
     }
     body.replaceChildren(...jobs.map((j) => h('tr', { dataset: { id: j.id } },
@@ -309,8 +317,18 @@ async function jobsView(signal) {
       h('td', { class: 'num' }, fmtSeconds(j.elapsed_s)),
       h('td', { class: 'num' }, j.state === 'paused' ? 'paused' : ACTIVE.has(j.state) ? fmtSeconds(j.eta_s) : '—'),
       h('td', { class: 'num' }, fmtRel(j.relmse)),
+      h('td', { class: 'num' }, String(j.priority ?? 0)),
       h('td', {}, fmtClock(j.created_at)))));
-  });
+  };
+  const now = coalesce(refresh);
+  stateFilter.addEventListener('change', now);
+  nameFilter.addEventListener('input', now);
+  view().replaceChildren(
+    h('div', { class: 'job-head' }, h('h1', {}, 'Jobs'),
+      h('div', { class: 'actions' }, stateFilter, nameFilter,
+        h('a', { href: '#/submit' }, h('button', { class: 'primary', type: 'button' }, 'New job')))),
+    table);
+  await every(2000, signal, refresh);
 }
 
 // -- one job --
@@ -441,6 +459,16 @@ async function jobView(signal, id) {
 
   const stateEl = h('span');
   const facts = h('dl', { class: 'facts' });
+  // A sequence: one chip per frame, coloured by its state; the preview shows the chosen frame
+  // (at first the last frame with a pass merged).
+  const strip = h('div', { class: 'frame-strip', id: 'frame-strip', hidden: true });
+  let chosenFrame = null;
+  const previewFrame = () => {
+    if (!st.frames) return null;
+    if (chosenFrame !== null) return chosenFrame;
+    const rendered = st.frames.filter((f) => f.passes_done > 0);
+    return (rendered.length ? rendered[rendered.length - 1] : st.frames[0]).frame;
+  };
   const img = h('img', { id: 'preview', alt: 'preview', hidden: true });
   const canvas = h('canvas', { id: 'tiles' });
   const placeholder = h('div', { class: 'placeholder' }, 'the preview appears after the first pass');
@@ -510,6 +538,7 @@ async function jobView(signal, id) {
       h('span', { class: 'muted mono' }, st.id),
       h('div', { class: 'actions' }, pauseBtn, priorityBtn, cancelBtn, dlExr, dlPreview, dlError, dlPlot)),
     facts,
+    strip,
     h('div', { class: 'panes' },
       h('figure', { class: 'panel' }, stage, caption),
       h('div', { class: 'side' },
@@ -577,6 +606,21 @@ async function jobView(signal, id) {
         st.optimal_depth ? `${st.optimal_max_depth} (auto: pilot ${st.optimal_depth.pilot_resolution.join(' × ')})` : `${st.optimal_max_depth}`, 'job-dopt')]),
       fact('Seed', s.seed ?? '—'));
     if (st.error) facts.append(h('div', { class: 'wide' }, h('dt', {}, 'Error'), h('dd', { class: 'error' }, st.error)));
+    if (st.frames) {
+      const shown = previewFrame();
+      strip.hidden = false;
+      strip.replaceChildren(h('span', { class: 'muted' }, 'Frames'), ...st.frames.map((f) => h('button', {
+        type: 'button',
+        class: `frame-chip state-${f.state}${f.frame === shown ? ' chosen' : ''}`,
+        title: `frame ${f.frame}: ${f.state}, ${f.spp_done} spp${f.error ? ` (${f.error})` : ''} · job ${f.job_id}`,
+        dataset: { frame: String(f.frame), job: f.job_id },
+        onclick: () => {
+          chosenFrame = f.frame;
+          render();
+          refreshImages();
+        },
+      }, String(f.frame))));
+    }
     cancelBtn.hidden = !active;
     cancelBtn.disabled = false;
     pauseBtn.hidden = priorityBtn.hidden = !active;
@@ -605,7 +649,11 @@ async function jobView(signal, id) {
   const refreshImages = coalesce(async () => {
     if (signal.aborted) return;
     const pass = previewPass;
-    const blob = await apiBlob(`${path}/preview.png`, signal);
+    const frame = previewFrame();
+    const blob = frame === null
+      ? await apiBlob(`${path}/preview.png`, signal)
+      : await apiBlob(`${path}/preview.png?frame=${frame}`, signal).catch(() => null);
+    if (!blob) return;
     const url = URL.createObjectURL(blob);
     await new Promise((resolve) => {
       img.onload = img.onerror = resolve;
