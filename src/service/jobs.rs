@@ -541,7 +541,9 @@ pub(crate) fn delete(app: &App, id: &str) -> ServiceResult<store::Deleted> {
         && j.is_sequence()
         && !j.state.is_active()
     {
-        for f in app.db().frames(id)? {
+        // The store's guard must be gone before each frame's delete locks it again.
+        let frames = app.db().frames(id)?;
+        for f in frames {
             let d = delete(app, &f.id)?;
             if !matches!(d, store::Deleted::Removed(_) | store::Deleted::Missing) {
                 return Ok(d);

@@ -5,7 +5,9 @@
 use super::errors::{ApiError, ApiResult, bad, settings_error};
 use super::scenes;
 use crate::job::frames::{self, FrameRange};
-use crate::protocol::{FrameStatus, JobEvent, JobRequest, JobStatus, QueuedEvent, SceneSource};
+use crate::protocol::{
+    FrameStatus, JobEvent, JobRequest, JobState, JobStatus, QueuedEvent, SceneSource,
+};
 use crate::scene::Scene;
 use crate::service::store::{self, JobRow};
 use crate::service::{App, jobs};
@@ -313,8 +315,8 @@ pub(super) fn fill_status(
             })
             .collect(),
     );
-    // Stored as it ends; while it runs, its frames say whether one has begun.
-    if job.state.is_active() {
+    // Stored as it ends or is paused; while it runs, its frames say whether one has begun.
+    if job.state.is_active() && job.state != JobState::Paused {
         st.state = jobs::sequence_state(&rows);
     }
     Ok(())

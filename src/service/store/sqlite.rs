@@ -1581,7 +1581,8 @@ mod tests {
             .expect("job");
             db.create_tasks(job, 0, 0..2, 0..16).expect("tasks");
         }
-        db.register_worker("w", "w", 1, "test", &[]).expect("worker");
+        db.register_worker("w", "w", 1, "test", &[])
+            .expect("worker");
         let lease = || db.lease("w", 60.0).expect("lease").map(|t| t.job_id);
         assert_eq!(lease().as_deref(), Some("urgent"));
         assert!(db.pause("urgent").expect("pause"));
@@ -1781,7 +1782,8 @@ mod tests {
         let parent = db.job("seq").expect("job").expect("the parent");
         assert_eq!(parent.frames.as_deref(), Some("1-3"));
         assert_eq!(parent.state, JobState::Queued);
-        db.register_worker("w", "w", 1, "test", &[]).expect("worker");
+        db.register_worker("w", "w", 1, "test", &[])
+            .expect("worker");
         let mut leased = Vec::new();
         while let Some(t) = db.lease("w", 60.0).expect("lease") {
             leased.push(t.job_id);
