@@ -603,6 +603,14 @@ def main():
         if api("GET", f"/v1/jobs/{long_job['id']}")["priority"] != 7:
             raise Fail("the server does not have the new priority")
         log("the priority is set from the page")
+        # The task history on the job page: every attempt so far, with its worker and outcome.
+        driver.click("#task-history summary")
+        history_rows = "return [...document.querySelectorAll('#task-history tbody tr')].map(r => r.className)"
+        wait_for("the task history", 30, lambda: any(c in ("outcome-done", "outcome-running") for c in (driver.js(history_rows) or [])))
+        attempts = api("GET", f"/v1/jobs/{long_job['id']}/tasks?limit=200")["attempts"]
+        if not attempts:
+            raise Fail("the server lists no task attempt of a job the page shows a history of")
+        log(f"the task history lists {len(driver.js(history_rows))} attempts")
         wait_for("the cancel button", 20, lambda: driver.js("const b = document.getElementById('cancel'); return b && !b.hidden"))
         driver.click("#cancel")
         wait_for("the confirmation", 10, lambda: driver.s("GET", "/alert/text") is not None)
@@ -611,6 +619,15 @@ def main():
         if api("GET", f"/v1/jobs/{long_job['id']}")["state"] != "cancelled":
             raise Fail("the server does not say cancelled")
         log("cancel works")
+        # The jobs list, filtered by state on the server.
+        driver.go(base + "/#/jobs")
+        wait_for("the jobs list", 20, lambda: long_job["id"] in (driver.js("return document.getElementById('jobs').innerHTML") or ""))
+        driver.js("const f = document.getElementById('filter-state'); f.value = 'cancelled'; f.dispatchEvent(new Event('change')); return true")
+        row_ids = "return [...document.querySelectorAll('#jobs tbody tr')].map(r => r.dataset.id || '')"
+        wait_for("only cancelled jobs listed", 20, lambda: driver.js(row_ids) == [long_job["id"]])
+        driver.js("const f = document.getElementById('filter-state'); f.value = 'done'; f.dispatchEvent(new Event('change')); return true")
+        wait_for("the cancelled job filtered out", 20, lambda: long_job["id"] not in (driver.js(row_ids) or []))
+        log("the jobs list filters by state")
 
         # A loopback coordinator without tokens: the API answers, so the page never asks.
         open_serve = procs.start(
