@@ -242,34 +242,23 @@ impl Client {
 
     /// Downloads a job's file (image.exr, preview.png, ...) to `out`.
     pub(crate) async fn download(&self, id: &str, file: &str, out: &Path) -> Result<usize> {
-        let r = self
-            .send(
-                self.req(reqwest::Method::GET, &format!("/v1/jobs/{id}/{file}")),
-                "downloading",
-            )
-            .await?;
-        let bytes = r.bytes().await.context("downloading")?;
-        tokio::fs::write(out, &bytes)
-            .await
-            .with_context(|| format!("{}", out.display()))?;
-        Ok(bytes.len())
+        self.download_frame(id, file, None, out).await
     }
 
-    /// Downloads frame `frame` of a sequence's file (image.exr, preview.png) to `out`.
+    /// Downloads a job's file (image.exr, preview.png, ...), of frame `frame` of a sequence
+    /// when given, to `out`.
     pub(crate) async fn download_frame(
         &self,
         id: &str,
         file: &str,
-        frame: u32,
+        frame: Option<u32>,
         out: &Path,
     ) -> Result<usize> {
-        let r = self
-            .send(
-                self.req(reqwest::Method::GET, &format!("/v1/jobs/{id}/{file}"))
-                    .query(&[("frame", frame)]),
-                "downloading",
-            )
-            .await?;
+        let mut req = self.req(reqwest::Method::GET, &format!("/v1/jobs/{id}/{file}"));
+        if let Some(f) = frame {
+            req = req.query(&[("frame", f)]);
+        }
+        let r = self.send(req, "downloading").await?;
         let bytes = r.bytes().await.context("downloading")?;
         tokio::fs::write(out, &bytes)
             .await
@@ -293,7 +282,8 @@ impl Client {
             let path: std::path::PathBuf = job_frames::frame_file(&pattern, f.frame)
                 .with_context(|| format!("{pattern}: not a frame pattern"))?
                 .into();
-            self.download_frame(&st.id, file, f.frame, &path).await?;
+            self.download_frame(&st.id, file, Some(f.frame), &path)
+                .await?;
             written.push(path);
         }
         Ok(written)

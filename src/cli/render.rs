@@ -177,53 +177,17 @@ fn in_process(a: &RenderArgs, scene: &Scene, r: &Resolved, out: &Path) -> Result
 }
 
 fn through_service(a: &RenderArgs, (tar, main): (Vec<u8>, String), out: &Path) -> Result<Done> {
-    let workers = a
-        .workers
-        .unwrap_or(if a.threads > 0 { a.threads } else { cores() })
-        .max(1);
-    if std::env::var_os("OMIS_LOG").is_some() {
-        init_logging();
-    }
-    let data = std::env::temp_dir().join(format!("omis-render-{}", uuid::Uuid::new_v4()));
-    let result = runtime()?.block_on(async {
-        let mut cfg =
-            service::Config::new("127.0.0.1:0".parse().expect("valid address"), data.clone());
-        cfg.workers = workers;
-        cfg.worker_threads = 1;
-        // The local workers serve the job, whatever tags it requires.
-        cfg.worker_tags = crate::protocol::validate_tags(&a.job.require_tags)
-            .map_err(|e| anyhow::anyhow!("--require-tag: {e}"))?;
-        cfg.lease_s = 30.0;
-        if std::env::var_os("OMIS_LOG").is_none() {
-            cfg.worker_log = Some("warn".into());
+    let ((st, seconds), workers) = with_embedded_service(a, async |c| {
+        let start = std::time::Instant::now();
+        let scene = SceneSource::Bundle(c.upload_bundle(tar, main).await?);
+        let st = submit_job(c, scene, &a.job, a.reference.as_deref(), None, 0).await?;
+        let st = finish(c, &st).await?;
+        c.download(&st.id, "image.exr", out).await?;
+        if let Some(p) = &a.png {
+            c.download(&st.id, "preview.png", p).await?;
         }
-        let running = service::start(cfg).await?;
-        let result = async {
-            let start = std::time::Instant::now();
-            let c = Client::new(&running.url, None)?;
-            let scene = SceneSource::Bundle(c.upload_bundle(tar, main).await?);
-            let st = submit_job(&c, scene, &a.job, a.reference.as_deref(), None, 0).await?;
-            let id = st.id.clone();
-            let state = wait_job(&c, &st, false).await?;
-            let st = c.status(&id).await?;
-            if state != JobState::Done {
-                bail!(
-                    "the render {state}: {}",
-                    st.error.as_deref().unwrap_or("no error given")
-                );
-            }
-            c.download(&id, "image.exr", out).await?;
-            if let Some(p) = &a.png {
-                c.download(&id, "preview.png", p).await?;
-            }
-            Ok((st, start.elapsed().as_secs_f64()))
-        }
-        .await;
-        running.stop().await;
-        result
-    });
-    let _ = std::fs::remove_dir_all(&data);
-    let (st, seconds) = result?;
+        Ok((st, start.elapsed().as_secs_f64()))
+    })?;
     let image = exr_io::read_exr(out).map_err(anyhow::Error::msg)?;
     Ok(Done {
         image,
@@ -255,6 +219,33 @@ fn sequence(a: &RenderArgs, frames: crate::job::frames::FrameRange) -> Result<()
                 .into_owned(),
         ),
     };
+    let ((st, written), _) = with_embedded_service(a, async |c| {
+        let scene = SceneSource::Bundle(c.upload_bundle(tar, main).await?);
+        let extras = JobExtras {
+            frames: Some(frames),
+            ..JobExtras::default()
+        };
+        let st = submit_request(c, scene, &a.job, None, None, extras).await?;
+        let st = finish(c, &st).await?;
+        let written = c.download_frames(&st, "image.exr", &out).await?;
+        Ok((st, written))
+    })?;
+    for w in &written {
+        eprintln!("{}", w.display());
+    }
+    if a.json {
+        println!("{}", serde_json::to_string(&st)?);
+    }
+    Ok(())
+}
+
+/// Runs `body` against an embedded coordinator with local worker processes (`--workers`, by
+/// default one per thread; they carry the job's required tags) in a temporary data folder,
+/// stopped and removed after; returns its answer and the number of workers.
+fn with_embedded_service<T>(
+    a: &RenderArgs,
+    body: impl AsyncFnOnce(&Client) -> Result<T>,
+) -> Result<(T, usize)> {
     let workers = a
         .workers
         .unwrap_or(if a.threads > 0 { a.threads } else { cores() })
@@ -268,44 +259,36 @@ fn sequence(a: &RenderArgs, frames: crate::job::frames::FrameRange) -> Result<()
             service::Config::new("127.0.0.1:0".parse().expect("valid address"), data.clone());
         cfg.workers = workers;
         cfg.worker_threads = 1;
+        // The local workers serve the job, whatever tags it requires.
+        cfg.worker_tags = crate::protocol::validate_tags(&a.job.require_tags)
+            .map_err(|e| anyhow::anyhow!("--require-tag: {e}"))?;
         cfg.lease_s = 30.0;
         if std::env::var_os("OMIS_LOG").is_none() {
             cfg.worker_log = Some("warn".into());
         }
         let running = service::start(cfg).await?;
-        let result = async {
-            let c = Client::new(&running.url, None)?;
-            let scene = SceneSource::Bundle(c.upload_bundle(tar, main).await?);
-            let extras = JobExtras {
-                frames: Some(frames),
-                ..JobExtras::default()
-            };
-            let st = submit_request(&c, scene, &a.job, None, None, extras).await?;
-            let id = st.id.clone();
-            let state = wait_job(&c, &st, false).await?;
-            let st = c.status(&id).await?;
-            if state != JobState::Done {
-                bail!(
-                    "the render {state}: {}",
-                    st.error.as_deref().unwrap_or("no error given")
-                );
-            }
-            let written = c.download_frames(&st, "image.exr", &out).await?;
-            Ok((st, written))
-        }
-        .await;
+        let result = match Client::new(&running.url, None) {
+            Ok(c) => body(&c).await,
+            Err(e) => Err(e),
+        };
         running.stop().await;
         result
     });
     let _ = std::fs::remove_dir_all(&data);
-    let (st, written) = result?;
-    for w in &written {
-        eprintln!("{}", w.display());
+    Ok((result?, workers))
+}
+
+/// Follows job `st` to its end; its final status, or an error unless it is done.
+async fn finish(c: &Client, st: &crate::protocol::JobStatus) -> Result<crate::protocol::JobStatus> {
+    let state = wait_job(c, st, false).await?;
+    let st = c.status(&st.id).await?;
+    if state != JobState::Done {
+        bail!(
+            "the render {state}: {}",
+            st.error.as_deref().unwrap_or("no error given")
+        );
     }
-    if a.json {
-        println!("{}", serde_json::to_string(&st)?);
-    }
-    Ok(())
+    Ok(st)
 }
 
 fn summary(

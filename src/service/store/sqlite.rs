@@ -150,6 +150,19 @@ fn cached_row<T>(
     conn.prepare_cached(sql)?.query_row(p, f)
 }
 
+/// Every row `sql` selects with `p`, each made by `f`.
+fn query_all<T>(
+    conn: &Connection,
+    sql: &str,
+    p: impl rusqlite::Params,
+    f: impl FnMut(&rusqlite::Row) -> rusqlite::Result<T>,
+) -> StoreResult<Vec<T>> {
+    let mut st = conn.prepare_cached(sql)?;
+    st.query_map(p, f)?
+        .collect::<rusqlite::Result<Vec<_>>>()
+        .map_err(StoreError::from)
+}
+
 /// Runs `sql` (a statement prepared once per connection and cached); rows changed.
 fn cached_exec(conn: &Connection, sql: &str, p: impl rusqlite::Params) -> rusqlite::Result<usize> {
     conn.prepare_cached(sql)?.execute(p)
@@ -533,12 +546,12 @@ impl JobStore for SqliteStore {
         Ok(())
     }
     fn frames(&self, parent: &str) -> StoreResult<Vec<JobRow>> {
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {JOB_COLS} FROM jobs WHERE parent_id = ?1 ORDER BY frame"
-        ))?;
-        st.query_map([parent], job_row)?
-            .collect::<rusqlite::Result<Vec<_>>>()
-            .map_err(StoreError::from)
+        query_all(
+            &self.conn,
+            &format!("SELECT {JOB_COLS} FROM jobs WHERE parent_id = ?1 ORDER BY frame"),
+            [parent],
+            job_row,
+        )
     }
     fn job(&self, id: &str) -> StoreResult<Option<JobRow>> {
         cached_row(
@@ -559,15 +572,16 @@ impl JobStore for SqliteStore {
                 .collect::<Vec<_>>()
                 .join(",")
         });
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {JOB_COLS} FROM jobs WHERE seq > ?1 \
+        query_all(
+            &self.conn,
+            &format!(
+                "SELECT {JOB_COLS} FROM jobs WHERE seq > ?1 \
              AND (?2 IS NULL OR instr(',' || ?2 || ',', ',' || state || ',') > 0) \
              AND (?3 IS NULL OR instr(lower(COALESCE(name, '')), lower(?3)) > 0) \
              AND (?4 IS NULL OR created_at >= ?4) \
              AND (?6 OR parent_id IS NULL) \
              ORDER BY seq LIMIT ?5"
-        ))?;
-        st.query_map(
+            ),
             params![
                 q.after.unwrap_or(i64::MIN),
                 states,
@@ -577,18 +591,18 @@ impl JobStore for SqliteStore {
                 q.include_frames
             ],
             job_row,
-        )?
-        .collect::<rusqlite::Result<Vec<_>>>()
-        .map_err(StoreError::from)
+        )
     }
     fn finished_jobs(&self) -> StoreResult<Vec<JobRow>> {
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {JOB_COLS} FROM jobs WHERE state NOT IN (?1, ?2, ?3) AND parent_id IS NULL \
+        query_all(
+            &self.conn,
+            &format!(
+                "SELECT {JOB_COLS} FROM jobs WHERE state NOT IN (?1, ?2, ?3) AND parent_id IS NULL \
              ORDER BY COALESCE(finished_at, created_at), seq"
-        ))?;
-        st.query_map(params![J_QUEUED, J_RUNNING, J_PAUSED], job_row)?
-            .collect::<rusqlite::Result<Vec<_>>>()
-            .map_err(StoreError::from)
+            ),
+            params![J_QUEUED, J_RUNNING, J_PAUSED],
+            job_row,
+        )
     }
     fn scene_in_use(&self, scene: &str) -> StoreResult<bool> {
         Ok(cached_row(
@@ -689,12 +703,12 @@ impl JobStore for SqliteStore {
         Ok(Deleted::Removed(Box::new(row)))
     }
     fn active_jobs(&self) -> StoreResult<Vec<JobRow>> {
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {JOB_COLS} FROM jobs WHERE state IN (?1, ?2, ?3) ORDER BY seq"
-        ))?;
-        st.query_map(params![J_QUEUED, J_RUNNING, J_PAUSED], job_row)?
-            .collect::<rusqlite::Result<Vec<_>>>()
-            .map_err(StoreError::from)
+        query_all(
+            &self.conn,
+            &format!("SELECT {JOB_COLS} FROM jobs WHERE state IN (?1, ?2, ?3) ORDER BY seq"),
+            params![J_QUEUED, J_RUNNING, J_PAUSED],
+            job_row,
+        )
     }
     fn set_job_state(&self, id: &str, state: JobState, error: Option<&str>) -> StoreResult<bool> {
         let finished = (!state.is_active()).then(now);
@@ -793,19 +807,19 @@ impl JobStore for SqliteStore {
         Ok(())
     }
     fn series(&self, id: &str) -> StoreResult<Vec<SeriesPoint>> {
-        let mut st = self.conn.prepare_cached(
+        query_all(
+            &self.conn,
             "SELECT pass, spp, seconds, relmse FROM series WHERE job_id = ?1 ORDER BY pass",
-        )?;
-        st.query_map([id], |r| {
-            Ok(SeriesPoint {
-                pass: r.get(0)?,
-                spp: r.get(1)?,
-                seconds: r.get(2)?,
-                relmse: r.get(3)?,
-            })
-        })?
-        .collect::<rusqlite::Result<Vec<_>>>()
-        .map_err(StoreError::from)
+            [id],
+            |r| {
+                Ok(SeriesPoint {
+                    pass: r.get(0)?,
+                    spp: r.get(1)?,
+                    seconds: r.get(2)?,
+                    relmse: r.get(3)?,
+                })
+            },
+        )
     }
     fn create_tasks(
         &self,
@@ -852,13 +866,15 @@ impl JobStore for SqliteStore {
         tx.commit().map_err(StoreError::from)
     }
     fn merge_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>> {
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3 \
+        query_all(
+            &self.conn,
+            &format!(
+                "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND pass = ?2 AND kind = ?3 \
              ORDER BY tile"
-        ))?;
-        st.query_map(params![id, pass, K_MERGE], task_row)?
-            .collect::<rusqlite::Result<Vec<_>>>()
-            .map_err(StoreError::from)
+            ),
+            params![id, pass, K_MERGE],
+            task_row,
+        )
     }
     fn delete_merge_tasks(&self, id: &str, pass: u32) -> StoreResult<()> {
         cached_exec(
@@ -927,13 +943,15 @@ impl JobStore for SqliteStore {
         .map_err(StoreError::from)
     }
     fn pass_tasks(&self, id: &str, pass: u32) -> StoreResult<Vec<TaskRow>> {
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND kind = ?3 AND pass = ?2 \
+        query_all(
+            &self.conn,
+            &format!(
+                "SELECT {TASK_COLS} FROM tasks WHERE job_id = ?1 AND kind = ?3 AND pass = ?2 \
              ORDER BY tile"
-        ))?;
-        st.query_map(params![id, pass, K_RENDER], task_row)?
-            .collect::<rusqlite::Result<Vec<_>>>()
-            .map_err(StoreError::from)
+            ),
+            params![id, pass, K_RENDER],
+            task_row,
+        )
     }
     fn task(&self, task_id: i64) -> StoreResult<Option<TaskRow>> {
         cached_row(
@@ -1277,18 +1295,18 @@ impl JobStore for SqliteStore {
         Ok(listed + failed > 0)
     }
     fn blocklist(&self, job: &str) -> StoreResult<Vec<BlocklistEntry>> {
-        let mut st = self.conn.prepare_cached(
+        query_all(
+            &self.conn,
             "SELECT worker_id, since, reason FROM blocklist WHERE job_id = ?1 ORDER BY since",
-        )?;
-        st.query_map([job], |r| {
-            Ok(BlocklistEntry {
-                worker_id: r.get(0)?,
-                since: r.get(1)?,
-                reason: r.get(2)?,
-            })
-        })?
-        .collect::<rusqlite::Result<Vec<_>>>()
-        .map_err(StoreError::from)
+            [job],
+            |r| {
+                Ok(BlocklistEntry {
+                    worker_id: r.get(0)?,
+                    since: r.get(1)?,
+                    reason: r.get(2)?,
+                })
+            },
+        )
     }
     fn task_attempts(
         &self,
@@ -1395,30 +1413,30 @@ impl JobStore for SqliteStore {
             let (worker, job) = row?;
             blocked.entry(worker).or_default().push(job);
         }
-        let mut st = self.conn.prepare_cached(
+        query_all(
+            &self.conn,
             "SELECT id, name, threads, version, registered_at, last_seen, state, tasks_done, \
              unhealthy, tags, admin FROM workers ORDER BY registered_at",
-        )?;
-        st.query_map([], |r| {
-            let id: String = r.get(0)?;
-            Ok(WorkerInfo {
-                tasks: held.remove(&id).unwrap_or_default(),
-                blocklisted_jobs: blocked.remove(&id).unwrap_or_default(),
-                unhealthy: r.get(8)?,
-                id,
-                name: r.get(1)?,
-                threads: r.get(2)?,
-                version: r.get(3)?,
-                registered_at: r.get(4)?,
-                last_seen: r.get(5)?,
-                state: r.get(6)?,
-                tasks_done: r.get(7)?,
-                tags: tags_of(&r.get::<_, String>(9)?),
-                admin: r.get(10)?,
-            })
-        })?
-        .collect::<rusqlite::Result<Vec<_>>>()
-        .map_err(StoreError::from)
+            [],
+            |r| {
+                let id: String = r.get(0)?;
+                Ok(WorkerInfo {
+                    tasks: held.remove(&id).unwrap_or_default(),
+                    blocklisted_jobs: blocked.remove(&id).unwrap_or_default(),
+                    unhealthy: r.get(8)?,
+                    id,
+                    name: r.get(1)?,
+                    threads: r.get(2)?,
+                    version: r.get(3)?,
+                    registered_at: r.get(4)?,
+                    last_seen: r.get(5)?,
+                    state: r.get(6)?,
+                    tasks_done: r.get(7)?,
+                    tags: tags_of(&r.get::<_, String>(9)?),
+                    admin: r.get(10)?,
+                })
+            },
+        )
     }
     fn add_event(
         &self,
@@ -1429,42 +1447,44 @@ impl JobStore for SqliteStore {
         Ok(insert_event(&self.conn, job, kind, data)?)
     }
     fn events_after(&self, job: &str, after: i64) -> StoreResult<Vec<EventRow>> {
-        let mut st = self.conn.prepare_cached(
+        query_all(
+            &self.conn,
             "SELECT id, job_id, kind, data, at FROM events WHERE job_id = ?1 AND id > ?2 ORDER BY id",
-        )?;
-        st.query_map(params![job, after], |r| {
-            let data: String = r.get(3)?;
-            Ok(EventRow {
-                id: r.get(0)?,
-                job_id: r.get(1)?,
-                kind: r.get(2)?,
-                data: serde_json::from_str(&data).unwrap_or(serde_json::Value::Null),
-                at: r.get(4)?,
-            })
-        })?
-        .collect::<rusqlite::Result<Vec<_>>>()
-        .map_err(StoreError::from)
+            params![job, after],
+            |r| {
+                let data: String = r.get(3)?;
+                Ok(EventRow {
+                    id: r.get(0)?,
+                    job_id: r.get(1)?,
+                    kind: r.get(2)?,
+                    data: serde_json::from_str(&data).unwrap_or(serde_json::Value::Null),
+                    at: r.get(4)?,
+                })
+            },
+        )
     }
     fn state_counts(&self, table: &str) -> StoreResult<Vec<(String, i64)>> {
         let table = match table {
             "jobs" | "tasks" | "workers" | "webhook_deliveries" => table,
             _ => return Ok(Vec::new()),
         };
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT state, COUNT(*) FROM {table} GROUP BY state"
-        ))?;
-        st.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
-            .collect::<rusqlite::Result<Vec<_>>>()
-            .map_err(StoreError::from)
+        query_all(
+            &self.conn,
+            &format!("SELECT state, COUNT(*) FROM {table} GROUP BY state"),
+            [],
+            |r| Ok((r.get(0)?, r.get(1)?)),
+        )
     }
     fn due_deliveries(&self, now: f64, limit: u32) -> StoreResult<Vec<DeliveryRow>> {
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {DELIVERY_COLS} FROM webhook_deliveries WHERE state = 'pending' \
+        query_all(
+            &self.conn,
+            &format!(
+                "SELECT {DELIVERY_COLS} FROM webhook_deliveries WHERE state = 'pending' \
              AND next_at <= ?1 ORDER BY next_at, seq LIMIT ?2"
-        ))?;
-        st.query_map(params![now, limit], delivery_row)?
-            .collect::<rusqlite::Result<Vec<_>>>()
-            .map_err(StoreError::from)
+            ),
+            params![now, limit],
+            delivery_row,
+        )
     }
     fn next_delivery_at(&self) -> StoreResult<Option<f64>> {
         Ok(cached_row(
@@ -1491,12 +1511,14 @@ impl JobStore for SqliteStore {
         Ok(())
     }
     fn deliveries(&self, job: &str) -> StoreResult<Vec<DeliveryRow>> {
-        let mut st = self.conn.prepare_cached(&format!(
-            "SELECT {DELIVERY_COLS} FROM webhook_deliveries WHERE job_id = ?1 ORDER BY seq"
-        ))?;
-        st.query_map([job], delivery_row)?
-            .collect::<rusqlite::Result<Vec<_>>>()
-            .map_err(StoreError::from)
+        query_all(
+            &self.conn,
+            &format!(
+                "SELECT {DELIVERY_COLS} FROM webhook_deliveries WHERE job_id = ?1 ORDER BY seq"
+            ),
+            [job],
+            delivery_row,
+        )
     }
 }
 
