@@ -151,8 +151,13 @@ fn bits(img: &Image) -> Vec<[u32; 3]> {
 
 /// A 400 JSON error naming `field`.
 fn assert_refused(status: u16, body: &[u8], field: &str) -> Value {
+    assert_error(status, body, 400, field)
+}
+
+/// A JSON error of status `want` naming `field`.
+fn assert_error(status: u16, body: &[u8], want: u16, field: &str) -> Value {
     let v: Value = serde_json::from_slice(body).unwrap_or(Value::Null);
-    assert_eq!((status, v["field"].as_str()), (400, Some(field)), "{v}");
+    assert_eq!((status, v["field"].as_str()), (want, Some(field)), "{v}");
     v
 }
 
@@ -233,9 +238,10 @@ fn a_sequence_renders_its_frames_in_order_to_the_bits_of_single_frame_jobs() {
     assert_ne!(bits(&images[1]), bits(&images[2]), "the camera moves");
     let (s, body) = get(&c, &url, &format!("/v1/jobs/{id}/preview.png?frame=2"));
     assert_eq!((s, &body[..4]), (200, &b"\x89PNG"[..]));
-    // Out of range, missing, or asked of a single frame: 400 naming `frame`.
+    // A frame the job does not have (out of range, or of a single frame): 404 naming `frame`;
+    // a sequence's image without one: 400.
     let (s, body) = get(&c, &url, &format!("/v1/jobs/{id}/image.exr?frame=4"));
-    assert_refused(s, &body, "frame");
+    assert_error(s, &body, 404, "frame");
     let (s, body) = get(&c, &url, &format!("/v1/jobs/{id}/image.exr"));
     assert_refused(s, &body, "frame");
     // Each frame alone, as a single-frame job of its file: the same bits.
@@ -251,7 +257,7 @@ fn a_sequence_renders_its_frames_in_order_to_the_bits_of_single_frame_jobs() {
         );
         let single = st["id"].as_str().expect("id");
         let (s, body) = get(&c, &url, &format!("/v1/jobs/{single}/image.exr?frame=1"));
-        assert_refused(s, &body, "frame");
+        assert_error(s, &body, 404, "frame");
     }
 }
 

@@ -11,6 +11,7 @@ use crate::protocol::{
 use crate::scene::Scene;
 use crate::service::store::{self, JobRow};
 use crate::service::{App, jobs};
+use axum::http::StatusCode;
 
 /// Whether `req` asks for a sequence: frames given, or a bundle whose main file is a frame
 /// pattern (which then needs them).
@@ -209,15 +210,15 @@ fn range_of(job: &JobRow) -> ApiResult<FrameRange> {
 }
 
 /// The job whose images `GET /v1/jobs/{id}/image.exr?frame=N` serves: frame `N`'s of a
-/// sequence (which needs it), the job itself otherwise (which refuses it).
+/// sequence (which needs it: 400 without it), the job itself otherwise (404 with one).
 pub(super) fn image_job(app: &App, job: JobRow, frame: Option<u32>) -> ApiResult<JobRow> {
     if !job.is_sequence() {
         return match frame {
             None => Ok(job),
-            Some(_) => Err(bad(
-                "frame",
-                format!("job '{}' is a single frame, not a sequence", job.id),
-            )),
+            Some(f) => Err(no_frame(format!(
+                "job '{}' is a single frame, not a sequence: it has no frame {f}",
+                job.id
+            ))),
         };
     }
     let range = range_of(&job)?;
@@ -231,21 +232,21 @@ pub(super) fn image_job(app: &App, job: JobRow, frame: Option<u32>) -> ApiResult
         ));
     };
     if !range.contains(frame) {
-        return Err(bad(
-            "frame",
-            format!("frame {frame} is not one of the sequence's frames ({range})"),
-        ));
+        return Err(no_frame(format!(
+            "frame {frame} is not one of the sequence's frames ({range})"
+        )));
     }
     app.db()
         .frames(&job.id)?
         .into_iter()
         .find(|f| f.frame == Some(frame))
-        .ok_or_else(|| {
-            bad(
-                "frame",
-                format!("frame {frame} of job '{}' is gone", job.id),
-            )
-        })
+        .ok_or_else(|| no_frame(format!("frame {frame} of job '{}' is gone", job.id)))
+}
+
+/// 404 naming `frame`: the job has no such frame (a well-formed request for a resource that
+/// does not exist).
+fn no_frame(message: String) -> ApiError {
+    ApiError::field(StatusCode::NOT_FOUND, "frame", message)
 }
 
 /// Fills the status `st` of sequence `job` from its frames' statuses (`frame_status` of each):
